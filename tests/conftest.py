@@ -1,0 +1,38 @@
+"""Shared fixtures: the Warp device under test and the shared assets folder."""
+
+from pathlib import Path
+
+import pytest
+
+ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
+
+
+def pytest_addoption(parser):
+    parser.addoption("--device", default="cpu", help="Warp device for the tests: cpu (default), cuda:0, or all")
+
+
+def _devices(config):
+    choice = config.getoption("--device")
+    if choice != "all":
+        return [choice]
+    import warp as wp
+
+    return ["cpu"] + [d.alias for d in wp.get_cuda_devices()]
+
+
+def pytest_generate_tests(metafunc):
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", _devices(metafunc.config))
+
+
+@pytest.fixture
+def asset():
+    """Return a function giving the path of a shared asset, skipping the test when it is absent."""
+
+    def get(name: str) -> Path:
+        path = ASSETS / name
+        if not path.exists():
+            pytest.skip(f"shared asset {name} not found at {path} (../shared/assets is absent)")
+        return path
+
+    return get
