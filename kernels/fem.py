@@ -1,0 +1,91 @@
+"""Corotational linear FEM on linear tetrahedra: elastic forces and the warped stiffness blocks.
+
+For a tet with rest shape matrix ``Dm`` (columns X1-X0, X2-X0, X3-X0) the shape-function gradients are
+the rows of ``Dm^-1`` (g1, g2, g3) and ``g0 = -(g1 + g2 + g3)``. With the per-tet rotation ``R`` (polar
+part of ``F = Ds Dm^-1``) the small-strain tensor in the rotated frame is ``eps = sym(R^T F) - I``, the
+stress ``sigma = 2 mu eps + lambda tr(eps) I`` and the force on corner a is ``f_a = -V R sigma g_a``,
+which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block coupling corners a and b is
+``K_ab = V (mu (g_a . g_b) I + mu g_b g_a^T + lambda g_a g_b^T)``, warped to ``R K_ab R^T``.
+"""
+
+import warp as wp
+
+
+@wp.func
+def rotation_of(F: wp.mat33) -> wp.mat33:
+    """Return the rotation closest to ``F`` (polar decomposition through the SVD).
+
+    Robust for flat and inverted tets: when ``U V^T`` is a reflection, the singular direction of the
+    smallest singular value is flipped, so the result is always a proper rotation.
+    """
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < 0.0:
+        # the smallest singular value comes last in Warp's svd3
+        U = wp.matrix_from_cols(U[:, 0], U[:, 1], -U[:, 2])
+        R = U * wp.transpose(V)
+    return R
+
+
+@wp.func
+def shape_gradient(dm_inv: wp.mat33, a: int) -> wp.vec3:
+    """Gradient of the linear shape function of corner ``a`` (0..3) in rest coordinates (1/m)."""
+    if a == 0:
+        return -(dm_inv[0] + dm_inv[1] + dm_inv[2])
+    return dm_inv[a - 1]
+
+
+@wp.func
+def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float) -> wp.mat33:
+    """Unwarped linear-elastic stiffness block K_ab (N/m) of one tet."""
+    return vol * (mu * wp.dot(ga, gb) * wp.identity(n=3, dtype=float) + mu * wp.outer(gb, ga) + lam * wp.outer(ga, gb))
+
+
+@wp.kernel
+def elastic_forces_and_stiffness(
+    # inputs: state
+    x: wp.array(dtype=wp.vec3),
+    # inputs: model
+    tets: wp.array(dtype=wp.vec4i),
+    dm_inv: wp.array(dtype=wp.mat33),
+    rest_volume: wp.array(dtype=float),
+    tet_mu: wp.array(dtype=float),
+    tet_lambda: wp.array(dtype=float),
+    tet_beta: wp.array(dtype=float),
+    tet_slots: wp.array(dtype=wp.int32),
+    # inputs: step
+    dt: float,
+    # outputs
+    rotation_out: wp.array(dtype=wp.mat33),
+    force_out: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
+):
+    """Per tet: rotation, corotational elastic force (N), and (dt^2 + dt beta) R K_ab R^T added to the matrix."""
+    e = wp.tid()
+    t = tets[e]
+    x0 = x[t[0]]
+    ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+    dmi = dm_inv[e]
+    F = ds * dmi
+    R = rotation_of(F)
+    rotation_out[e] = R
+
+    vol = rest_volume[e]
+    mu = tet_mu[e]
+    lam = tet_lambda[e]
+    RtF = wp.transpose(R) * F
+    eps = 0.5 * (RtF + wp.transpose(RtF)) - wp.identity(n=3, dtype=float)
+    sigma = 2.0 * mu * eps + lam * wp.trace(eps) * wp.identity(n=3, dtype=float)
+    P = R * sigma
+
+    scale = dt * dt + dt * tet_beta[e]
+    for a in range(4):
+        ga = shape_gradient(dmi, a)
+        wp.atomic_add(force_out, t[a], -vol * (P * ga))
+        for b in range(4):
+            gb = shape_gradient(dmi, b)
+            block = R * stiffness_block(ga, gb, vol, mu, lam) * wp.transpose(R)
+            wp.atomic_add(matrix_out, tet_slots[e * 16 + a * 4 + b], scale * block)
