@@ -1,0 +1,112 @@
+"""The corotational FEM kernel against analytic linear elasticity."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpfem import fem
+from warpfem.model import ModelBuilder, lame
+from warpfem.shapes import box_tet_mesh
+
+E, NU = 1.0e6, 0.3
+
+
+def _model(vertices, tets, device, young=E, poisson=NU):
+    b = ModelBuilder()
+    b.add_body("b", vertices, tets, young, poisson, 1000.0)
+    return b.finalize(device)
+
+
+def _evaluate(model, x, dt=1.0):
+    """Elastic forces (n,3), dense stiffness (3n,3n) scaled by dt^2, rotations (q,3,3)."""
+    n = model.vertex_count
+    force = wp.zeros(n, dtype=wp.vec3, device=model.device)
+    matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=model.device)
+    rot = wp.zeros(model.tet_count, dtype=wp.mat33, device=model.device)
+    xw = wp.array(np.asarray(x, np.float32), dtype=wp.vec3, device=model.device)
+    fem.elastic_forces_and_stiffness(model, xw, dt, rot, force, matrix)
+    dense = np.zeros((3 * n, 3 * n))
+    rs, cols, vals = model.row_start.numpy(), model.cols.numpy(), matrix.numpy()
+    for i in range(n):
+        for s in range(rs[i], rs[i + 1]):
+            dense[3 * i : 3 * i + 3, 3 * cols[s] : 3 * cols[s] + 3] = vals[s]
+    return force.numpy(), dense, rot.numpy()
+
+
+def _random_rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
+
+
+def test_rigid_motion_has_no_elastic_force(device):
+    rng = np.random.default_rng(0)
+    V, T = box_tet_mesh((0, 0, 0), (0.3, 0.2, 0.1), (3, 2, 2))
+    model = _model(V, T, device)
+    for _ in range(3):
+        R = _random_rotation(rng)
+        x = V @ R.T + rng.normal(size=3)
+        f, _, rot = _evaluate(model, x)
+        scale = E * 0.1**2  # N: stress times an element face
+        assert np.abs(f).max() < 1e-4 * scale
+        np.testing.assert_allclose(rot, np.broadcast_to(R, rot.shape), atol=1e-4)
+
+
+def test_constant_strain_patch(device):
+    """An affine small deformation: interior nodes in equilibrium, face resultant = analytic traction."""
+    lo, hi = np.zeros(3), np.array([0.3, 0.2, 0.2])
+    V, T = box_tet_mesh(lo, hi, (3, 2, 2))
+    model = _model(V, T, device)
+    eps = 1e-3 * np.array([[1.0, 0.3, -0.2], [0.3, -0.5, 0.4], [-0.2, 0.4, 0.8]])  # symmetric: R = I
+    f, _, _ = _evaluate(model, V @ (np.eye(3) + eps).T)
+    mu, lam = lame(E, NU)
+    sigma = 2 * mu * eps + lam * np.trace(eps) * np.eye(3)
+    on_boundary = ((np.isclose(V, lo) | np.isclose(V, hi)).any(axis=1))
+    resultant = np.abs(sigma).max() * 0.04
+    assert np.abs(f[~on_boundary]).max() < 1e-3 * resultant
+    face = np.isclose(V[:, 0], hi[0])
+    area = (hi[1] - lo[1]) * (hi[2] - lo[2])
+    np.testing.assert_allclose(f[face].sum(axis=0), -sigma[:, 0] * area, rtol=2e-3, atol=1e-3 * resultant)
+
+
+def test_element_stiffness_spd_with_six_rigid_modes(device):
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0.2, 0.9, 0], [0.3, 0.3, 0.8]])
+    model = _model(V, np.array([[0, 1, 2, 3]]), device)
+    _, K, _ = _evaluate(model, V)
+    assert np.abs(K - K.T).max() < 1e-5 * np.abs(K).max()
+    w = np.linalg.eigvalsh(0.5 * (K + K.T))
+    assert w.min() > -1e-5 * w.max()
+    assert (np.abs(w) < 1e-5 * w.max()).sum() == 6
+    assert w[6] > 1e-3 * w.max()
+    c = V.mean(axis=0)
+    for axis in np.eye(3):
+        translation = np.tile(axis, 4)
+        rotation = np.cross(axis, V - c).ravel()
+        for mode in (translation, rotation):
+            assert np.linalg.norm(K @ mode) < 1e-5 * np.abs(w).max() * np.linalg.norm(mode)
+
+
+def test_stiffness_is_the_force_jacobian_at_rest(device):
+    rng = np.random.default_rng(1)
+    V, T = box_tet_mesh((0, 0, 0), (0.2, 0.2, 0.2), (1, 1, 1))
+    model = _model(V, T, device)
+    _, K, _ = _evaluate(model, V)
+    du = 1e-4 * rng.normal(size=V.shape)
+    f, _, _ = _evaluate(model, V + du)
+    np.testing.assert_allclose(f.ravel(), -K @ du.ravel(), atol=2e-2 * np.abs(K @ du.ravel()).max())
+
+
+@pytest.mark.parametrize("kind", ["flat", "inverted"])
+def test_rotation_is_proper_for_degenerate_tets(device, kind):
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    model = _model(V, np.array([[0, 1, 2, 3]]), device)
+    x = V.copy()
+    x[3, 2] = 0.0 if kind == "flat" else -0.5
+    f, _, rot = _evaluate(model, x)
+    R = rot[0]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-5)
+    assert np.isfinite(f).all()
+    assert f[3, 2] > 0  # the squashed corner is pushed back up

@@ -1,0 +1,124 @@
+"""Whole steps of the solver against analytic mechanics."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpfem.model import ModelBuilder
+from warpfem.shapes import box_tet_mesh
+from warpfem.solver import Ground, Solver
+
+G = 9.81
+
+
+def _cube(device, y0=1.0, young=1e5, **kw):
+    V, T = box_tet_mesh((0, y0, 0), (0.2, y0 + 0.2, 0.2), (2, 2, 2))
+    b = ModelBuilder()
+    b.add_body("cube", V, T, young, 0.3, 1000.0, **kw)
+    return b.finalize(device), V
+
+
+def _run(solver, model, steps, dt):
+    s0, s1 = model.state(), model.state()
+    for _ in range(steps):
+        solver.step(s0, s1, dt)
+        s0, s1 = s1, s0
+    return s0
+
+
+def test_free_fall_matches_kinematics(device):
+    model, V = _cube(device, y0=10.0)
+    solver = Solver(model, gravity=(0, -G, 0), ground=None, cg_iterations=50, cg_tolerance=1e-6)
+    dt, n = 1 / 240, 120
+    x = _run(solver, model, n, dt).x.numpy()
+    drop = V[:, 1].mean() - x[:, 1].mean()
+    # backward Euler's exact discrete drop, and the analytic g t^2 / 2 within its O(dt) error
+    assert drop == pytest.approx(G * dt * dt * n * (n + 1) / 2, rel=1e-4)
+    assert drop == pytest.approx(G * (n * dt) ** 2 / 2, rel=0.01)
+    np.testing.assert_allclose(x[:, [0, 2]], V[:, [0, 2]], atol=1e-5)  # no sideways drift, no deformation
+    assert np.ptp(x[:, 1] - V[:, 1]) < 1e-5
+
+
+def test_cube_comes_to_rest_on_the_ground(device):
+    model, V = _cube(device, y0=0.5, damping_stiffness=0.01)
+    solver = Solver(model, ground=Ground(stiffness=1e6), cg_iterations=100, cg_tolerance=1e-5)
+    s = _run(solver, model, 480, 1 / 240)
+    x, v = s.x.numpy(), s.v.numpy()
+    assert solver.first_bad_vertex() is None
+    assert x[:, 1].min() > -0.002 * 0.2  # penetration below 0.2 % of the size
+    assert x[:, 1].min() < 0.001  # it did land
+    assert np.abs(v).max() < 0.05
+    height = x[:, 1].max() - x[:, 1].min()
+    assert height == pytest.approx(0.2, rel=0.02)  # elastic, only slightly compressed
+
+
+def test_clamped_cantilever_sags_like_euler_bernoulli(device):
+    L, h, E, rho = 1.0, 0.1, 1e8, 1000.0
+    V, T = box_tet_mesh((0, 0, 0), (L, h, h), (50, 8, 8))  # linear tets lock in bending: 8 across
+    b = ModelBuilder()
+    b.add_body("beam", V, T, E, 0.0, rho, pinned=V[:, 0] < 1e-9)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None, cg_iterations=5000, cg_tolerance=1e-7)
+    # backward Euler with a long step is a (damped) static solve: x1 = x0 + (M/dt^2 + K)^-1 M g
+    x = _run(solver, model, 4, 100.0).x.numpy()
+    tip = np.isclose(V[:, 0], L)
+    sag = V[tip, 1].mean() - x[tip, 1].mean()
+    w = rho * G * h * h
+    euler_bernoulli = w * L**4 / (8 * E * h**4 / 12)
+    assert sag == pytest.approx(euler_bernoulli, rel=0.10)
+
+
+def test_pinned_vertices_do_not_move(device):
+    V, T = box_tet_mesh((0, 1, 0), (0.2, 1.2, 0.2), (2, 2, 2))
+    pinned = V[:, 1] > 1.2 - 1e-9
+    b = ModelBuilder()
+    b.add_body("hang", V, T, 1e5, 0.3, 1000.0, pinned=pinned)
+    model = b.finalize(device)
+    x = _run(Solver(model, ground=None), model, 60, 1 / 120).x.numpy()
+    np.testing.assert_array_equal(x[pinned], V[pinned].astype(np.float32))
+    assert x[~pinned, 1].mean() < V[~pinned, 1].mean() - 1e-4  # the rest hangs down
+
+
+def test_bodies_in_one_model_match_separate_runs(device):
+    Va, Ta = box_tet_mesh((0, 0.3, 0), (0.2, 0.5, 0.2), (2, 2, 2))
+    Vb, Tb = box_tet_mesh((1, 0.6, 0), (1.3, 0.7, 0.1), (3, 1, 1))
+    params = [("a", Va, Ta, 1e5, 0.3, 1000.0), ("b", Vb, Tb, 3e5, 0.4, 500.0)]
+    together = ModelBuilder()
+    for p in params:
+        together.add_body(*p, velocity=(0.5, 0, 0))
+    model = together.finalize(device)
+    cfg = dict(ground=Ground(), cg_iterations=200, cg_tolerance=1e-7)
+    joint = _run(Solver(model, **cfg), model, 60, 1 / 120).x.numpy()
+    for body, p in zip(model.bodies, params, strict=True):
+        alone = ModelBuilder()
+        alone.add_body(*p, velocity=(0.5, 0, 0))
+        m = alone.finalize(device)
+        x = _run(Solver(m, **cfg), m, 60, 1 / 120).x.numpy()
+        np.testing.assert_allclose(joint[body.vertex_start : body.vertex_start + body.vertex_count], x, atol=2e-4)
+
+
+def test_nan_is_flagged_with_its_vertex(device):
+    model, V = _cube(device)
+    solver = Solver(model)
+    s0, s1 = model.state(), model.state()
+    v = s0.v.numpy()
+    v[7] = np.nan
+    s0.v.assign(v)
+    solver.step(s0, s1, 1 / 60)
+    assert solver.first_bad_vertex() is not None
+    assert solver.first_bad_vertex() is None  # the flag resets after reading
+
+
+def test_captured_frame_replays_like_direct_execution(device):
+    if not wp.get_device(device).is_cuda:
+        pytest.skip("CUDA graph capture needs a CUDA device")
+    model, _ = _cube(device, y0=0.3, damping_stiffness=0.01)
+    solver = Solver(model, cg_iterations=60, cg_tolerance=1e-5)
+    direct = _run(solver, model, 40, 1 / 240).x.numpy()
+    s0, s1 = model.state(), model.state()
+    with wp.ScopedCapture(device=device) as capture:
+        solver.step(s0, s1, 1 / 240)
+        solver.step(s1, s0, 1 / 240)
+    for _ in range(20):
+        wp.capture_launch(capture.graph)
+    np.testing.assert_allclose(s0.x.numpy(), direct, atol=1e-5)
