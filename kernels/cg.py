@@ -42,7 +42,7 @@ def cg_init(
     rz_out: wp.array(dtype=float),
     bz_out: wp.array(dtype=float),
 ):
-    """r = b - A x, z = M^-1 r, p = z; accumulates r.z into rz[0] and b.M^-1 b into bz[0]."""
+    """R = b - A x, z = M^-1 r, p = z; accumulates r.z into rz[0] and b.M^-1 b into bz[0]."""
     i = wp.tid()
     if free[i] == 0:
         r_out[i] = wp.vec3()
@@ -87,7 +87,7 @@ def cg_spmv(
     q_out: wp.array(dtype=wp.vec3),
     pq_out: wp.array(dtype=float),
 ):
-    """q = A p on free rows (zero on pinned rows); accumulates p.q into pq[k]."""
+    """Q = A p on free rows (zero on pinned rows); accumulates p.q into pq[k]."""
     i = wp.tid()
     if free[i] == 0:
         q_out[i] = wp.vec3()
@@ -110,11 +110,11 @@ def cg_update_xr(
     z_out: wp.array(dtype=wp.vec3),
     rz_out: wp.array(dtype=float),
 ):
-    """x += alpha p, r -= alpha q, z = M^-1 r with alpha = rz[k] / pq[k]; accumulates r.z into rz[k+1]."""
+    """X += alpha p, r -= alpha q, z = M^-1 r with alpha = rz[k] / pq[k]; accumulates r.z into rz[k+1]."""
     i = wp.tid()
     k = iteration[0]
     denom = pq[k]
-    alpha = float(0.0)
+    alpha = 0.0
     if denom > 0.0:
         alpha = rz[k] / denom
     x_out[i] = x_out[i] + alpha * p[i]
@@ -132,10 +132,10 @@ def cg_update_p(
     rz: wp.array(dtype=float),
     p_out: wp.array(dtype=wp.vec3),
 ):
-    """p = z + beta p with beta = rz[k+1] / rz[k]."""
+    """P = z + beta p with beta = rz[k+1] / rz[k]."""
     i = wp.tid()
     k = iteration[0]
-    beta = float(0.0)
+    beta = 0.0
     if rz[k] > 0.0:
         beta = rz[k + 1] / rz[k]
     p_out[i] = z[i] + beta * p_out[i]
@@ -173,7 +173,7 @@ def cg_finish(
     k = iteration[0]
     counts_out[0] = counts_out[0] + 1
     counts_out[1] = counts_out[1] + k
-    res = float(0.0)
+    res = 0.0
     if bz[0] > 0.0:
         res = wp.sqrt(wp.max(rz[k], 0.0) / bz[0])
     residual_max_out[0] = wp.max(residual_max_out[0], res)

@@ -63,7 +63,7 @@ def test_constant_strain_patch(device):
     f, _, _ = _evaluate(model, V @ (np.eye(3) + eps).T)
     mu, lam = lame(E, NU)
     sigma = 2 * mu * eps + lam * np.trace(eps) * np.eye(3)
-    on_boundary = ((np.isclose(V, lo) | np.isclose(V, hi)).any(axis=1))
+    on_boundary = (np.isclose(V, lo) | np.isclose(V, hi)).any(axis=1)
     resultant = np.abs(sigma).max() * 0.04
     assert np.abs(f[~on_boundary]).max() < 1e-3 * resultant
     face = np.isclose(V[:, 0], hi[0])

@@ -41,7 +41,9 @@ class CGSolver:
         device: Warp device.
     """
 
-    def __init__(self, row_start: wp.array, cols: wp.array, free: wp.array, max_iterations: int, device) -> None:
+    def __init__(
+        self, row_start: wp.array, cols: wp.array, free: wp.array, max_iterations: int, device
+    ) -> None:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
         n = free.shape[0]
@@ -89,7 +91,13 @@ class CGSolver:
             device=dev,
         )
         limits = [self.tolerance, self.max_iterations]
-        wp.launch(K.cg_start, dim=1, inputs=[self.rz, self.bz, *limits], outputs=[self.iteration, self.cond], device=dev)
+        wp.launch(
+            K.cg_start,
+            dim=1,
+            inputs=[self.rz, self.bz, *limits],
+            outputs=[self.iteration, self.cond],
+            device=dev,
+        )
 
         def iterate() -> None:
             wp.launch(
@@ -106,7 +114,9 @@ class CGSolver:
                 outputs=[x, self.r, self.z, self.rz],
                 device=dev,
             )
-            wp.launch(K.cg_update_p, dim=n, inputs=[self.z, self.iteration, self.rz], outputs=[self.p], device=dev)
+            wp.launch(
+                K.cg_update_p, dim=n, inputs=[self.z, self.iteration, self.rz], outputs=[self.p], device=dev
+            )
             wp.launch(
                 K.cg_advance,
                 dim=1,

@@ -29,13 +29,27 @@ def build_system(
     wp.launch(
         K.build_system,
         dim=model.vertex_count,
-        inputs=[state.x, state.v, model.mass, model.alpha, model.free, model.diag_slot, force, gravity, up, ground, dt],
+        inputs=[
+            state.x,
+            state.v,
+            model.mass,
+            model.alpha,
+            model.free,
+            model.diag_slot,
+            force,
+            gravity,
+            up,
+            ground,
+            dt,
+        ],
         outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out],
         device=model.device,
     )
 
 
-def advance_positions(model: Model, x: wp.array, v_new: wp.array, dt: float, x_out: wp.array, bad_vertex_out: wp.array):
+def advance_positions(
+    model: Model, x: wp.array, v_new: wp.array, dt: float, x_out: wp.array, bad_vertex_out: wp.array
+):
     """x_out = x + dt v_new; the lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min)."""
     wp.launch(
         K.advance_positions,
