@@ -1,0 +1,444 @@
+"""Scene files: TOML in, validated configuration dataclasses out.
+
+Every key is documented in ``scenes/README.md``. A problem with a scene file raises
+:class:`warpfem.errors.InputError` with one line naming the file, the key (with its table) and
+what is wrong, e.g. ``scene.toml: object[0] 'bunny': young must be > 0 Pa, got -5.0``.
+
+All quantities are SI: metres, seconds, kilograms, pascals, degrees for rotations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import importlib.resources
+import math
+import operator
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from warpfem.errors import InputError
+
+Vec3 = tuple[float, float, float]
+
+#: The mesh value that names the Stanford bunny shipped with Warp instead of a file.
+BUILTIN_BUNNY = "builtin:bunny"
+BUILTIN_MESHES = (BUILTIN_BUNNY,)
+
+_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+class _Problem:
+    """Builds the one-line error messages of one table of one scene file."""
+
+    def __init__(self, origin: str, prefix: str):
+        self.origin = origin
+        self.prefix = prefix
+
+    def __call__(self, key: str, problem: str) -> InputError:
+        return InputError(f"{self.origin}: {self.prefix}{key} {problem}".replace("\n", " "))
+
+
+def _table(origin: str, name: str) -> _Problem:
+    """The error builder for a plain table: keys read ``solver.cg_mode``."""
+    return _Problem(origin, f"{name}.")
+
+
+def _object_table(origin: str, index: int, name: object) -> _Problem:
+    """The error builder for ``object[index]``: keys read ``object[0] 'bunny': young``."""
+    label = f"object[{index}] '{name}'" if isinstance(name, str) and name else f"object[{index}]"
+    return _Problem(origin, f"{label}: ")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _shown(value: object) -> str:
+    """A value as the user wrote it, with its type when that is the problem."""
+    if isinstance(value, str):
+        return f'"{value}" (a string)'
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
+    if isinstance(value, dict):
+        return "a table"
+    return repr(value)
+
+
+def _check_int(err: _Problem, key: str, value: object, lo: int, hi: int | None = None) -> None:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise err(key, f"must be an integer, got {_shown(value)}")
+    if value < lo or (hi is not None and value > hi):
+        bound = f">= {lo}" if hi is None else f"in {lo}..{hi}"
+        raise err(key, f"must be {bound}, got {value}")
+
+
+def _check_float(err: _Problem, key: str, value: object) -> None:
+    if not _is_number(value):
+        raise err(key, f"must be a number, got {_shown(value)}")
+    if not math.isfinite(value):
+        raise err(key, f"must be finite, got {value}")
+
+
+def _check_range(
+    err: _Problem,
+    key: str,
+    value: object,
+    unit: str = "",
+    *,
+    gt: float | None = None,
+    ge: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+) -> None:
+    """Check a finite number against the bounds given (``gt``: >, ``ge``: >=, ``lt``: <, ``le``: <=)."""
+    _check_float(err, key, value)
+    checks = [
+        (">", gt, operator.gt),
+        (">=", ge, operator.ge),
+        ("<", lt, operator.lt),
+        ("<=", le, operator.le),
+    ]
+    checks = [(op, bound, holds) for op, bound, holds in checks if bound is not None]
+    if not all(holds(value, bound) for _, bound, holds in checks):
+        bounds = " and ".join(f"{op} {bound:g}" for op, bound, _ in checks)
+        suffix = f" {unit}" if unit else ""
+        raise err(key, f"must be {bounds}{suffix}, got {value}")
+
+
+def _check_vec3(err: _Problem, key: str, value: object) -> None:
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(_is_number(v) for v in value):
+        raise err(key, f"must be a list of 3 numbers, got {_shown(value)}")
+    if not all(math.isfinite(v) for v in value):
+        raise err(key, f"must hold finite numbers, got {list(value)}")
+
+
+def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ...]) -> None:
+    if value not in choices or not isinstance(value, str):
+        allowed = " or ".join(f'"{c}"' for c in choices)
+        raise err(key, f"must be {allowed}, got {_shown(value)}")
+
+
+@dataclass
+class SolverConfig:
+    """The linear solver of each implicit Euler step (conjugate gradients).
+
+    Attributes:
+        cg_mode: ``"tolerance"``: iterate until the relative residual is below ``cg_tolerance`` (at
+            most ``cg_iterations``); ``"fixed"``: always ``cg_iterations`` iterations (the paper's
+            choice: predictable frame time, less accuracy).
+        cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1).
+        cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
+    """
+
+    cg_mode: str = "tolerance"
+    cg_iterations: int = 100
+    cg_tolerance: float = 1e-4
+
+    def validate(self, origin: str = "<scene>") -> None:
+        """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
+        err = _table(origin, "solver")
+        _check_choice(err, "cg_mode", self.cg_mode, ("tolerance", "fixed"))
+        _check_int(err, "cg_iterations", self.cg_iterations, 1)
+        _check_range(err, "cg_tolerance", self.cg_tolerance, gt=0.0, lt=1.0)
+
+
+@dataclass
+class GroundConfig:
+    """An infinite ground plane normal to the up axis, acting by a penalty force with friction.
+
+    Attributes:
+        enabled: Whether there is a ground at all.
+        height: Its position along the up axis (m).
+        stiffness: Penalty per unit mass (1/s^2): a vertex at depth d below the ground is pushed
+            back with acceleration ``stiffness * d`` (> 0).
+        friction: Coulomb friction coefficient (>= 0).
+    """
+
+    enabled: bool = True
+    height: float = 0.0
+    stiffness: float = 1e6
+    friction: float = 0.5
+
+    def validate(self, origin: str = "<scene>") -> None:
+        """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
+        err = _table(origin, "ground")
+        if not isinstance(self.enabled, bool):
+            raise err("enabled", f"must be true or false, got {_shown(self.enabled)}")
+        _check_float(err, "height", self.height)
+        _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
+        _check_range(err, "friction", self.friction, ge=0.0)
+
+
+@dataclass
+class ObjectConfig:
+    """One deformable body: a dense surface mesh, how to place it, and its material.
+
+    The mesh is placed by scaling it about its file's origin, then rotating it (degrees, about X,
+    then Y, then Z: USD's ``rotateXYZ``), then translating it.
+
+    Attributes:
+        name: Unique name, also the USD prim name: letters, digits and underscores, not starting
+            with a digit.
+        mesh: ``"builtin:bunny"`` or the absolute path of a surface mesh file (a relative path in
+            the scene file resolves against the scene file's folder).
+        subdivide: Loop subdivision iterations applied to the dense mesh (0..4; each multiplies
+            the triangle count by 4).
+        scale: Uniform scale factor (> 0).
+        rotate: XYZ Euler angles (degrees).
+        translate: Translation (m).
+        velocity: Initial velocity of every vertex (m/s).
+        faces: Target triangle count of the QEM-simplified coarse surface (100..20000).
+        maxh: Netgen's maximum element size, relative to the coarse surface's bounding box
+            diagonal (0 < maxh <= 1).
+        young: Young's modulus (Pa, > 0).
+        poisson: Poisson's ratio (0 <= nu < 0.5).
+        density: Mass density (kg/m^3, > 0).
+        damping_mass: Rayleigh mass-proportional damping alpha (1/s, >= 0).
+        damping_stiffness: Rayleigh stiffness-proportional damping beta (s, >= 0).
+        pin_min: Lower corner of the pin box (m, world coordinates), or None: tet mesh vertices
+            inside the box ``[pin_min, pin_max]`` are fixed.
+        pin_max: Upper corner of the pin box (m); given together with ``pin_min``.
+    """
+
+    name: str
+    mesh: str
+    subdivide: int = 0
+    scale: float = 1.0
+    rotate: Vec3 = (0.0, 0.0, 0.0)
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    faces: int = 1000
+    maxh: float = 0.2
+    young: float = 1e5
+    poisson: float = 0.3
+    density: float = 1000.0
+    damping_mass: float = 0.0
+    damping_stiffness: float = 0.0
+    pin_min: Vec3 | None = None
+    pin_max: Vec3 | None = None
+
+    @property
+    def is_builtin(self) -> bool:
+        """Whether ``mesh`` names a built-in mesh rather than a file."""
+        return isinstance(self.mesh, str) and self.mesh.startswith("builtin:")
+
+    def validate(self, origin: str = "<scene>", index: int = 0) -> None:
+        """Raise :class:`InputError` naming ``origin`` and ``object[index]`` on the first bad value."""
+        err = _object_table(origin, index, self.name)
+        if not isinstance(self.name, str) or not _NAME_RE.fullmatch(self.name):
+            raise err(
+                "name",
+                "must be a valid USD prim name (letters, digits, underscores, not starting with a "
+                f"digit), got {_shown(self.name)}",
+            )
+        self._validate_mesh(err)
+        _check_int(err, "subdivide", self.subdivide, 0, 4)
+        _check_range(err, "scale", self.scale, gt=0.0)
+        for key in ("rotate", "translate", "velocity"):
+            _check_vec3(err, key, getattr(self, key))
+        _check_int(err, "faces", self.faces, 100, 20000)
+        _check_range(err, "maxh", self.maxh, gt=0.0, le=1.0)
+        _check_range(err, "young", self.young, "Pa", gt=0.0)
+        _check_range(err, "poisson", self.poisson, ge=0.0, lt=0.5)
+        _check_range(err, "density", self.density, "kg/m^3", gt=0.0)
+        _check_range(err, "damping_mass", self.damping_mass, "1/s", ge=0.0)
+        _check_range(err, "damping_stiffness", self.damping_stiffness, "s", ge=0.0)
+        if (self.pin_min is None) != (self.pin_max is None):
+            given, missing = ("pin_min", "pin_max") if self.pin_max is None else ("pin_max", "pin_min")
+            raise err(missing, f"must be given together with {given} (both or neither)")
+        if self.pin_min is not None:
+            _check_vec3(err, "pin_min", self.pin_min)
+            _check_vec3(err, "pin_max", self.pin_max)
+            if any(lo > hi for lo, hi in zip(self.pin_min, self.pin_max, strict=True)):
+                raise err(
+                    "pin_min",
+                    f"must be <= pin_max componentwise, got {list(self.pin_min)} > {list(self.pin_max)}",
+                )
+
+    def _validate_mesh(self, err: _Problem) -> None:
+        if not isinstance(self.mesh, str) or not self.mesh:
+            raise err("mesh", f'must be a file path or "{BUILTIN_BUNNY}", got {_shown(self.mesh)}')
+        if self.is_builtin:
+            if self.mesh not in BUILTIN_MESHES:
+                raise err("mesh", f'is an unknown built-in mesh "{self.mesh}" (known: {BUILTIN_BUNNY})')
+        elif not Path(self.mesh).is_file():
+            raise err("mesh", f"file not found: {self.mesh}")
+
+
+@dataclass
+class SceneConfig:
+    """A whole scene: timing, gravity, solver, ground and the bodies.
+
+    Attributes:
+        path: The scene file this came from (as given to :func:`load_scene`).
+        frames: Output frames to simulate (>= 1); frame 0, the initial pose, is written as well.
+        fps: Output frames per second (> 0).
+        substeps: Simulation steps per output frame (>= 1).
+        gravity: Gravitational acceleration (m/s^2).
+        up_axis: ``"Y"`` or ``"Z"``: the ground's normal, also written to the USD stage.
+        solver: Linear solver settings.
+        ground: Ground plane settings.
+        objects: The bodies (at least one, unique names).
+    """
+
+    path: Path
+    frames: int = 120
+    fps: float = 60.0
+    substeps: int = 4
+    gravity: Vec3 = (0.0, -9.81, 0.0)
+    up_axis: str = "Y"
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    objects: list[ObjectConfig] = field(default_factory=list)
+
+    @property
+    def dt(self) -> float:
+        """The simulation time step (s): ``1 / (fps * substeps)``."""
+        return 1.0 / (self.fps * self.substeps)
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` naming the scene file on the first bad value, table by table."""
+        origin = str(self.path)
+        err = _table(origin, "scene")
+        _check_int(err, "frames", self.frames, 1)
+        _check_range(err, "fps", self.fps, "frames/s", gt=0.0)
+        _check_int(err, "substeps", self.substeps, 1)
+        _check_vec3(err, "gravity", self.gravity)
+        _check_choice(err, "up_axis", self.up_axis, ("Y", "Z"))
+        self.solver.validate(origin)
+        self.ground.validate(origin)
+        if not self.objects:
+            raise InputError(f"{origin}: object: at least one [[object]] table is required")
+        seen: dict[str, int] = {}
+        for index, obj in enumerate(self.objects):
+            obj.validate(origin, index)
+            if obj.name in seen:
+                raise _object_table(origin, index, obj.name)("name", f"is already used by object[{seen[obj.name]}]")
+            seen[obj.name] = index
+
+    def with_frames(self, frames: int) -> SceneConfig:
+        """A validated copy of this scene with ``frames`` replaced."""
+        copy = dataclasses.replace(self, frames=frames)
+        copy.validate()
+        return copy
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading TOML into the dataclasses
+
+
+def _coerce(value: Any, default: Any) -> Any:
+    """Give a TOML value the shape of its field, leaving anything else for ``validate`` to report.
+
+    Ints for float fields become floats; lists of 3 numbers become tuples of floats.
+    """
+    if isinstance(default, float) and _is_number(value):
+        return float(value)
+    if (default is None or isinstance(default, tuple)) and isinstance(value, list):
+        if len(value) == 3 and all(_is_number(v) for v in value):
+            return tuple(float(v) for v in value)
+    return value
+
+
+def _build(cls: type, raw: dict[str, Any], err: _Problem, extra: dict[str, Any] | None = None) -> Any:
+    """Make ``cls`` from a TOML table, rejecting unknown keys and applying defaults.
+
+    ``extra`` holds the fields that do not come from this table (they are not valid keys in it).
+    """
+    kwargs: dict[str, Any] = dict(extra or {})
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in kwargs}
+    for key, value in raw.items():
+        if key not in fields:
+            close = difflib.get_close_matches(key, fields, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise err(key, f"is not a known key{hint}; known keys: {', '.join(fields)}")
+        f = fields[key]
+        default = f.default if f.default is not dataclasses.MISSING else None
+        kwargs[key] = _coerce(value, default)
+    for key, f in fields.items():
+        if key not in kwargs and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise err(key, "is required")
+    return cls(**kwargs)
+
+
+def _sub_table(doc: dict[str, Any], origin: str, name: str) -> dict[str, Any]:
+    value = doc.get(name, {})
+    if not isinstance(value, dict):
+        raise InputError(f"{origin}: {name} must be a table [{name}], got {_shown(value)}")
+    return value
+
+
+def _resolve_mesh(value: Any, folder: Path) -> Any:
+    if not isinstance(value, str) or not value or value.startswith("builtin:"):
+        return value
+    return str((folder / value).resolve())
+
+
+def load_scene(path: str | Path) -> SceneConfig:
+    """Read and validate a scene file.
+
+    Args:
+        path: The TOML scene file. Relative mesh paths in it resolve against its folder.
+
+    Returns:
+        The validated scene, every default applied.
+
+    Raises:
+        InputError: One line naming the file, the key and the problem (also for an unreadable file
+            or a TOML syntax error).
+    """
+    path = Path(path)
+    origin = str(path)
+    try:
+        with path.open("rb") as stream:
+            doc = tomllib.load(stream)
+    except OSError as exc:
+        raise InputError(f"{origin}: cannot read the scene file: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{origin}: the scene file is not UTF-8 text: {exc.reason}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        message = str(exc).replace("\n", " ")
+        raise InputError(f"{origin}: TOML syntax error: {message}") from exc
+
+    known = ("scene", "solver", "ground", "object")
+    for key in doc:
+        if key not in known:
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise InputError(f"{origin}: {key} is not a known table{hint}; known tables: {', '.join(known)}")
+
+    raw_objects = doc.get("object", [])
+    if not isinstance(raw_objects, list) or not all(isinstance(o, dict) for o in raw_objects):
+        raise InputError(f"{origin}: object must be an array of tables, written [[object]]")
+    folder = path.parent
+    objects = []
+    for index, raw in enumerate(raw_objects):
+        err = _object_table(origin, index, raw.get("name"))
+        raw = dict(raw)
+        if "mesh" in raw:
+            raw["mesh"] = _resolve_mesh(raw["mesh"], folder)
+        objects.append(_build(ObjectConfig, raw, err))
+
+    scene = _build(
+        SceneConfig,
+        _sub_table(doc, origin, "scene"),
+        _table(origin, "scene"),
+        extra={
+            "path": path,
+            "solver": _build(SolverConfig, _sub_table(doc, origin, "solver"), _table(origin, "solver")),
+            "ground": _build(GroundConfig, _sub_table(doc, origin, "ground"), _table(origin, "ground")),
+            "objects": objects,
+        },
+    )
+    scene.validate()
+    return scene
+
+
+def default_scene_path() -> Path:
+    """The shipped default scene (a bunny dropped onto the ground), ``warpfem.scenes/default.toml``."""
+    return Path(str(importlib.resources.files("warpfem.scenes") / "default.toml"))
