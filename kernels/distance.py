@@ -1,0 +1,43 @@
+"""Distance field at tet vertices (Fisher & Lin 2001): depth below the surface and its outward gradient."""
+
+import warp as wp
+
+
+@wp.kernel
+def surface_distance(
+    points: wp.array(dtype=wp.vec3),
+    surface: wp.uint64,
+    surface_indices: wp.array(dtype=wp.int32),
+    surface_normals: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    on_surface: float,
+    depth_out: wp.array(dtype=float),
+    grad_out: wp.array(dtype=wp.vec3),
+):
+    """Unsigned distance from each point to the surface mesh and the unit direction out of the body.
+
+    Away from the surface the direction is from the point to its closest surface point; within
+    ``on_surface`` of it (depth set to 0) it is the vertex normals interpolated at the closest point.
+    """
+    i = wp.tid()
+    p = points[i]
+    hit = wp.mesh_query_point_no_sign(surface, p, max_dist)
+    if not hit.result:
+        depth_out[i] = -1.0
+        grad_out[i] = wp.vec3(0.0)
+        return
+    closest = wp.mesh_eval_position(surface, hit.face, hit.u, hit.v)
+    offset = closest - p
+    depth = wp.length(offset)
+    if depth > on_surface:
+        depth_out[i] = depth
+        grad_out[i] = offset / depth
+    else:
+        w = 1.0 - hit.u - hit.v
+        n = (
+            hit.u * surface_normals[surface_indices[3 * hit.face]]
+            + hit.v * surface_normals[surface_indices[3 * hit.face + 1]]
+            + w * surface_normals[surface_indices[3 * hit.face + 2]]
+        )
+        depth_out[i] = 0.0
+        grad_out[i] = wp.normalize(n)

@@ -1,0 +1,69 @@
+"""Embedding of dense surface points in a tet mesh: point location (preprocessing) and the per-frame map.
+
+A point p in tet t with corners (a, b, c, d) has barycentric coordinates (1 - l0 - l1 - l2, l0, l1, l2)
+with l = Dm^-1 (p - a), Dm = [b-a, c-a, d-a]. It lies in the tet when all four are >= 0.
+"""
+
+import warp as wp
+
+
+@wp.func
+def min_barycentric(dm_inv: wp.mat33, origin: wp.vec3, p: wp.vec3) -> float:
+    """Smallest barycentric coordinate of ``p`` in the tet with corner ``origin`` and inverse edge matrix."""
+    w = dm_inv * (p - origin)
+    return wp.min(wp.min(1.0 - w[0] - w[1] - w[2], w[0]), wp.min(w[1], w[2]))
+
+
+@wp.kernel
+def locate_points(
+    points: wp.array(dtype=wp.vec3),
+    tet_bvh: wp.uint64,
+    tet_origin: wp.array(dtype=wp.vec3),
+    tet_dm_inv: wp.array(dtype=wp.mat33),
+    boundary_mesh: wp.uint64,
+    face_tet: wp.array(dtype=wp.int32),
+    tolerance: float,
+    max_dist: float,
+    tet_out: wp.array(dtype=wp.int32),
+):
+    """Find each point's tet (-1 if none).
+
+    The tet is the candidate (from the BVH of tet boxes) whose smallest barycentric coordinate is
+    largest, if that is >= -tolerance; otherwise the tet owning the nearest boundary face.
+    """
+    i = wp.tid()
+    p = points[i]
+    query = wp.bvh_query_aabb(tet_bvh, p, p)
+    t = wp.int32(0)
+    best = wp.int32(-1)
+    best_score = wp.float32(-1.0e30)
+    while wp.bvh_query_next(query, t):
+        score = min_barycentric(tet_dm_inv[t], tet_origin[t], p)
+        if score > best_score:
+            best_score = score
+            best = t
+    if best >= 0 and best_score >= -tolerance:
+        tet_out[i] = best
+    else:
+        hit = wp.mesh_query_point_no_sign(boundary_mesh, p, max_dist)
+        if hit.result:
+            tet_out[i] = face_tet[hit.face]
+        else:
+            tet_out[i] = -1
+
+
+@wp.kernel
+def map_dense(
+    tets: wp.array(dtype=wp.vec4i),
+    positions: wp.array(dtype=wp.vec3),
+    dense_tet: wp.array(dtype=wp.int32),
+    dense_bary: wp.array(dtype=wp.vec4),
+    dense_out: wp.array(dtype=wp.vec3),
+):
+    """Dense point i = sum_k bary[i][k] * positions[tets[dense_tet[i]][k]] (extrapolates outside the tet)."""
+    i = wp.tid()
+    tet = tets[dense_tet[i]]
+    w = dense_bary[i]
+    dense_out[i] = (
+        w[0] * positions[tet[0]] + w[1] * positions[tet[1]] + w[2] * positions[tet[2]] + w[3] * positions[tet[3]]
+    )
