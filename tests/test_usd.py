@@ -1,0 +1,242 @@
+"""UsdWriter: read back with usd-core, validate, atomic close, abort and interrupts."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from warpfem.usd_out import UsdWriter
+
+
+def bodies_and_frames(n_frames: int = 5, seed: int = 0):
+    """Three small bodies (tetrahedron surface, quad as two triangles, octahedron) and their motion."""
+    rng = np.random.default_rng(seed)
+    tet = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    quad = np.array([[0, 1, 2], [0, 2, 3]])
+    octa = np.array(
+        [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]],
+        dtype=np.int32,
+    )
+    bodies = [("tet", tet), ("quad_1", quad), ("octa", octa)]
+    counts = [4, 4, 6]
+    frames = [[rng.normal(size=(n, 3)) * (1 + f) for n in counts] for f in range(n_frames)]
+    return bodies, frames
+
+
+def validation_errors(stage):
+    from pxr import UsdValidation
+
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    assert len(validators) > 0
+    ctx = UsdValidation.ValidationContext(validators)
+    return [e.GetMessage() for e in ctx.Validate(stage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
+
+
+@pytest.mark.parametrize("ext", [".usdc", ".usda"])
+def test_round_trip(tmp_path, ext):
+    from pxr import Sdf, Usd, UsdGeom
+
+    bodies, frames = bodies_and_frames(5)
+    path = tmp_path / f"out{ext}"
+    writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z")
+    for f, points in enumerate(frames):
+        writer.add_frame(f, points)
+    assert writer.frames_added == 5
+    assert writer.close() == path
+
+    expected_format = "usda" if ext == ".usda" else "usdc"
+    assert Sdf.Layer.FindOrOpen(str(path)).GetFileFormat().formatId == expected_format
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z"
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetTimeCodesPerSecond() == 30.0
+    assert stage.GetFramesPerSecond() == 30.0
+    assert stage.GetStartTimeCode() == 0.0
+    assert stage.GetEndTimeCode() == 4.0
+    assert stage.GetDefaultPrim().GetPath() == Sdf.Path("/World")
+    assert stage.GetDefaultPrim().GetTypeName() == "Xform"
+    assert [p.GetName() for p in stage.GetPseudoRoot().GetChildren()] == ["World"]
+    assert [p.GetName() for p in stage.GetDefaultPrim().GetChildren()] == ["tet", "quad_1", "octa"]
+
+    for i, (name, faces) in enumerate(bodies):
+        prim = stage.GetPrimAtPath(f"/World/{name}")
+        assert prim.GetTypeName() == "Mesh"
+        mesh = UsdGeom.Mesh(prim)
+        assert list(mesh.GetFaceVertexCountsAttr().Get()) == [3] * len(faces)
+        assert list(mesh.GetFaceVertexIndicesAttr().Get()) == faces.ravel().tolist()
+        assert mesh.GetFaceVertexIndicesAttr().GetNumTimeSamples() == 0
+        assert mesh.GetSubdivisionSchemeAttr().Get() == "none"
+        assert mesh.GetSubdivisionSchemeAttr().HasAuthoredValue()
+        assert mesh.GetOrientationAttr().Get() == "rightHanded"
+        assert not mesh.GetNormalsAttr().HasAuthoredValue()
+        points_attr, extent_attr = mesh.GetPointsAttr(), mesh.GetExtentAttr()
+        assert points_attr.GetTimeSamples() == [float(f) for f in range(5)]
+        assert extent_attr.GetTimeSamples() == [float(f) for f in range(5)]
+        for f, points in enumerate(frames):
+            got = np.array(points_attr.Get(f), dtype=np.float64)
+            np.testing.assert_allclose(got, points[i], rtol=1e-6, atol=1e-6)
+            ext_got = np.array(extent_attr.Get(f))
+            expected = points[i].astype(np.float32)
+            np.testing.assert_array_equal(ext_got[0], expected.min(axis=0))
+            np.testing.assert_array_equal(ext_got[1], expected.max(axis=0))
+            # usd-core's own extent computation agrees.
+            computed = UsdGeom.Boundable.ComputeExtentFromPlugins(mesh, Usd.TimeCode(f))
+            np.testing.assert_allclose(np.array(computed), ext_got, rtol=1e-6)
+
+    assert validation_errors(stage) == []
+
+
+def test_temp_file_gone_and_no_partial_target(tmp_path):
+    bodies, frames = bodies_and_frames(2)
+    path = tmp_path / "anim.usdc"
+    writer = UsdWriter(path, bodies, fps=60.0)
+    writer.add_frame(0, frames[0])
+    writer.add_frame(1, frames[1])
+    assert list(tmp_path.iterdir()) == []  # nothing on disk before close
+    writer.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.usdc"]
+
+
+def test_close_replaces_existing_file(tmp_path):
+    from pxr import Usd
+
+    bodies, frames = bodies_and_frames(3)
+    path = tmp_path / "anim.usdc"
+    path.write_bytes(b"old content")
+    with UsdWriter(path, bodies, fps=24.0) as writer:
+        for f, points in enumerate(frames):
+            writer.add_frame(f, points)
+        assert path.read_bytes() == b"old content"
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetEndTimeCode() == 2.0 and stage.GetTimeCodesPerSecond() == 24.0
+
+
+def test_abort_leaves_nothing(tmp_path):
+    bodies, frames = bodies_and_frames(2)
+    writer = UsdWriter(tmp_path / "a.usdc", bodies, fps=60.0)
+    writer.add_frame(0, frames[0])
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError, match="closed"):
+        writer.add_frame(1, frames[1])
+
+
+def test_abort_removes_a_leftover_temp_file(tmp_path):
+    bodies, _ = bodies_and_frames(1)
+    writer = UsdWriter(tmp_path / "a.usdc", bodies, fps=60.0)
+    tmp = tmp_path / f".a.tmp-{os.getpid()}.usdc"
+    tmp.write_bytes(b"partial")  # as if an export had died half way
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_keyboard_interrupt_keeps_frames_so_far(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    bodies, frames = bodies_and_frames(5)
+    path = tmp_path / "interrupted.usdc"
+    with pytest.raises(KeyboardInterrupt):
+        with UsdWriter(path, bodies, fps=60.0) as writer:
+            for f, points in enumerate(frames):
+                if f == 3:
+                    raise KeyboardInterrupt
+                writer.add_frame(f, points)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["interrupted.usdc"]
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetEndTimeCode() == 2.0
+    points = UsdGeom.Mesh(stage.GetPrimAtPath("/World/octa")).GetPointsAttr()
+    assert points.GetTimeSamples() == [0.0, 1.0, 2.0]
+    np.testing.assert_allclose(np.array(points.Get(2)), frames[2][2], rtol=1e-6, atol=1e-6)
+    assert validation_errors(stage) == []
+
+
+def test_other_exception_after_frames_closes(tmp_path):
+    from pxr import Usd
+
+    bodies, frames = bodies_and_frames(2)
+    path = tmp_path / "x.usda"
+    with pytest.raises(ZeroDivisionError):
+        with UsdWriter(path, bodies, fps=60.0) as writer:
+            writer.add_frame(0, frames[0])
+            _ = 1 / 0
+    assert Usd.Stage.Open(str(path)).GetEndTimeCode() == 0.0
+
+
+@pytest.mark.parametrize("error", [ZeroDivisionError, KeyboardInterrupt])
+def test_exception_before_any_frame_aborts(tmp_path, error):
+    bodies, _ = bodies_and_frames(1)
+    with pytest.raises(error):
+        with UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0):
+            raise error
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_close_without_frames_raises_and_writes_nothing(tmp_path):
+    bodies, _ = bodies_and_frames(1)
+    writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0)
+    with pytest.raises(RuntimeError, match="no frame"):
+        writer.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_frames_need_not_be_contiguous(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    bodies, frames = bodies_and_frames(3)
+    path = tmp_path / "sparse.usdc"
+    with UsdWriter(path, bodies, fps=60.0) as writer:
+        for f, points in zip((0, 2, 10), frames, strict=True):
+            writer.add_frame(f, points)
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetEndTimeCode() == 10.0
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/tet")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [0.0, 2.0, 10.0]
+
+
+def test_shape_checks(tmp_path):
+    bodies, frames = bodies_and_frames(2)
+    writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0)
+    with pytest.raises(ValueError, match="expected points for 3 bodies, got 2"):
+        writer.add_frame(0, frames[0][:2])
+    with pytest.raises(ValueError, match=r"'tet': points must be an \(n, 3\) array"):
+        writer.add_frame(0, [frames[0][0][:, :2], *frames[0][1:]])
+    with pytest.raises(ValueError, match="'octa': 5 points, but its faces use 6 vertices"):
+        writer.add_frame(0, [*frames[0][:2], frames[0][2][:5]])
+    with pytest.raises(ValueError, match="non-finite"):
+        writer.add_frame(0, [np.full((4, 3), np.nan), *frames[0][1:]])
+    with pytest.raises(ValueError, match="frame must be an integer >= 0"):
+        writer.add_frame(-1, frames[0])
+    writer.add_frame(0, frames[0])
+    with pytest.raises(ValueError, match="frames must increase"):
+        writer.add_frame(0, frames[1])
+    # The vertex count is fixed by the first frame.
+    with pytest.raises(ValueError, match="'quad_1': 5 points, expected 4"):
+        writer.add_frame(1, [frames[1][0], np.zeros((5, 3)), frames[1][2]])
+    writer.abort()
+
+
+@pytest.mark.parametrize(
+    ("name", "kwargs", "match"),
+    [
+        ("x.obj", {}, "must end in .usdc"),
+        ("x.usdc", {"bodies": [("1bad", np.array([[0, 1, 2]]))]}, "not a valid USD prim name"),
+        ("x.usdc", {"bodies": [("a", np.array([[0, 1, 2]])), ("a", np.array([[0, 1, 2]]))]}, "used twice"),
+        ("x.usdc", {"bodies": [("a", np.array([[0, 1, 2, 3]]))]}, r"\(m, 3\) integer array"),
+        ("x.usdc", {"bodies": [("a", np.array([[0.0, 1.0, 2.0]]))]}, "integer array"),
+        ("x.usdc", {"bodies": [("a", np.array([[0, -1, 2]]))]}, "face indices"),
+        ("x.usdc", {"bodies": []}, "at least one body"),
+        ("x.usdc", {"fps": 0.0}, "fps"),
+        ("x.usdc", {"up_axis": "X"}, "up_axis"),
+    ],
+)
+def test_constructor_checks(tmp_path, name, kwargs, match):
+    args = {"bodies": [("a", np.array([[0, 1, 2]]))], "fps": 60.0, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        UsdWriter(tmp_path / name, **args)
+
+
+def test_missing_output_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        UsdWriter(tmp_path / "no" / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0)
