@@ -160,7 +160,7 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     vertices, faces, offset = [], [], 0
     for part in parts:
         vertices.append(np.asarray(part["vertices"], dtype=np.float64).reshape(-1, 3))
-        faces.append(np.asarray(part["faces"], dtype=np.int64).reshape(-1, 3) + offset)
+        faces.append(np.asarray(part.get("faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3) + offset)
         offset += len(vertices[-1])
     if not vertices:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
