@@ -1,0 +1,121 @@
+"""Simplification, Netgen tetrahedralization and prepare() with its cache."""
+
+from collections import Counter
+
+import numpy as np
+import pytest
+import trimesh
+
+from warpfem.errors import InputError
+from warpfem.preprocess import prepare
+from warpfem.simplify import simplify
+from warpfem.tetmesh import tetrahedralize
+
+
+def _once_used_faces(tets):
+    """Faces of the tets used by exactly one tet, as sorted triples (an independent boundary extraction)."""
+    counts = Counter(
+        tuple(sorted(f)) for t in tets.tolist() for f in (t[:3], t[1:], [t[0], t[2], t[3]], [t[0], t[1], t[3]])
+    )
+    return {f for f, c in counts.items() if c == 1}
+
+
+def _ellipsoid(subdivisions=3):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
+    mesh.vertices *= [1.0, 0.6, 0.4]
+    return mesh
+
+
+def test_netgen_fills_the_sphere_and_keeps_its_surface():
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
+    points, tets = tetrahedralize(sphere.vertices, sphere.faces, maxh=0.3)
+    assert tets.dtype == np.int32 and tets.shape[1] == 4 and len(tets) > 0
+    a, b, c, d = (points[tets[:, k]] for k in range(4))
+    volumes = np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6
+    assert np.all(volumes > 0)
+    assert volumes.sum() == pytest.approx(sphere.volume, rel=1e-9)
+    np.testing.assert_array_equal(points[: len(sphere.vertices)], sphere.vertices)
+    assert _once_used_faces(tets) == {tuple(sorted(f)) for f in sphere.faces.tolist()}
+    assert len(points) > len(sphere.vertices)  # interior points were added
+
+
+def test_netgen_rejects_inward_surface():
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(InputError, match="ball: Netgen made no tets"):
+        tetrahedralize(sphere.vertices, sphere.faces[:, ::-1], maxh=0.5, name="ball")
+
+
+def test_netgen_timeout():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    with pytest.raises(InputError, match="did not finish within 0.01 s"):
+        tetrahedralize(sphere.vertices, sphere.faces, maxh=0.3, timeout_s=0.01)
+
+
+def test_simplify_keeps_a_closed_positive_surface_close_to_the_input():
+    mesh = _ellipsoid(subdivisions=4)
+    vertices, faces = simplify(mesh.vertices, mesh.faces, 300)
+    assert vertices.dtype == np.float64 and faces.dtype == np.int32
+    assert 200 < len(faces) <= 300
+    coarse = trimesh.Trimesh(vertices, faces, process=False)
+    assert coarse.is_watertight and coarse.is_winding_consistent
+    assert coarse.volume == pytest.approx(mesh.volume, rel=0.05)
+    # every coarse vertex stays near the ellipsoid the dense mesh approximates
+    radius = np.linalg.norm(vertices / [1.0, 0.6, 0.4], axis=1)
+    assert np.all((radius > 0.95) & (radius < 1.05))
+
+
+def test_simplify_leaves_small_meshes_alone():
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    vertices, faces = simplify(mesh.vertices, mesh.faces, 1000)
+    np.testing.assert_array_equal(vertices, mesh.vertices)
+    np.testing.assert_array_equal(faces, mesh.faces)
+
+
+@pytest.fixture
+def ellipsoid_file(tmp_path):
+    path = tmp_path / "ellipsoid.off"
+    _ellipsoid().export(path)
+    return path
+
+
+def test_prepare_builds_a_consistent_body(ellipsoid_file):
+    messages = []
+    body = prepare(ellipsoid_file, faces=200, maxh=0.3, progress=messages.append)
+    assert body.stats["cache"] == "off" and len(messages) >= 4
+    assert len(body.coarse_faces) <= 200 and body.stats["tets"] == len(body.tets)
+    np.testing.assert_array_equal(body.tet_vertices[body.boundary_faces], body.coarse_vertices[body.coarse_faces])
+    rebuilt = np.einsum("nk,nkj->nj", body.embed_bary, body.tet_vertices[body.tets[body.embed_tet]])
+    np.testing.assert_allclose(rebuilt, body.dense_vertices, atol=1e-9)
+    # a convex dense surface slightly outside its coarse simplification: some vertices extrapolate
+    assert 0.0 < body.stats["embedding_coverage"] < 1.0
+    assert np.all(body.vertex_depth >= 0) and body.vertex_depth[: len(body.coarse_vertices)].max() == 0
+    np.testing.assert_allclose(np.linalg.norm(body.vertex_grad, axis=1), 1.0, atol=1e-9)
+
+
+def test_cache_hit_and_rebuild_of_a_damaged_file(ellipsoid_file, tmp_path):
+    cache = tmp_path / "cache"
+    first = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    files = list(cache.iterdir())
+    assert first.stats["cache"] == "miss" and len(files) == 1 and files[0].suffix == ".npz"
+
+    second = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    assert second.stats["cache"] == "hit"
+    for name in ("dense_vertices", "dense_faces", "tet_vertices", "tets", "embed_tet", "embed_bary", "vertex_depth"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+        assert getattr(first, name).dtype == getattr(second, name).dtype
+    assert second.stats["tets"] == first.stats["tets"]
+
+    files[0].write_bytes(files[0].read_bytes()[:500])  # truncate it
+    third = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    assert third.stats["cache"] == "miss"
+    np.testing.assert_array_equal(third.tets, first.tets)
+    assert prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache).stats["cache"] == "hit"
+
+    other = prepare(ellipsoid_file, faces=150, maxh=0.3, cache_dir=cache)  # other parameters, other entry
+    assert other.stats["cache"] == "miss"
+    assert sorted(p.suffix for p in cache.iterdir()) == [".npz", ".npz"]  # no temporary files left
+
+
+def test_prepare_reports_bad_input(tmp_path):
+    with pytest.raises(InputError, match="missing.obj.*not found"):
+        prepare(tmp_path / "missing.obj", faces=100)
