@@ -42,15 +42,11 @@ def _parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    run.add_argument(
-        "scene", nargs="?", type=Path, help="scene TOML file (default: the shipped default scene)"
-    )
+    run.add_argument("scene", nargs="?", type=Path, help="scene TOML file (default: the shipped default scene)")
     run.add_argument("--out", type=Path, help="output .usdc or .usda (default: <scene name>.usdc here)")
     run.add_argument("--frames", type=int, help="override the scene's frame count")
     run.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
-    run.add_argument(
-        "--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)"
-    )
+    run.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     run.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
     run.add_argument("--quiet", action="store_true", help="no progress output, only the summary")
 
@@ -61,18 +57,10 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     prep.add_argument("mesh", help="OBJ, PLY, STL or OFF file, or builtin:bunny")
-    prep.add_argument(
-        "--faces", type=int, default=1000, help="coarse surface target face count (default 1000)"
-    )
-    prep.add_argument(
-        "--subdivide", type=int, default=0, help="Loop subdivision iterations first (default 0)"
-    )
-    prep.add_argument(
-        "--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)"
-    )
-    prep.add_argument(
-        "--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)"
-    )
+    prep.add_argument("--faces", type=int, default=1000, help="coarse surface target face count (default 1000)")
+    prep.add_argument("--subdivide", type=int, default=0, help="Loop subdivision iterations first (default 0)")
+    prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
+    prep.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
     return parser
 
@@ -116,15 +104,24 @@ def _run(args: argparse.Namespace) -> int:
     from warpfem.simulate import run_scene
 
     cache = None if args.no_cache else (args.cache_dir or default_cache_dir())
+    interactive = sys.stderr.isatty() and not args.quiet  # piped stderr carries only errors
+    bar = None
+
+    def on_frame() -> None:  # the bar starts with the first frame, after preprocessing
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=scene.frames, unit="frame", disable=not interactive, file=sys.stderr, dynamic_ncols=True)
+        bar.update(1)
+
     try:
-        with tqdm(
-            total=scene.frames, unit="frame", disable=args.quiet, file=sys.stderr, dynamic_ncols=True
-        ) as bar:
-            summary = run_scene(scene, out, args.device, cache, _status(args.quiet), lambda: bar.update(1))
+        summary = run_scene(scene, out, args.device, cache, _status(not interactive), on_frame)
     except KeyboardInterrupt:
         kept = f"; the frames finished so far are in {out}" if out.exists() else "; nothing was written"
         print(f"warpfem: interrupted{kept}", file=sys.stderr)
         return 130
+    finally:
+        if bar is not None:
+            bar.close()
     s = summary.seconds
     rows = [
         ("output", str(summary.output)),
@@ -171,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # no banner, no module-load lines
     try:
         return _run(args) if args.command == "run" else _prepare(args)
     except InputError as err:

@@ -15,11 +15,10 @@ import importlib.resources
 import math
 import operator
 import re
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from warpfem.errors import InputError
 

@@ -1,0 +1,208 @@
+"""The command line end to end: tiny scenes to USD, bad input, interruption."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Usd, UsdGeom, UsdValidation
+
+from warpfem.cli import main
+from warpfem.model import ModelBuilder
+from warpfem.preprocess import prepare
+from warpfem.scene import load_scene
+from warpfem.simulate import Simulation, add_prepared_body, euler_rotation, ground_of
+from warpfem.solver import Solver
+
+SCENE = """
+[scene]
+frames = 6
+substeps = 2
+[solver]
+cg_iterations = 60
+cg_tolerance = 1e-5
+[[object]]
+name = "ball"
+mesh = "ball.obj"
+faces = 120
+scale = 0.5
+rotate = [10.0, 20.0, 30.0]
+translate = [0.0, 0.6, 0.0]
+young = 1e5
+"""
+
+
+@pytest.fixture
+def scene_dir(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=3)  # 1,280 triangles, radius 1
+    sphere.export(tmp_path / "ball.obj")
+    (tmp_path / "scene.toml").write_text(SCENE)
+    return tmp_path
+
+
+def _run(args):
+    return main([str(a) for a in args])
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("warpfem: error: ")
+    for needle in needles:
+        assert needle in err[0], err[0]
+
+
+def _stage_points(path, prim="/World/ball"):
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath(prim)).GetPointsAttr()
+    return stage, attr, [np.array(attr.Get(t)) for t in attr.GetTimeSamples()]
+
+
+def test_run_writes_valid_usd_matching_the_simulation(scene_dir, device, capsys):
+    out = scene_dir / "anim.usdc"
+    assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", device, "--no-cache", "--quiet"]) == 0
+    summary = capsys.readouterr().out
+    assert "frames" in summary and "tets" in summary and "dense triangles" in summary
+    stage, attr, frames = _stage_points(out)
+    assert len(frames) == 7 and stage.GetEndTimeCode() == 6  # frame 0 (initial pose) plus 6 frames
+    ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    errors = [e for e in ctx.Validate(stage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert errors == []
+
+    # frame 0 is the input mesh placed by the scene transform (an independent reference)
+    sphere = trimesh.load(scene_dir / "ball.obj", process=False)
+    placed = 0.5 * sphere.vertices @ euler_rotation((10.0, 20.0, 30.0)).T + [0.0, 0.6, 0.0]
+    assert frames[0].shape == placed.shape
+    np.testing.assert_allclose(np.sort(frames[0], axis=0), np.sort(placed, axis=0), atol=1e-5)
+
+    # the last frame equals the barycentric map (NumPy) of a direct run's final tet positions
+    scene = load_scene(scene_dir / "scene.toml")
+    obj = scene.objects[0]
+    body = prepare(obj.mesh, faces=obj.faces, maxh=obj.maxh)
+    builder = ModelBuilder()
+    add_prepared_body(builder, obj, body)
+    model = builder.finalize(device)
+    solver = Solver(model, gravity=scene.gravity, ground=ground_of(scene), cg_iterations=60, cg_tolerance=1e-5)
+    sim = Simulation(model, solver, scene.substeps, scene.dt)
+    for _ in range(scene.frames):
+        sim.advance()
+    x = sim.states[0].x.numpy()
+    expected = np.einsum("nk,nkd->nd", body.embed_bary, x[body.tets[body.embed_tet]])
+    np.testing.assert_allclose(frames[-1], expected, atol=1e-4)
+    assert frames[-1][:, 1].mean() < frames[0][:, 1].mean()  # it fell
+
+
+@pytest.mark.parametrize(
+    "edit, needles",
+    [
+        ("young = 1e5", ("young", "> 0", "-3")),
+        ("faces = 120", ("facez", "not a known key")),
+        ('mesh = "ball.obj"', ("missing.obj",)),
+        ("poisson = 0.3", ("poisson",)),
+    ],
+)
+def test_bad_scene_is_one_line_exit_2_and_no_output(scene_dir, capsys, edit, needles):
+    replacement = {
+        "young = 1e5": "young = -3.0",
+        "faces = 120": "facez = 120",
+        'mesh = "ball.obj"': 'mesh = "missing.obj"',
+        "poisson = 0.3": "poisson = 0.5",
+    }[edit]
+    text = SCENE if edit in SCENE else SCENE + edit + "\n"
+    (scene_dir / "scene.toml").write_text(text.replace(edit, replacement))
+    out = scene_dir / "anim.usdc"
+    assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", "cpu", "--no-cache"]) == 2
+    _one_line_error(capsys, "scene.toml", *needles)
+    assert sorted(p.name for p in scene_dir.iterdir()) == ["ball.obj", "scene.toml"]
+
+
+@pytest.mark.parametrize("defect", ["hole", "nan", "flat", "empty"])
+def test_bad_mesh_is_one_line_exit_2_and_no_output(scene_dir, capsys, defect):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    path = scene_dir / "ball.obj"
+    if defect == "hole":
+        trimesh.Trimesh(mesh.vertices, mesh.faces[:-3], process=False).export(path)
+    elif defect == "nan":
+        v = mesh.vertices.copy()
+        v[5] = np.nan
+        path.write_text(
+            "".join(f"v {a} {b} {c}\n" for a, b, c in v)
+            + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in mesh.faces)
+        )
+    elif defect == "flat":
+        v = mesh.vertices.copy()
+        v[:, 2] = 0.0
+        trimesh.Trimesh(v, mesh.faces, process=False).export(path)
+    else:
+        path.write_text("")
+    out = scene_dir / "anim.usdc"
+    assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", "cpu", "--no-cache"]) == 2
+    _one_line_error(capsys, "ball.obj")
+    assert sorted(p.name for p in scene_dir.iterdir()) == ["ball.obj", "scene.toml"]
+
+
+def test_bad_options_exit_2(scene_dir, capsys):
+    scene = scene_dir / "scene.toml"
+    assert _run(["run", scene, "--frames", "0"]) == 2
+    _one_line_error(capsys, "--frames")
+    assert _run(["run", scene, "--out", scene_dir / "anim.obj"]) == 2
+    _one_line_error(capsys, ".usdc")
+    assert _run(["run", scene, "--out", scene_dir / "no" / "anim.usdc"]) == 2
+    _one_line_error(capsys, "does not exist")
+    assert _run(["run", scene, "--device", "tpu:3"]) == 2
+    _one_line_error(capsys, "tpu:3")
+    assert _run(["prepare", scene_dir / "nothere.obj"]) == 2
+    _one_line_error(capsys, "nothere.obj")
+
+
+def test_interrupted_run_keeps_the_frames_done(scene_dir, capsys, monkeypatch):
+    import warpfem.simulate as simulate
+
+    calls = {"n": 0}
+    original = simulate.Simulation.advance
+
+    def advance(self):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        original(self)
+
+    monkeypatch.setattr(simulate.Simulation, "advance", advance)
+    out = scene_dir / "anim.usdc"
+    assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", "cpu", "--no-cache", "--quiet"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    stage, _, frames = _stage_points(out)
+    assert len(frames) == 4 and stage.GetEndTimeCode() == 3
+
+
+def test_prepare_reports_what_it_made(scene_dir, capsys):
+    assert _run(["prepare", scene_dir / "ball.obj", "--faces", "200", "--no-cache"]) == 0
+    report = capsys.readouterr().out
+    for word in ("tets", "coverage"):
+        assert word in report
+
+
+def test_default_scene_runs_from_a_fresh_process(tmp_path):
+    """The README's first command, shortened: the shipped default scene (>= 100k dense triangles)."""
+    out = tmp_path / "default.usdc"
+    cmd = [
+        sys.executable,
+        "-m",
+        "warpfem",
+        "run",
+        "--frames",
+        "2",
+        "--out",
+        str(out),
+        "--device",
+        "cpu",
+        "--cache-dir",
+        str(tmp_path / "cache"),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    triangles = int(next(line for line in done.stdout.splitlines() if line.startswith("dense triangles")).split()[-3])
+    assert triangles >= 100_000
+    _, _, frames = _stage_points(out, "/World/bunny")
+    assert len(frames) == 3
