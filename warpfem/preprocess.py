@@ -230,7 +230,9 @@ def prepare(
         cached = _read_cache(path)
         if cached is not None:
             say(f"{mesh}: loaded from cache {path}")
-            cached.stats.update(cache="hit", seconds_load=seconds_load, seconds_cache_read=time.perf_counter() - clock)
+            cached.stats.update(
+                mesh=str(mesh), cache="hit", seconds_load=seconds_load, seconds_cache_read=time.perf_counter() - clock
+            )
             return cached
 
     clock = time.perf_counter()
