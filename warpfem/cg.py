@@ -41,9 +41,7 @@ class CGSolver:
         device: Warp device.
     """
 
-    def __init__(
-        self, row_start: wp.array, cols: wp.array, free: wp.array, max_iterations: int, device
-    ) -> None:
+    def __init__(self, row_start: wp.array, cols: wp.array, free: wp.array, max_iterations: int, device) -> None:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
         n = free.shape[0]
@@ -114,9 +112,7 @@ class CGSolver:
                 outputs=[x, self.r, self.z, self.rz],
                 device=dev,
             )
-            wp.launch(
-                K.cg_update_p, dim=n, inputs=[self.z, self.iteration, self.rz], outputs=[self.p], device=dev
-            )
+            wp.launch(K.cg_update_p, dim=n, inputs=[self.z, self.iteration, self.rz], outputs=[self.p], device=dev)
             wp.launch(
                 K.cg_advance,
                 dim=1,

@@ -47,9 +47,7 @@ def build_system(
     )
 
 
-def advance_positions(
-    model: Model, x: wp.array, v_new: wp.array, dt: float, x_out: wp.array, bad_vertex_out: wp.array
-):
+def advance_positions(model: Model, x: wp.array, v_new: wp.array, dt: float, x_out: wp.array, bad_vertex_out: wp.array):
     """x_out = x + dt v_new; the lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min)."""
     wp.launch(
         K.advance_positions,

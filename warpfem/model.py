@@ -121,9 +121,7 @@ def lame(young: float, poisson: float) -> tuple[float, float]:
     return mu, lam
 
 
-def block_pattern(
-    tets: np.ndarray, vertex_count: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sparsity pattern of the 3x3-block matrix of a tet mesh.
 
     Args:
@@ -237,17 +235,11 @@ class ModelBuilder:
                 alpha=np.full(len(vertices), damping_mass),
                 free=free.astype(np.int32),
                 v=np.tile(np.asarray(velocity, dtype=np.float64), (len(vertices), 1)),
-                dense_faces=np.zeros((0, 3), np.int32)
-                if dense_faces is None
-                else np.asarray(dense_faces, np.int32),
+                dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
                 embed_tet=np.zeros(0, np.int32) if n_dense == 0 else np.asarray(embed_tet, np.int32),
                 embed_bary=np.zeros((0, 4)) if n_dense == 0 else np.asarray(embed_bary, np.float64),
-                depth=np.zeros(len(vertices))
-                if vertex_depth is None
-                else np.asarray(vertex_depth, np.float64),
-                grad=np.zeros((len(vertices), 3))
-                if vertex_grad is None
-                else np.asarray(vertex_grad, np.float64),
+                depth=np.zeros(len(vertices)) if vertex_depth is None else np.asarray(vertex_depth, np.float64),
+                grad=np.zeros((len(vertices), 3)) if vertex_grad is None else np.asarray(vertex_grad, np.float64),
                 size=size,
             )
         )

@@ -168,9 +168,7 @@ def prepare_scene(
             progress(f"preparing '{obj.name}' ({obj.mesh}, {obj.faces} faces)")
         try:
             prepared.append(
-                prepare(
-                    obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir
-                )
+                prepare(obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir)
             )
         except InputError as err:
             raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None

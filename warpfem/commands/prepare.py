@@ -1,0 +1,49 @@
+"""``warpfem prepare``: preprocess one mesh and report what it made."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from warpfem.commands import cache_dir_of
+from warpfem.errors import InputError
+
+EXAMPLES = """examples:
+  warpfem prepare ../shared/assets/armadillo.off --faces 1000
+  warpfem prepare builtin:bunny --subdivide 2 --faces 500 --no-cache
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``prepare`` command to the CLI's subparsers."""
+    prep = sub.add_parser(
+        "prepare",
+        help="preprocess one mesh and report what it made",
+        description="Load, simplify, tetrahedralize and embed one mesh; print coarse faces, tets, coverage, timings.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    prep.add_argument("mesh", help="OBJ, PLY, STL or OFF file, or builtin:bunny")
+    prep.add_argument("--faces", type=int, default=1000, help="coarse surface target face count (default 1000)")
+    prep.add_argument("--subdivide", type=int, default=0, help="Loop subdivision iterations first (default 0)")
+    prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
+    prep.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
+    prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
+    prep.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Preprocess the mesh named by ``args`` and print its report; returns the exit code."""
+    from warpfem.preprocess import prepare
+
+    if args.faces < 4:
+        raise InputError(f"--faces must be >= 4, got {args.faces}")
+    if not 0.0 < args.maxh <= 1.0:
+        raise InputError(f"--maxh must be in (0, 1], got {args.maxh}")
+    cache = cache_dir_of(args)
+    body = prepare(args.mesh, faces=args.faces, subdivide=args.subdivide, maxh=args.maxh, cache_dir=cache)
+    width = max(len(k) for k in body.stats)
+    for key, value in body.stats.items():
+        shown = f"{value:.4g}" if isinstance(value, float) else str(value)
+        print(f"{key:<{width}}  {shown}")
+    return 0
