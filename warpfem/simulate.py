@@ -182,6 +182,7 @@ def run_scene(
     cache_dir: Path | None = None,
     progress: Callable[[str], None] | None = None,
     on_frame: Callable[[], None] | None = None,
+    on_points: Callable[[int, list[np.ndarray]], None] | None = None,
 ) -> RunSummary:
     """Run ``scene`` and write its dense meshes to ``output`` (USD).
 
@@ -193,6 +194,9 @@ def run_scene(
         cache_dir: Preprocessing cache folder, or None for no cache.
         progress: Receives one-line status messages.
         on_frame: Called once per finished frame.
+        on_points: Called as ``on_points(frame, points)`` with each frame's dense points (one (n_i, 3) array
+            per body), frame 0 (the initial pose) included, after the frame is written; its time is not
+            counted in the summary's phases.
 
     Returns:
         The run's summary.
@@ -223,8 +227,11 @@ def run_scene(
     bodies = [(b.name, b.dense_faces) for b in model.bodies]
     with UsdWriter(output, bodies, fps=scene.fps, up_axis=scene.up_axis) as writer:
         t0 = time.perf_counter()
-        writer.add_frame(0, sim.dense_points())
+        points = sim.dense_points()
+        writer.add_frame(0, points)
         seconds["write"] += time.perf_counter() - t0
+        if on_points:
+            on_points(0, points)
         for frame in range(1, scene.frames + 1):
             t0 = time.perf_counter()
             sim.advance()
@@ -237,6 +244,8 @@ def run_scene(
             seconds["simulate"] += t1 - t0
             seconds["map"] += t2 - t1
             seconds["write"] += t3 - t2
+            if on_points:
+                on_points(frame, points)
             if on_frame:
                 on_frame()
         stats = solver.read_cg_stats()
