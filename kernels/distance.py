@@ -41,3 +41,20 @@ def surface_distance(
         )
         depth_out[i] = 0.0
         grad_out[i] = wp.normalize(n)
+
+
+@wp.kernel
+def unsigned_distance(
+    points: wp.array(dtype=wp.vec3),
+    surface: wp.uint64,
+    max_dist: float,
+    distance_out: wp.array(dtype=float),
+):
+    """Distance from each point to the closest point of the surface mesh (-1 if none within max_dist)."""
+    i = wp.tid()
+    p = points[i]
+    hit = wp.mesh_query_point_no_sign(surface, p, max_dist)
+    if hit.result:
+        distance_out[i] = wp.length(wp.mesh_eval_position(surface, hit.face, hit.u, hit.v) - p)
+    else:
+        distance_out[i] = -1.0

@@ -55,7 +55,7 @@ def test_netgen_crash_is_reported_with_its_signal(tmp_path, monkeypatch):
     fake = tmp_path / "crashing-python"
     fake.write_text("#!/bin/sh\necho 'Meshing volume'\nkill -SEGV $$\n")
     fake.chmod(0o755)
-    monkeypatch.setattr("warpfem.tetmesh.sys.executable", str(fake))
+    monkeypatch.setattr("warpfem._worker.sys.executable", str(fake))
     sphere = trimesh.creation.icosphere(subdivisions=1)
     with pytest.raises(InputError, match="ball: Netgen crashed \\(SIGSEGV\\); last output: Meshing volume"):
         tetrahedralize(sphere.vertices, sphere.faces, maxh=0.5, name="ball")

@@ -84,11 +84,17 @@ def test_nan_coordinate(tmp_path):
         load_surface(path)
 
 
-def test_hole_reports_boundary_edges(tmp_path):
+def test_large_hole_is_reported_small_hole_is_closed(tmp_path):
     sphere = trimesh.creation.icosphere(subdivisions=1)
     path = _write_obj(tmp_path / "hole.obj", sphere.vertices, sphere.faces[1:])
+    with pytest.raises(InputError, match="hole.obj: not closed: 1 holes, the largest spans .* of the bounding-box"):
+        load_surface(path, max_hole=0.1)
     with pytest.raises(InputError, match="hole.obj: not closed: 3 boundary edges"):
-        load_surface(path)
+        load_surface(path, max_hole=0.0)
+    surface = load_surface(path)  # the default limit closes it: the same triangle comes back
+    assert any("closed 1 holes" in r for r in surface.repairs)
+    assert topology_defects(surface.faces) is None
+    assert signed_volume(surface.vertices, surface.faces) == pytest.approx(sphere.volume, rel=1e-12)
 
 
 def test_flat_closed_surface_is_rejected(tmp_path):
@@ -172,6 +178,11 @@ def test_horse_is_oriented_outward(asset):
     assert signed_volume(surface.vertices, surface.faces) == pytest.approx(-signed_volume(raw.vertices, raw.faces))
 
 
-def test_stanford_bunny_has_holes(asset):
-    with pytest.raises(InputError, match=r"stanford-bunny.obj: not closed: \d+ boundary edges"):
-        load_surface(asset("stanford-bunny.obj"))
+def test_stanford_bunny_holes_are_closed(asset):
+    raw = trimesh.load(asset("stanford-bunny.obj"), process=False, skip_materials=True)
+    assert not raw.is_watertight
+    surface = load_surface(asset("stanford-bunny.obj"))
+    assert any(r.startswith("closed 5 holes") for r in surface.repairs)
+    closed = trimesh.Trimesh(surface.vertices, surface.faces, process=False)
+    assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
+    assert len(surface.vertices) == len(raw.vertices)  # ear-clipped caps: no new vertices

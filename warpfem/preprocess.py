@@ -1,9 +1,20 @@
-"""Preprocessing of one body: load, simplify, tetrahedralize, embed, distance field; with a disk cache.
+"""Preprocessing of one body: load, simplify, validate, tetrahedralize, embed, distance field; cached.
 
-Everything is in the mesh file's own coordinates; the simulator applies the scene's uniform scale,
-rotation and translation afterwards. The cache is content-addressed: a file is named by the sha256 of
-the welded input mesh and the parameters, so an edited mesh or changed parameter never hits a stale
-entry, and a damaged entry is rebuilt.
+Results are in the mesh file's own coordinates; the simulator applies the scene's uniform scale,
+rotation and translation afterwards. Internally every stage works on coordinates translated and scaled
+to a unit bounding-box diagonal, so a file's scale (1e-9 or 1e12 units) changes nothing.
+
+When a stage fails, the retry ladder (:data:`LADDER`) tries the next rung: the same coarse surface with
+other Netgen settings, other face counts, then a clean outer surface rebuilt from the generalized winding
+number (for input that intersects itself). Each coarse surface is validated before Netgen sees it
+(closed, manifold, no self-intersection); each tet mesh is accepted only if its tets are positive, its
+worst dihedral angle is at least :data:`MIN_DIHEDRAL_DEG`, its boundary is the coarse surface and its
+volume within :data:`VOLUME_TOLERANCE` of the dense mesh's. QEM, the outer surface and Netgen run in
+child processes under a time limit each, so a crash or hang there is a failed rung, not a dead caller.
+
+The cache is content-addressed: a file is named by the sha256 of the welded input mesh and the
+parameters, so an edited mesh or changed parameter never hits a stale entry; it is written atomically
+and carries a checksum of its arrays, so a damaged or truncated entry is rebuilt, not loaded.
 """
 
 from __future__ import annotations
@@ -13,7 +24,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +33,51 @@ from warpfem.embedding import embed
 from warpfem.errors import InputError
 from warpfem.surface import Surface, load_surface, subdivide_surface
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
 """Version of the cache file layout and of the preprocessing algorithm; bump to invalidate old entries."""
 
 INSIDE_EPS = 1e-9
 """A dense vertex whose smallest barycentric coordinate is >= -this counts as inside its tet."""
+
+MIN_DIHEDRAL_DEG = 1.0
+"""Quality bound: every accepted tet has all six dihedral angles at least this (degrees)."""
+
+VOLUME_TOLERANCE = 0.05
+"""Accepted relative difference between the tet mesh's volume and the dense surface's."""
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One attempt of the retry ladder.
+
+    Attributes:
+        label: What the rung does, as reported in ``stats["rung"]``.
+        source: ``"qslim"`` (QEM of the repaired dense surface) or ``"outer"`` (QEM of the generalized
+            winding number's marching-cubes surface).
+        faces_factor: Target face count relative to the requested one.
+        maxh_factor: Netgen's maxh relative to the requested one.
+        optsteps: Netgen's 3D optimization passes.
+        cells_factor: Outer-surface grid resolution relative to :func:`warpfem.simplify.outer_cells`.
+    """
+
+    label: str
+    source: str
+    faces_factor: float = 1.0
+    maxh_factor: float = 1.0
+    optsteps: int = 3
+    cells_factor: float = 1.0
+
+
+LADDER = (
+    Rung("qslim", "qslim"),
+    Rung("qslim, Netgen maxh/2 and 8 optimization passes", "qslim", maxh_factor=0.5, optsteps=8),
+    Rung("qslim at 0.8x faces", "qslim", faces_factor=0.8),
+    Rung("qslim at 1.25x faces", "qslim", faces_factor=1.25),
+    Rung("outer surface (winding number + marching cubes) + qslim", "outer"),
+    Rung("outer surface on a 0.6x grid (smoother) + qslim", "outer", cells_factor=0.6),
+    Rung("outer surface + qslim at 0.8x faces, Netgen 8 passes", "outer", faces_factor=0.8, optsteps=8),
+)
+"""The retry ladder, tried in order until a rung gives a valid tet mesh (``stats["rung"]`` says which)."""
 
 _STAT_PREFIX = "stat__"
 
@@ -67,7 +118,7 @@ class PreparedBody:
 _ARRAY_FIELDS = tuple(f.name for f in fields(PreparedBody) if f.name != "stats")
 
 
-def cache_key(surface: Surface, faces: int, subdivide: int, maxh: float) -> str:
+def cache_key(surface: Surface, faces: int, subdivide: int, maxh: float, options: str = "") -> str:
     """Return the sha256 hex digest naming the cache entry of a welded surface and the parameters.
 
     Args:
@@ -75,12 +126,15 @@ def cache_key(surface: Surface, faces: int, subdivide: int, maxh: float) -> str:
         faces: Target coarse face count.
         subdivide: Loop subdivision rounds.
         maxh: Relative maximum tet edge length.
+        options: Any further parameters that change the result, as text.
 
     Returns:
         64 hex characters.
     """
     digest = hashlib.sha256()
-    digest.update(f"warpfem-prepare v{CACHE_FORMAT} faces={faces} subdivide={subdivide} maxh={maxh!r}\n".encode())
+    digest.update(
+        f"warpfem-prepare v{CACHE_FORMAT} faces={faces} subdivide={subdivide} maxh={maxh!r} {options}\n".encode()
+    )
     digest.update(np.ascontiguousarray(surface.vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(surface.faces, dtype="<i4").tobytes())
     return digest.hexdigest()
@@ -94,7 +148,10 @@ def _read_cache(path: Path) -> PreparedBody | None:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: np.array(data[name]) for name in _ARRAY_FIELDS}
             stats = {key[len(_STAT_PREFIX) :]: data[key].item() for key in data.files if key.startswith(_STAT_PREFIX)}
+            checksum = str(data["checksum"])
     except Exception:  # a damaged file can fail in zipfile, numpy or the OS layer: rebuild it
+        return None
+    if checksum != _checksum(arrays):
         return None
     n, p = len(arrays["dense_vertices"]), len(arrays["tet_vertices"])
     consistent = (
@@ -108,10 +165,21 @@ def _read_cache(path: Path) -> PreparedBody | None:
     return PreparedBody(**arrays, stats=stats) if consistent else None
 
 
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over the arrays' names, dtypes, shapes and bytes."""
+    digest = hashlib.sha256()
+    for name in _ARRAY_FIELDS:
+        array = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name} {array.dtype.str} {array.shape}\n".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
 def _write_cache(path: Path, body: PreparedBody) -> None:
     """Write ``body`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {name: getattr(body, name) for name in _ARRAY_FIELDS}
+    payload["checksum"] = np.array(_checksum(payload))
     payload.update({_STAT_PREFIX + key: np.array(value) for key, value in body.stats.items()})
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem + ".", suffix=".tmp")
     try:
@@ -123,60 +191,173 @@ def _write_cache(path: Path, body: PreparedBody) -> None:
         raise
 
 
+@dataclass
+class _Attempt:
+    """Coarse surfaces made so far (memoized per rung source), failures and time per stage."""
+
+    dense: Surface
+    faces: int
+    timeout_s: float
+    say: Callable[[str], None]
+    surfaces: dict[tuple, tuple[np.ndarray, np.ndarray] | InputError]
+    seconds: dict[str, float]
+
+    def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray]:
+        """Return the validated coarse surface of ``rung`` (raises the memoized InputError if invalid)."""
+        from warpfem.simplify import outer_cells
+
+        target = max(4, round(self.faces * rung.faces_factor))
+        cells = outer_cells(target) if rung.source == "outer" else 0
+        key = (rung.source, target, max(8, round(cells * rung.cells_factor)) if cells else 0)
+        if key not in self.surfaces:
+            try:
+                self.surfaces[key] = self._make(rung.source, target, key[2])
+            except InputError as err:
+                self.surfaces[key] = err
+        made = self.surfaces[key]
+        if isinstance(made, InputError):
+            raise made
+        return made
+
+    def _make(self, source: str, target: int, cells: int) -> tuple[np.ndarray, np.ndarray]:
+        from warpfem.intersect import intersecting_faces
+        from warpfem.simplify import outer_surface, simplify
+
+        name = self.dense.source
+        vertices, faces = self.dense.vertices, self.dense.faces
+        clock = time.perf_counter()
+        if source == "outer":
+            self.say(f"{name}: rebuilding the outer surface on a {cells}-cell grid")
+            vertices, faces = outer_surface(vertices, faces, cells, name=name, timeout_s=self.timeout_s)
+            self.seconds["outer"] = self.seconds.get("outer", 0.0) + time.perf_counter() - clock
+            clock = time.perf_counter()
+        self.say(f"{name}: simplifying {len(faces)} faces to {target}")
+        coarse_v, coarse_f = simplify(vertices, faces, target, name=name, timeout_s=self.timeout_s)
+        self.seconds["simplify"] = self.seconds.get("simplify", 0.0) + time.perf_counter() - clock
+        clock = time.perf_counter()
+        pairs, _ = intersecting_faces(coarse_v, coarse_f)
+        self.seconds["validate"] = self.seconds.get("validate", 0.0) + time.perf_counter() - clock
+        if pairs:
+            raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself ({pairs} pairs)")
+        return coarse_v, coarse_f
+
+
+def _tet_mesh(
+    attempt: _Attempt, rung: Rung, maxh: float, dense_volume: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+    """Run one rung: coarse surface, Netgen, quality and volume checks (raises InputError on failure)."""
+    from warpfem.surface import signed_volume
+    from warpfem.tetmesh import tet_quality, tetrahedralize
+
+    name = attempt.dense.source
+    coarse_v, coarse_f = attempt.coarse(rung)
+    diag = float(np.linalg.norm(coarse_v.max(axis=0) - coarse_v.min(axis=0)))
+    h = maxh * rung.maxh_factor * diag
+    attempt.say(f"{name}: tetrahedralizing {len(coarse_f)} faces (maxh {h:.4g} of a unit diagonal)")
+    clock = time.perf_counter()
+    try:
+        tet_v, tets = tetrahedralize(
+            coarse_v, coarse_f, h, timeout_s=attempt.timeout_s, name=name, optsteps=rung.optsteps
+        )
+    finally:
+        attempt.seconds["tetrahedralize"] = attempt.seconds.get("tetrahedralize", 0.0) + time.perf_counter() - clock
+    dihedral, ratio = tet_quality(tet_v, tets)
+    if dihedral.min() < MIN_DIHEDRAL_DEG:
+        raise InputError(f"{name}: worst tet dihedral angle {dihedral.min():.3g} deg is below {MIN_DIHEDRAL_DEG:g}")
+    volume_ratio = signed_volume(coarse_v, coarse_f) / dense_volume if dense_volume else float("nan")
+    if dense_volume and abs(volume_ratio - 1.0) > VOLUME_TOLERANCE:
+        raise InputError(f"{name}: the tet mesh's volume is {volume_ratio:.3f}x the dense mesh's")
+    quality = {
+        "tet_min_dihedral_deg": float(dihedral.min()),
+        "tet_min_radius_ratio": float(ratio.min()),
+        "volume_ratio": float(volume_ratio),
+        "maxh_absolute": h,
+    }
+    return coarse_v, coarse_f, tet_v, tets, quality
+
+
 def _build(
     dense: Surface, faces: int, maxh: float, timeout_s: float, say: Callable[[str], None]
 ) -> tuple[dict[str, np.ndarray], dict[str, float | int | str]]:
-    """Run simplify, tetrahedralize, embed and distance; return the arrays and their stats."""
-    from warpfem.distance import distance_field
-    from warpfem.simplify import simplify
-    from warpfem.tetmesh import tetrahedralize
+    """Climb the retry ladder to a valid tet mesh, then embed and compute the distance field and stats.
+
+    ``dense`` is in the caller's coordinates; the work is done on a copy scaled to a unit diagonal.
+    """
+    from warpfem.distance import distance_field, hausdorff
+    from warpfem.intersect import intersecting_faces
+    from warpfem.surface import signed_volume
 
     name = dense.source
-    stats: dict[str, float | int | str] = {}
-    clock = time.perf_counter()
-    say(f"{name}: simplifying {len(dense.faces)} faces to {faces}")
-    coarse_v, coarse_f = simplify(dense.vertices, dense.faces, faces, name=name)
-    stats["seconds_simplify"] = time.perf_counter() - clock
+    center = 0.5 * (dense.vertices.max(axis=0) + dense.vertices.min(axis=0))
+    scale = float(np.linalg.norm(dense.vertices.max(axis=0) - dense.vertices.min(axis=0)))
+    unit = replace(dense, vertices=(dense.vertices - center) / scale)
 
     clock = time.perf_counter()
-    diag = float(np.linalg.norm(coarse_v.max(axis=0) - coarse_v.min(axis=0)))
-    say(f"{name}: tetrahedralizing {len(coarse_f)} faces (maxh {maxh * diag:.4g})")
-    tet_v, tets = tetrahedralize(coarse_v, coarse_f, maxh * diag, timeout_s=timeout_s, name=name)
-    stats["seconds_tetrahedralize"] = time.perf_counter() - clock
+    dense_pairs, _ = intersecting_faces(unit.vertices, unit.faces)
+    seconds = {"validate": time.perf_counter() - clock}
+    # overlapping shells double-count their common volume: no reference volume then
+    dense_volume = None if dense.overlapping else signed_volume(unit.vertices, unit.faces)
+    attempt = _Attempt(unit, faces, timeout_s, say, {}, seconds)
+    failures = []
+    for index, rung in enumerate(LADDER):
+        say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
+        try:
+            coarse_v, coarse_f, tet_v, tets, quality = _tet_mesh(attempt, rung, maxh, dense_volume)
+            break
+        except InputError as err:
+            reason = str(err).removeprefix(f"{name}: ")
+            failures.append(f"{index + 1}) {reason}")
+            say(f"{name}: rung {index + 1} failed: {reason}")
+    else:
+        raise InputError(f"{name}: no valid tet mesh at {faces} faces, every rung failed: {' '.join(failures)}")
 
-    # tetrahedralize keeps the surface points first and unchanged, so the coarse faces index tet_v as is
-    boundary = coarse_f.copy()
+    boundary = coarse_f.copy()  # tetrahedralize keeps the surface points first, so these index tet_v
     clock = time.perf_counter()
-    say(f"{name}: embedding {len(dense.vertices)} dense vertices in {len(tets)} tets")
-    embed_tet, embed_bary = embed(dense.vertices, tet_v, tets, boundary)
-    stats["seconds_embed"] = time.perf_counter() - clock
+    say(f"{name}: embedding {len(unit.vertices)} dense vertices in {len(tets)} tets")
+    try:
+        embed_tet, embed_bary = embed(unit.vertices, tet_v, tets, boundary)
+    except ValueError as err:
+        raise InputError(f"{name}: embedding failed: {err}") from None
+    seconds["embed"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
     say(f"{name}: distance field at {len(tet_v)} tet vertices")
     depth, grad = distance_field(tet_v, coarse_v, coarse_f)
-    stats["seconds_distance"] = time.perf_counter() - clock
+    seconds["distance"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    dense_to_coarse, coarse_to_dense = hausdorff(unit.vertices, unit.faces, coarse_v, coarse_f)
+    seconds["hausdorff"] = time.perf_counter() - clock
 
     rebuilt = np.einsum("nk,nkj->nj", embed_bary, tet_v[tets[embed_tet]])
-    dense_diag = float(np.linalg.norm(dense.vertices.max(axis=0) - dense.vertices.min(axis=0)))
-    stats.update(
-        coarse_vertices=len(coarse_v),
-        coarse_faces=len(coarse_f),
-        tets=len(tets),
-        tet_vertices=len(tet_v),
-        maxh_absolute=maxh * diag,
-        embedding_coverage=float(np.mean(embed_bary.min(axis=1) >= -INSIDE_EPS)),
-        embedding_max_error=float(np.abs(rebuilt - dense.vertices).max() / dense_diag),
-        max_depth=float(depth.max()),
-    )
+    stats: dict[str, float | int | str] = {
+        "rung": f"{index + 1} ({LADDER[index].label})",
+        "failed_rungs": " ".join(failures) or "none",
+        "dense_intersecting_pairs": dense_pairs,
+        "coarse_vertices": len(coarse_v),
+        "coarse_faces": len(coarse_f),
+        "tets": len(tets),
+        "tet_vertices": len(tet_v),
+        **quality,
+        "maxh_absolute": quality["maxh_absolute"] * scale,
+        "hausdorff": max(dense_to_coarse, coarse_to_dense) * scale,
+        "hausdorff_relative": max(dense_to_coarse, coarse_to_dense),
+        "hausdorff_dense_to_coarse": dense_to_coarse * scale,
+        "hausdorff_coarse_to_dense": coarse_to_dense * scale,
+        "embedding_coverage": float(np.mean(embed_bary.min(axis=1) >= -INSIDE_EPS)),
+        "embedding_max_error": float(np.abs(rebuilt - unit.vertices).max()),
+        "max_depth": float(depth.max()) * scale,
+    }
+    stats.update({f"seconds_{stage}": value for stage, value in seconds.items()})
     arrays = {
-        "coarse_vertices": coarse_v,
+        "coarse_vertices": coarse_v * scale + center,
         "coarse_faces": coarse_f,
         "boundary_faces": boundary,
-        "tet_vertices": tet_v,
+        "tet_vertices": tet_v * scale + center,
         "tets": tets,
         "embed_tet": embed_tet.astype(np.int32),
         "embed_bary": embed_bary,
-        "vertex_depth": depth,
+        "vertex_depth": depth * scale,
         "vertex_grad": grad,
     }
     return arrays, stats
@@ -190,6 +371,8 @@ def prepare(
     cache_dir: Path | None = None,
     timeout_s: float = 120.0,
     progress: Callable[[str], None] | None = None,
+    shells: str | int = "merge",
+    max_hole: float | None = None,
 ) -> PreparedBody:
     """Preprocess one body, or load it from the cache.
 
@@ -199,16 +382,25 @@ def prepare(
         subdivide: Loop subdivision rounds applied to the dense surface after loading.
         maxh: Largest tet edge, as a fraction of the coarse surface's bounding-box diagonal.
         cache_dir: Folder of cached results (``<sha256>.npz``), or None for no caching.
-        timeout_s: Time limit for Netgen, in seconds.
+        timeout_s: Time limit of each child-process stage (QEM, outer surface, Netgen), in seconds.
         progress: Receives one-line status messages.
+        shells: What to do with several shells: ``"merge"`` them into one body, keep the ``"largest"``,
+            ``"error"``, or an int k to keep the k-th largest (one body per shell: prepare each k).
+        max_hole: Largest hole closed automatically, relative to the bounding-box diagonal (None: the
+            default :data:`warpfem.repair.MAX_HOLE_FRACTION`; 0: none).
 
     Returns:
         The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off),
-        ``dense_vertices``, ``dense_faces``, ``coarse_vertices``, ``coarse_faces``, ``tets``,
-        ``tet_vertices``, ``maxh_absolute`` (mesh units), ``embedding_coverage`` (fraction of dense
-        vertices inside a tet), ``embedding_max_error`` (max reconstruction error / bbox diagonal),
-        ``max_depth`` and ``seconds_<stage>`` for load, simplify, tetrahedralize, embed, distance (on a
-        cache hit, those of the run that filled the cache, plus ``seconds_cache_read``).
+        ``rung`` (the ladder rung that succeeded), ``failed_rungs`` (the reasons of those before it),
+        ``dense_vertices``, ``dense_faces``, ``dense_intersecting_pairs``, ``coarse_vertices``,
+        ``coarse_faces``, ``tets``, ``tet_vertices``, ``tet_min_dihedral_deg``, ``tet_min_radius_ratio``
+        (3 inradius / circumradius, 1 for a regular tet), ``volume_ratio`` (coarse / dense volume; NaN for
+        overlapping merged shells), ``maxh_absolute`` (mesh units), ``hausdorff`` (two-sided, sample-based,
+        mesh units; also ``hausdorff_relative`` to the bounding-box diagonal and each one-sided value),
+        ``embedding_coverage`` (fraction of dense vertices inside a tet), ``embedding_max_error`` (max
+        reconstruction error / bbox diagonal), ``max_depth`` and ``seconds_<stage>`` for load, validate,
+        outer (if used), simplify, tetrahedralize, embed, distance, hausdorff (on a cache hit, those of the
+        run that filled the cache, plus ``seconds_cache_read``).
 
     Raises:
         InputError: For a bad mesh or parameter, or when a stage fails on this mesh (one line).
@@ -220,12 +412,13 @@ def prepare(
         raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
     clock = time.perf_counter()
     say(f"{mesh}: loading")
-    surface = load_surface(mesh)
+    surface = load_surface(mesh, max_hole=max_hole, shells=shells)
     seconds_load = time.perf_counter() - clock
 
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"{cache_key(surface, faces, subdivide, maxh)}.npz"
+        options = f"shells={shells!r} max_hole={max_hole!r}"
+        path = Path(cache_dir) / f"{cache_key(surface, faces, subdivide, maxh, options)}.npz"
         clock = time.perf_counter()
         cached = _read_cache(path)
         if cached is not None:

@@ -2,9 +2,10 @@
 
 A surface is read from OBJ, PLY, STL or OFF (through trimesh, without materials or textures) or from
 ``builtin:bunny`` (the bunny shipped with Warp, read through pxr). Vertices are welded by position,
-degenerate and duplicate faces are dropped, unused vertices removed, the surface is optionally Loop
-subdivided and oriented outward, and it must be closed, edge-manifold and consistently wound with a
-positive enclosed volume. Coordinates keep the file's own units (no scaling).
+degenerate and duplicate faces are dropped, unused vertices removed, small holes closed
+(:mod:`warpfem.repair`), every shell oriented outward, shells merged or selected, and the surface
+optionally Loop subdivided. It must then be closed, edge-manifold and consistently wound, each shell
+with a nonzero enclosed volume. Coordinates keep the file's own units (no scaling).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ WELD_TOLERANCE = 1e-9
 
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off")
 
+MAX_EXTENT = 1e30
+"""Largest accepted bounding-box diagonal, in file units (cubed volumes must stay finite in float64)."""
+
 
 @dataclass(frozen=True)
 class Surface:
@@ -35,12 +39,14 @@ class Surface:
         faces: (m, 3) int32 vertex indices, counter-clockwise seen from outside.
         source: Where the mesh came from (file path or ``builtin:bunny``).
         repairs: Human-readable list of what was changed while loading.
+        overlapping: Whether merged shells lie inside or cross each other (the body is their union).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     source: str
     repairs: tuple[str, ...]
+    overlapping: bool = False
 
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -230,23 +236,33 @@ def subdivide_surface(surface: Surface, iterations: int) -> Surface:
         faces=np.ascontiguousarray(faces, dtype=np.int32),
         source=surface.source,
         repairs=(*surface.repairs, f"Loop-subdivided {iterations}x to {len(faces)} faces"),
+        overlapping=surface.overlapping,
     )
 
 
-def load_surface(path: str | Path, subdivide: int = 0) -> Surface:
+def load_surface(
+    path: str | Path, subdivide: int = 0, max_hole: float | None = None, shells: str | int = "merge"
+) -> Surface:
     """Load, repair and validate a closed triangle surface.
 
     Args:
         path: An OBJ, PLY, STL or OFF file, or ``"builtin:bunny"`` for Warp's bunny.
         subdivide: Rounds of Loop subdivision applied after repair (each gives 4x the faces).
+        max_hole: Largest hole closed, as its boundary loop's bounding-box diagonal over the mesh's
+            (None: :data:`warpfem.repair.MAX_HOLE_FRACTION`; 0 closes none).
+        shells: Several shells: ``"merge"`` into one body, keep the ``"largest"``, ``"error"``, or an
+            int k to keep the k-th largest (see :func:`warpfem.repair.select_shells`).
 
     Returns:
-        The repaired surface, oriented so that its signed volume is positive.
+        The repaired surface, every shell oriented so that its signed volume is positive.
 
     Raises:
         InputError: One line naming the file and the defect (missing, empty, unreadable, no faces,
-            NaN/Inf coordinates, holes, non-manifold edges, inconsistent winding, zero volume).
+            NaN/Inf or overflowing coordinates, all vertices coincident, holes over the limit,
+            non-manifold edges, inconsistent winding, zero volume, unwanted shells).
     """
+    from warpfem.repair import MAX_HOLE_FRACTION, close_small_holes, select_shells
+
     name = str(path)
     if name == BUILTIN_BUNNY:
         vertices, faces = _read_usd_bunny()
@@ -259,6 +275,12 @@ def load_surface(path: str | Path, subdivide: int = 0) -> Surface:
         raise InputError(f"{name}: {bad} vertices have NaN or Inf coordinates")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError(f"{name}: face indices out of range")
+    with np.errstate(over="ignore"):
+        diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    if not np.isfinite(diag) or diag > MAX_EXTENT:
+        raise InputError(f"{name}: coordinates too large (bounding box beyond {MAX_EXTENT:g} units)")
+    if diag == 0.0:
+        raise InputError(f"{name}: all vertices are at the same position")
 
     repairs: list[str] = []
     vertices, faces = _weld(vertices, faces, repairs)
@@ -267,20 +289,20 @@ def load_surface(path: str | Path, subdivide: int = 0) -> Surface:
         raise InputError(f"{name}: mesh has no faces with nonzero area")
     vertices, faces = _drop_unused(vertices, faces, repairs)
     defect = topology_defects(faces)
+    if defect is not None and defect.startswith("not closed"):
+        limit = MAX_HOLE_FRACTION if max_hole is None else max_hole
+        if limit > 0:
+            vertices, faces = close_small_holes(vertices, faces, limit, name, repairs)
+            defect = topology_defects(faces)
     if defect is not None:
         raise InputError(f"{name}: {defect}")
-
-    volume = signed_volume(vertices, faces)
-    diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    if abs(volume) <= 1e-12 * diag**3:
-        raise InputError(f"{name}: encloses zero volume (flat surface)")
-    if volume < 0:
-        faces = faces[:, ::-1]
-        repairs.append("flipped inward winding")
+    faces, overlapping = select_shells(vertices, faces, shells, name, repairs)
+    vertices, faces = _drop_unused(vertices, faces, [])
     surface = Surface(
         vertices=np.ascontiguousarray(vertices, dtype=np.float64),
         faces=np.ascontiguousarray(faces, dtype=np.int32),
         source=name,
         repairs=tuple(repairs),
+        overlapping=overlapping,
     )
     return subdivide_surface(surface, subdivide)

@@ -7,14 +7,9 @@ tet vertex i and the surface faces index the tet vertices directly.
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
-import tempfile
-from pathlib import Path
-
 import numpy as np
 
+from warpfem._worker import last_message, run_in_child
 from warpfem.errors import InputError
 from warpfem.surface import signed_volume
 
@@ -39,41 +34,13 @@ def tet_signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
 
 
-def _last_message(log: str) -> str:
-    """Return the last non-empty line of Netgen's console output (or a placeholder)."""
-    lines = [line.strip() for line in log.splitlines() if line.strip()]
-    return lines[-1] if lines else "no output"
-
-
-def _run_netgen(vertices: np.ndarray, faces: np.ndarray, maxh: float, timeout_s: float, name: str):
-    """Run the worker in a child process; return (points, tets) in Netgen's numbering."""
-    with tempfile.TemporaryDirectory(prefix="warpfem-netgen-") as tmp:
-        src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(src, vertices=vertices, faces=faces, maxh=np.float64(maxh), optsteps=np.int32(OPTIMIZATION_STEPS))
-        try:
-            proc = subprocess.run(
-                [sys.executable, "-m", "warpfem._netgen_worker", str(src), str(dst)],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-                errors="replace",
-                timeout=timeout_s,
-                cwd=tmp,
-            )
-        except subprocess.TimeoutExpired as exc:
-            raise InputError(f"{name}: Netgen did not finish within {timeout_s:g} s") from exc
-        if proc.returncode < 0:
-            sig = signal.Signals(-proc.returncode).name
-            raise InputError(f"{name}: Netgen crashed ({sig}); last output: {_last_message(proc.stdout)}")
-        if proc.returncode != 0 or not dst.exists():
-            raise InputError(f"{name}: Netgen failed (exit {proc.returncode}): {_last_message(proc.stdout)}")
-        with np.load(dst, allow_pickle=False) as data:
-            return data["points"], data["tets"], proc.stdout
-
-
 def tetrahedralize(
-    V: np.ndarray, F: np.ndarray, maxh: float, timeout_s: float = 120.0, name: str = "mesh"
+    V: np.ndarray,
+    F: np.ndarray,
+    maxh: float,
+    timeout_s: float = 120.0,
+    name: str = "mesh",
+    optsteps: int = OPTIMIZATION_STEPS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fill a closed, outward-wound surface with tetrahedra using Netgen, keeping the surface.
 
@@ -83,6 +50,7 @@ def tetrahedralize(
         maxh: Largest tet edge length, in mesh units (e.g. m).
         timeout_s: Wall-clock limit for Netgen, in seconds.
         name: Name of the mesh for error messages.
+        optsteps: Netgen's 3D optimization passes.
 
     Returns:
         ``(tet_vertices, tets)``: (p, 3) float64 positions whose first n rows are ``V`` unchanged, and
@@ -97,9 +65,11 @@ def tetrahedralize(
     faces = np.ascontiguousarray(F, dtype=np.int32)
     if not maxh > 0:
         raise InputError(f"{name}: maxh must be positive, got {maxh}")
-    points, tets, log = _run_netgen(vertices, faces, maxh, timeout_s, name)
+    inputs = {"vertices": vertices, "faces": faces, "maxh": np.float64(maxh), "optsteps": np.int32(optsteps)}
+    out, log = run_in_child("netgen", inputs, timeout_s, name, "Netgen")
+    points, tets = out["points"], out["tets"]
     if len(tets) == 0:
-        raise InputError(f"{name}: Netgen made no tets (the surface may self-intersect): {_last_message(log)}")
+        raise InputError(f"{name}: Netgen made no tets (the surface may self-intersect): {last_message(log)}")
     if len(points) < len(vertices) or not np.array_equal(points[: len(vertices)], vertices):
         raise InputError(f"{name}: Netgen moved or reordered the surface points")
 
@@ -149,3 +119,35 @@ def _boundary_matches(tets: np.ndarray, faces: np.ndarray) -> bool:
         return out[np.lexsort(out.T[::-1])]
 
     return bool(np.array_equal(canonical(boundary), canonical(np.asarray(faces))))
+
+
+def tet_quality(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return each tet's smallest dihedral angle and its radius ratio.
+
+    Args:
+        points: (p, 3) positions.
+        tets: (q, 4) positively oriented tets.
+
+    Returns:
+        ``(min_dihedral, radius_ratio)``: (q,) smallest interior dihedral angle in degrees (70.5 for a
+        regular tet, 0 for a flat one) and (q,) 3 * inradius / circumradius (1 for a regular tet, 0 for a
+        flat one).
+    """
+    x = np.asarray(points, dtype=np.float64)[tets]  # (q, 4, 3)
+    # outward face normals, face k opposite corner k
+    normals = np.stack(
+        [np.cross(x[:, (k + 2) % 4] - x[:, (k + 1) % 4], x[:, (k + 3) % 4] - x[:, (k + 1) % 4]) for k in range(4)],
+        axis=1,
+    )
+    areas2 = np.linalg.norm(normals, axis=2)  # twice the face areas
+    unit = normals / np.maximum(areas2, 1e-300)[:, :, None]
+    # the dihedral angle between faces i and j is pi minus the angle between their outward normals
+    cosines = np.stack([np.einsum("ij,ij->i", unit[:, i], unit[:, j]) for i in range(4) for j in range(i + 1, 4)], 1)
+    dihedral = np.degrees(np.pi - np.arccos(np.clip(cosines, -1.0, 1.0))).min(axis=1)
+    volume = np.abs(tet_signed_volumes(points, tets))
+    inradius = 3.0 * volume / (0.5 * areas2.sum(axis=1))
+    a = x[:, 1:] - x[:, :1]  # (q, 3, 3) edges from corner 0
+    rhs = 0.5 * np.einsum("qij,qij->qi", a, a)
+    center = np.linalg.solve(a, rhs[:, :, None])[:, :, 0]  # circumcentre relative to corner 0
+    circumradius = np.linalg.norm(center, axis=1)
+    return dihedral, 3.0 * inradius / np.maximum(circumradius, 1e-300)
