@@ -336,9 +336,9 @@ class PreviewWriter:
     """Streams RGB frames to an ``.mp4``, a ``.gif`` or a folder of ``frame_00000.png`` files.
 
     Frames go to a temporary file (or folder) beside the target, moved into place by :meth:`close`, so the
-    target never holds a partial result. Used as a context manager it behaves like
-    :class:`warpfem.usd_out.UsdWriter`: it closes on success or when at least one frame was added (so an
-    interrupted run keeps its frames), and aborts otherwise.
+    target never holds a partial result. Used as a context manager it closes on leaving when at least one
+    frame was added (so an interrupted or failed run keeps its frames, like
+    :class:`warpfem.usd_out.UsdWriter`) and aborts otherwise.
 
     The mp4 is H.264 (yuv420p, plays everywhere) at the scene's fps. GIF frame delays are whole
     hundredths of a second, and browsers slow down delays under 0.02 s, so a GIF keeps every frame but
@@ -457,7 +457,7 @@ class PreviewWriter:
     ) -> None:
         if self._closed:
             return
-        if exc_type is None or self.frames > 0:
+        if self.frames > 0:
             self.close()
         else:
             self.abort()

@@ -1,17 +1,35 @@
-"""``warpfem run``: run a scene and write an animated USD file."""
+"""``warpfem run``: run a scene, write an animated USD file and optionally a rendered preview."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+import tempfile
+import time
 from pathlib import Path
+from typing import Any
 
-from warpfem.commands import cache_dir_of, check_device, status_printer
+from warpfem.commands import (
+    add_camera_flags,
+    add_output_flags,
+    cache_dir_of,
+    camera_flags,
+    check_device,
+    make_camera,
+    print_summary,
+    shows_progress,
+)
 from warpfem.errors import InputError
 
 EXAMPLES = """examples:
   warpfem run                                    the default scene (a dense bunny dropped on the ground)
   warpfem run scenes/default.toml --frames 30 --out bunny.usdc --device cpu
+  warpfem run --frames 10 --device cpu --preview out.gif     a quick look on any machine
+  warpfem run --preview out.mp4 --size 640x480               H.264 video beside the USD file
+  warpfem run --preview frames/ --quiet --json               PNG frames, a JSON summary for scripts
+
+exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input, 130 interrupted
 """
 
 
@@ -19,8 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``run`` command to the CLI's subparsers."""
     run = sub.add_parser(
         "run",
-        help="run a scene and write an animated USD file",
-        description="Run a scene (default: the shipped default scene) and write its dense meshes as animated USD.",
+        help="run a scene and write an animated USD file (and a preview video)",
+        description="Run a scene (default: the shipped default scene) and write its dense meshes as animated USD; "
+        "with --preview also render them (headless, on the simulation's device) to an mp4, a gif or PNG frames.",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -30,12 +49,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
     run.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     run.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
-    run.add_argument("--quiet", action="store_true", help="no progress output, only the summary")
+    run.add_argument("--preview", type=Path, help="also render to FILE.mp4, FILE.gif or a new FOLDER of PNG frames")
+    add_camera_flags(run)
+    add_output_flags(run)
     run.set_defaults(func=main)
+
+
+def _prepare(scene: Any, cache: Path, show: bool) -> tuple[list[Any], float]:
+    """Preprocess every body (a progress bar over objects, the stage as its text); returns them and the time."""
+    from tqdm import tqdm
+
+    from warpfem.preprocess import prepare
+
+    clock = time.perf_counter()
+    prepared = []
+    with tqdm(total=len(scene.objects), unit="object", desc="preparing", disable=not show, file=sys.stderr) as bar:
+        for obj in scene.objects:
+            bar.set_postfix_str(obj.name)
+            try:
+                body = prepare(
+                    obj.mesh,
+                    faces=obj.faces,
+                    subdivide=obj.subdivide,
+                    maxh=obj.maxh,
+                    cache_dir=cache,
+                    progress=lambda message, name=obj.name: bar.set_postfix_str(f"{name}: {message}"[-70:]),
+                )
+            except InputError as err:
+                raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None
+            prepared.append(body)
+            bar.update(1)
+    return prepared, time.perf_counter() - clock
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the scene named by ``args``; returns the exit code."""
+    from warpfem.render import PreviewWriter, parse_size, preview_kind
     from warpfem.scene import default_scene_path, load_scene
 
     scene = load_scene(args.scene or default_scene_path())
@@ -48,41 +97,76 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: the output must end in .usdc or .usda")
     if not out.resolve().parent.is_dir():
         raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
+    size = parse_size(args.size)
+    flags = camera_flags(args)
+    if args.preview is not None:
+        preview_kind(args.preview)
     check_device(args.device)
+    import warp as wp
     from tqdm import tqdm
 
     from warpfem.simulate import run_scene
 
-    cache = cache_dir_of(args)
-    interactive = sys.stderr.isatty() and not args.quiet  # piped stderr carries only errors
-    bar = None
+    device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")
+    show = shows_progress(args)
+    render_seconds = 0.0
+    with contextlib.ExitStack() as stack:
+        cache = cache_dir_of(args)
+        if cache is None:  # --no-cache: a private cache for this run only, so run_scene reuses what _prepare made
+            cache = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="warpfem-run-")))
+        prepared, prepare_seconds = _prepare(scene, cache, show)
+        bar = stack.enter_context(
+            tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
+        )
+        preview = renderer = None
+        if args.preview is not None:
+            from warpfem.render import Renderer
 
-    def on_frame() -> None:  # the bar starts with the first frame, after preprocessing
-        nonlocal bar
-        if bar is None:
-            bar = tqdm(total=scene.frames, unit="frame", disable=not interactive, file=sys.stderr, dynamic_ncols=True)
-        bar.update(1)
+            ground = scene.ground.height if scene.ground.enabled else None
+            faces = [body.dense_faces for body in prepared]
+            renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
+            preview = stack.enter_context(PreviewWriter(args.preview, scene.fps, size))
 
-    try:
-        summary = run_scene(scene, out, args.device, cache, status_printer(not interactive), on_frame)
-    except KeyboardInterrupt:
-        kept = f"; the frames finished so far are in {out}" if out.exists() else "; nothing was written"
-        print(f"warpfem: interrupted{kept}", file=sys.stderr)
-        return 130
-    finally:
-        if bar is not None:
-            bar.close()
+        def on_points(frame: int, points: list[Any]) -> None:
+            nonlocal render_seconds
+            clock = time.perf_counter()
+            if renderer.camera is None:
+                from warpfem.render import framing_box
+
+                lo, hi = framing_box(points, scene.up_axis, renderer.ground)
+                renderer.camera = make_camera(flags, lo, hi, scene.up_axis, size[0] / size[1])
+            preview.add(renderer.render(points))
+            render_seconds += time.perf_counter() - clock
+
+        def on_frame() -> None:
+            bar.update(1)
+            if bar.n == scene.frames:
+                bar.set_description("writing")
+
+        try:
+            summary = run_scene(scene, out, device, cache, None, on_frame, on_points if preview else None)
+            if preview is not None:
+                preview.close()
+        except KeyboardInterrupt:
+            done = [str(p) for p in (out, args.preview) if p is not None and p.exists()]
+            kept = f"; the frames finished so far are in {' and '.join(done)}" if done else "; nothing was written"
+            print(f"warpfem: interrupted{kept}", file=sys.stderr)
+            return 130
     s = summary.seconds
+    s["prepare"] = prepare_seconds  # run_scene's own prepare step only read the cache filled above
+    per = 1e3 / summary.frames
+    render_ms = per * render_seconds
     rows = [
         ("output", str(summary.output)),
+        ("preview", f"{args.preview} ({render_ms:.1f} ms per frame at {size[0]}x{size[1]})" if preview else "none"),
         ("device", summary.device),
         ("frames", f"{summary.frames} ({summary.simulated_seconds:.3g} s simulated)"),
         (
             "wall time per frame",
-            f"{summary.ms_per_frame:.2f} ms (simulate {1e3 * s['simulate'] / summary.frames:.2f}, "
-            f"map {1e3 * s['map'] / summary.frames:.2f}, write {1e3 * s['write'] / summary.frames:.2f})",
+            f"{summary.ms_per_frame + render_ms:.2f} ms (simulate {per * s['simulate']:.2f}, map {per * s['map']:.2f}, "
+            f"write {per * s['write']:.2f}, render {render_ms:.2f})",
         ),
-        ("preprocessing", f"{s['prepare']:.2f} s"),
+        ("preprocessing", f"{prepare_seconds:.2f} s"),
         ("bodies", str(summary.bodies)),
         ("tets / tet vertices", f"{summary.tets} / {summary.tet_vertices}"),
         ("dense triangles / vertices", f"{summary.dense_triangles} / {summary.dense_vertices}"),
@@ -91,7 +175,22 @@ def main(args: argparse.Namespace) -> int:
             f"{summary.cg_iterations_per_step:.1f} (max residual {summary.cg_residual_max:.2g})",
         ),
     ]
-    width = max(len(k) for k, _ in rows)
-    for key, value in rows:
-        print(f"{key:<{width}}  {value}")
+    data = {
+        "output": str(summary.output),
+        "preview": str(args.preview) if preview else None,
+        "preview_size": list(size) if preview else None,
+        "device": summary.device,
+        "frames": summary.frames,
+        "simulated_seconds": summary.simulated_seconds,
+        "ms_per_frame": summary.ms_per_frame + render_ms,
+        "seconds": {**s, "render": render_seconds},
+        "bodies": summary.bodies,
+        "tets": summary.tets,
+        "tet_vertices": summary.tet_vertices,
+        "dense_triangles": summary.dense_triangles,
+        "dense_vertices": summary.dense_vertices,
+        "cg_iterations_per_step": summary.cg_iterations_per_step,
+        "cg_residual_max": summary.cg_residual_max,
+    }
+    print_summary(rows, data, args.json)
     return 0
