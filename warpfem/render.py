@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import numpy as np
 
@@ -474,6 +475,8 @@ class UsdAnimation:
         times: The time codes with samples, increasing (a single 0.0 for a static file).
         fps: ``timeCodesPerSecond`` of the stage.
         up_axis: ``"Y"`` or ``"Z"``.
+        stage: The open ``Usd.Stage`` (kept open while its meshes are read).
+        point_attrs: The ``points`` attribute of each mesh.
     """
 
     path: Path
@@ -482,7 +485,8 @@ class UsdAnimation:
     times: list[float]
     fps: float
     up_axis: str
-    _attrs: list
+    stage: Any
+    point_attrs: list[Any]
 
     def points(self, time: float) -> list[np.ndarray]:
         """World-space points of every mesh at ``time``."""
@@ -490,7 +494,7 @@ class UsdAnimation:
 
         cache = UsdGeom.XformCache(time)
         out = []
-        for attr in self._attrs:
+        for attr in self.point_attrs:
             p = np.asarray(attr.Get(Usd.TimeCode(time)), dtype=np.float64)
             m = np.asarray(cache.GetLocalToWorldTransform(attr.GetPrim()), dtype=np.float64)
             out.append(p @ m[:3, :3] + m[3, :3])  # USD matrices act on row vectors
@@ -562,5 +566,6 @@ def read_usd(path: str | Path) -> UsdAnimation:
         times=sorted(times) or [0.0],
         fps=float(stage.GetTimeCodesPerSecond()),
         up_axis="Z" if up_axis == UsdGeom.Tokens.z else "Y",
-        _attrs=attrs,
+        stage=stage,
+        point_attrs=attrs,
     )
