@@ -16,7 +16,11 @@ EPILOG = """exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input, 13
 examples:
   warpfem run                                    the default scene (a dense bunny dropped on the ground)
   warpfem run scenes/default.toml --frames 30 --out bunny.usdc --device cpu
+  warpfem run --frames 10 --device cpu --preview out.gif
+  warpfem render default.usdc --out default.mp4  render a USD file written here or elsewhere
   warpfem prepare ../shared/assets/armadillo.off --faces 1000
+  warpfem info                                   Warp, CUDA, devices and dependency versions
+every command has --help with its own examples; docs/cli.md describes them all
 """
 
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from warpfem.commands import cache_dir_of
+from warpfem.commands import add_output_flags, cache_dir_of, print_summary
 from warpfem.errors import InputError
 
 EXAMPLES = """examples:
   warpfem prepare ../shared/assets/armadillo.off --faces 1000
   warpfem prepare builtin:bunny --subdivide 2 --faces 500 --no-cache
+  warpfem prepare bunny.obj --json                            the report as JSON, for scripts
+
+exit codes: 0 ok, 2 bad input (unreadable or broken mesh, bad option, a stage failing on this mesh)
 """
 
 
@@ -29,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
     prep.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
+    add_output_flags(prep, progress=False)
     prep.set_defaults(func=main)
 
 
@@ -42,8 +46,6 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--maxh must be in (0, 1], got {args.maxh}")
     cache = cache_dir_of(args)
     body = prepare(args.mesh, faces=args.faces, subdivide=args.subdivide, maxh=args.maxh, cache_dir=cache)
-    width = max(len(k) for k in body.stats)
-    for key, value in body.stats.items():
-        shown = f"{value:.4g}" if isinstance(value, float) else str(value)
-        print(f"{key:<{width}}  {shown}")
+    rows = [(key, f"{value:.4g}" if isinstance(value, float) else str(value)) for key, value in body.stats.items()]
+    print_summary(rows, body.stats, args.json)
     return 0

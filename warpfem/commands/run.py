@@ -82,9 +82,58 @@ def _prepare(scene: Any, cache: Path, show: bool) -> tuple[list[Any], float]:
     return prepared, time.perf_counter() - clock
 
 
+def _simulate(
+    args: argparse.Namespace, scene: Any, out: Path, device: str, size: tuple[int, int], flags: dict[str, Any]
+) -> tuple[Any, float, float]:
+    """Prepare, simulate and (with ``--preview``) render; returns the run summary, prepare and render seconds.
+
+    On an interrupt or a failure the USD file and the preview keep the frames finished so far.
+    """
+    from tqdm import tqdm
+
+    from warpfem.render import PreviewWriter, Renderer, framing_box
+    from warpfem.simulate import run_scene
+
+    show = shows_progress(args)
+    render_seconds = 0.0
+    with contextlib.ExitStack() as stack:
+        cache = cache_dir_of(args)
+        if cache is None:  # --no-cache: a private cache for this run only, so run_scene reuses what _prepare made
+            cache = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="warpfem-run-")))
+        prepared, prepare_seconds = _prepare(scene, cache, show)
+        bar = stack.enter_context(
+            tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
+        )
+        preview = renderer = None
+        if args.preview is not None:
+            ground = scene.ground.height if scene.ground.enabled else None
+            faces = [body.dense_faces for body in prepared]
+            renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
+            preview = stack.enter_context(PreviewWriter(args.preview, scene.fps, size))
+
+        def on_points(frame: int, points: list[Any]) -> None:
+            nonlocal render_seconds
+            clock = time.perf_counter()
+            if renderer.camera is None:
+                lo, hi = framing_box(points, scene.up_axis, renderer.ground)
+                renderer.camera = make_camera(flags, lo, hi, scene.up_axis, size[0] / size[1])
+            preview.add(renderer.render(points))
+            render_seconds += time.perf_counter() - clock
+
+        def on_frame() -> None:
+            bar.update(1)
+            if bar.n == scene.frames:
+                bar.set_description("writing")
+
+        summary = run_scene(scene, out, device, cache, None, on_frame, on_points if preview else None)
+        if preview is not None:
+            preview.close()
+    return summary, prepare_seconds, render_seconds
+
+
 def main(args: argparse.Namespace) -> int:
     """Run the scene named by ``args``; returns the exit code."""
-    from warpfem.render import PreviewWriter, parse_size, preview_kind
+    from warpfem.render import parse_size, preview_kind
     from warpfem.scene import default_scene_path, load_scene
 
     scene = load_scene(args.scene or default_scene_path())
@@ -103,62 +152,22 @@ def main(args: argparse.Namespace) -> int:
         preview_kind(args.preview)
     check_device(args.device)
     import warp as wp
-    from tqdm import tqdm
-
-    from warpfem.simulate import run_scene
 
     device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")
-    show = shows_progress(args)
-    render_seconds = 0.0
-    with contextlib.ExitStack() as stack:
-        cache = cache_dir_of(args)
-        if cache is None:  # --no-cache: a private cache for this run only, so run_scene reuses what _prepare made
-            cache = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="warpfem-run-")))
-        prepared, prepare_seconds = _prepare(scene, cache, show)
-        bar = stack.enter_context(
-            tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
-        )
-        preview = renderer = None
-        if args.preview is not None:
-            from warpfem.render import Renderer
-
-            ground = scene.ground.height if scene.ground.enabled else None
-            faces = [body.dense_faces for body in prepared]
-            renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
-            preview = stack.enter_context(PreviewWriter(args.preview, scene.fps, size))
-
-        def on_points(frame: int, points: list[Any]) -> None:
-            nonlocal render_seconds
-            clock = time.perf_counter()
-            if renderer.camera is None:
-                from warpfem.render import framing_box
-
-                lo, hi = framing_box(points, scene.up_axis, renderer.ground)
-                renderer.camera = make_camera(flags, lo, hi, scene.up_axis, size[0] / size[1])
-            preview.add(renderer.render(points))
-            render_seconds += time.perf_counter() - clock
-
-        def on_frame() -> None:
-            bar.update(1)
-            if bar.n == scene.frames:
-                bar.set_description("writing")
-
-        try:
-            summary = run_scene(scene, out, device, cache, None, on_frame, on_points if preview else None)
-            if preview is not None:
-                preview.close()
-        except KeyboardInterrupt:
-            done = [str(p) for p in (out, args.preview) if p is not None and p.exists()]
-            kept = f"; the frames finished so far are in {' and '.join(done)}" if done else "; nothing was written"
-            print(f"warpfem: interrupted{kept}", file=sys.stderr)
-            return 130
+    try:
+        summary, prepare_seconds, render_seconds = _simulate(args, scene, out, device, size, flags)
+    except KeyboardInterrupt:
+        done = [str(p) for p in (out, args.preview) if p is not None and p.exists()]
+        kept = f"; the frames finished so far are in {' and '.join(done)}" if done else "; nothing was written"
+        print(f"warpfem: interrupted{kept}", file=sys.stderr)
+        return 130
     s = summary.seconds
     s["prepare"] = prepare_seconds  # run_scene's own prepare step only read the cache filled above
     per = 1e3 / summary.frames
     render_ms = per * render_seconds
     rows = [
         ("output", str(summary.output)),
-        ("preview", f"{args.preview} ({render_ms:.1f} ms per frame at {size[0]}x{size[1]})" if preview else "none"),
+        ("preview", f"{args.preview} ({size[0]}x{size[1]}, {render_ms:.1f} ms per frame)" if args.preview else "none"),
         ("device", summary.device),
         ("frames", f"{summary.frames} ({summary.simulated_seconds:.3g} s simulated)"),
         (
@@ -177,8 +186,8 @@ def main(args: argparse.Namespace) -> int:
     ]
     data = {
         "output": str(summary.output),
-        "preview": str(args.preview) if preview else None,
-        "preview_size": list(size) if preview else None,
+        "preview": str(args.preview) if args.preview else None,
+        "preview_size": list(size) if args.preview else None,
         "device": summary.device,
         "frames": summary.frames,
         "simulated_seconds": summary.simulated_seconds,
