@@ -1,0 +1,70 @@
+"""The tradeoff sweep: Pareto front, scoring against references, CSV and plot, the command."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from warpfem.cli import main
+from warpfem.errors import InputError
+from warpfem.reference import Cantilever
+from warpfem.tradeoff import PRESETS, BeamScene, Setting, pareto_front, plot, run_setting, score, tip_sag, write_csv
+
+
+def test_pareto_front_against_brute_force():
+    rng = np.random.default_rng(3)
+    cost, err = rng.random(40), rng.random(40)
+    cost[5], err[5] = cost[6], err[6]  # a tie: neither dominates the other
+    front = pareto_front(cost, err)
+    for i in range(40):
+        beaten = any(
+            cost[j] <= cost[i] and err[j] <= err[i] and (cost[j] < cost[i] or err[j] < err[i]) for j in range(40)
+        )
+        assert front[i] == (not beaten)
+
+
+def test_bad_setting_is_input_error():
+    with pytest.raises(InputError, match="cg_mode"):
+        Setting(cg_mode="adaptive")
+    with pytest.raises(InputError, match="cells"):
+        Setting(cells=0)
+
+
+SCENE = BeamScene(beam=Cantilever(young=1e7), seconds=0.25, dense_cells=2)
+
+
+def test_sweep_rows_are_consistent(device, tmp_path):
+    fine = run_setting(SCENE, Setting("reference", cells=2, substeps=4, cg_tolerance=1e-6, cg_iterations=2000), device)
+    runs = [
+        run_setting(SCENE, Setting("a", cells=1, substeps=1, cg_mode="fixed", cg_iterations=5), device),
+        run_setting(SCENE, Setting("b", cells=2, substeps=4, cg_tolerance=1e-6, cg_iterations=2000), device),
+    ]
+    assert runs[0].tets == 60 and runs[1].tets == 480
+    assert runs[0].cg_iterations_per_step == 5
+    rows = score(SCENE, runs, fine, reference_sag=0.1)
+    assert rows[1].trajectory_error < 1e-6  # the same setting as the reference: the same trajectory
+    assert rows[0].trajectory_error > 1e-3
+    assert rows[0].sag == pytest.approx(tip_sag(SCENE, runs[0].points[-1]))
+    assert rows[0].sag_error == pytest.approx(abs(rows[0].sag - 0.1) / 0.1)
+    # the beam falls: 0.25 s of free fall would be g t^2 / 2 = 0.31 m; clamped, it sags far less but > 0
+    assert 0.0 < rows[1].sag < 0.3
+    write_csv(tmp_path / "t.csv", rows)
+    with open(tmp_path / "t.csv") as f:
+        table = list(csv.DictReader(f))
+    assert [r["knob"] for r in table] == ["a", "b"]
+    assert float(table[1]["trajectory_error_m"]) == pytest.approx(rows[1].trajectory_error, rel=1e-3, abs=1e-9)
+    plot(tmp_path / "t.png", rows, "test")
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_presets_use_scene_keys():
+    keys = {"substeps", "cg_mode", "cg_iterations", "cg_tolerance", "faces", "maxh"}
+    for preset in PRESETS.values():
+        assert set(preset) == keys
+        assert preset["cg_mode"] in ("fixed", "tolerance")
+
+
+def test_command_rejects_a_file_as_out(tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    assert main(["tradeoff", "--quick", "--out", str(tmp_path / "f")]) == 2
+    assert "not a folder" in capsys.readouterr().err
