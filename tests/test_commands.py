@@ -84,7 +84,7 @@ def test_run_preview_shows_the_ball_where_the_simulation_put_it(ran):
     points = _usd_frames(folder / "anim.usdc")
     assert len(images) == len(points) == 13 and images[0].shape == (H, W, 3)
     # the automatic camera frames frame 0 down to the ground; project each frame's ball centre with NumPy
-    camera = auto_camera(*framing_box([points[0]], "Y", 0.0), "Y", W / H)
+    camera = auto_camera(*framing_box([points[0]], "Y", 0.0, margin=0.2), "Y", W / H)
     rows = []
     for image, p in zip(images, points, strict=True):
         centre = 0.5 * (p.min(axis=0) + p.max(axis=0))

@@ -64,6 +64,8 @@ def test_framing_box_reaches_down_to_the_ground():
     np.testing.assert_array_equal(lo, [0.0, 0.0, 0.0])
     lo, _ = framing_box([np.array([[0.0, 1.0, 3.0], [1.0, 2.0, 4.0]])], "Z", ground=None)
     np.testing.assert_array_equal(lo, [0.0, 1.0, 3.0])
+    lo, hi = framing_box([np.array([[0.0, 1.0, 0.0], [1.0, 3.0, 1.0]])], "Y", ground=0.5, margin=0.1)
+    np.testing.assert_allclose([lo, hi], [[-0.25, 0.5, -0.25], [1.25, 3.0, 1.25]])  # 0.1 * largest extent (3 - 0.5)
 
 
 def test_render_shows_the_body_where_it_is_and_it_moves_down_as_it_falls(sphere, device):

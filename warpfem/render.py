@@ -26,6 +26,9 @@ from warpfem.errors import InputError
 DEFAULT_SIZE = (480, 360)
 """Default preview resolution (width, height) in pixels."""
 
+AUTO_MARGIN = 0.2
+"""Side room of the automatic camera's box, as a fraction of the first frame's extent (see :func:`framing_box`)."""
+
 PREVIEW_SUFFIXES = (".mp4", ".gif")
 """Preview files by extension; a path without an extension is a folder of PNG frames."""
 
@@ -119,15 +122,28 @@ def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str = "Y", aspect: floa
 
 
 def framing_box(
-    points: Sequence[np.ndarray], up_axis: str = "Y", ground: float | None = 0.0
+    points: Sequence[np.ndarray], up_axis: str = "Y", ground: float | None = 0.0, margin: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of all ``points``, stretched down to the ground (when there is one) so a fall stays in view."""
+    """Bounds of all ``points``, stretched down to the ground (when there is one) so a fall stays in view.
+
+    Args:
+        points: Arrays of shape (n_i, 3).
+        up_axis: ``"Y"`` or ``"Z"``.
+        ground: Ground height along the up axis, or None.
+        margin: Extra room on every horizontal side, as a fraction of the box's largest extent (for
+            bodies that will slide or bounce sideways).
+
+    Returns:
+        The box's minimum and maximum corners.
+    """
     stacked = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points])
     lo, hi = stacked.min(axis=0), stacked.max(axis=0)
+    axis = 1 if up_axis == "Y" else 2
     if ground is not None:
-        axis = 1 if up_axis == "Y" else 2
         lo[axis] = min(lo[axis], ground)
-    return lo, hi
+    pad = np.full(3, margin * float((hi - lo).max()))
+    pad[axis] = 0.0
+    return lo - pad, hi + pad
 
 
 def _nice_spacing(size: float) -> float:
@@ -164,7 +180,7 @@ class Renderer:
             height: Image height in pixels (>= 1).
             device: Warp device (default: Warp's default device).
             camera: Fixed camera; None: :func:`auto_camera` framing the first frame rendered, stretched
-                down to the ground.
+                down to the ground, with :data:`AUTO_MARGIN` room on the sides.
             up_axis: ``"Y"`` or ``"Z"``.
             ground: Height of the ground plane along the up axis, or None for no ground.
 
@@ -240,7 +256,7 @@ class Renderer:
             self._points.assign(flat)
             self._mesh.refit()
         if self.camera is None:
-            lo, hi = framing_box([flat], self.up_axis, self.ground)
+            lo, hi = framing_box([flat], self.up_axis, self.ground, AUTO_MARGIN)
             self.camera = auto_camera(lo, hi, self.up_axis, self.width / self.height)
         dev = self.device
         wp.launch(kernels.zero_normals, dim=len(flat), inputs=[], outputs=[self._normals], device=dev)

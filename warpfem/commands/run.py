@@ -91,7 +91,7 @@ def _simulate(
     """
     from tqdm import tqdm
 
-    from warpfem.render import PreviewWriter, Renderer, framing_box
+    from warpfem.render import AUTO_MARGIN, PreviewWriter, Renderer, framing_box
     from warpfem.simulate import run_scene
 
     show = shows_progress(args)
@@ -115,7 +115,7 @@ def _simulate(
             nonlocal render_seconds
             clock = time.perf_counter()
             if renderer.camera is None:
-                lo, hi = framing_box(points, scene.up_axis, renderer.ground)
+                lo, hi = framing_box(points, scene.up_axis, renderer.ground, AUTO_MARGIN)
                 renderer.camera = make_camera(flags, lo, hi, scene.up_axis, size[0] / size[1])
             preview.add(renderer.render(points))
             render_seconds += time.perf_counter() - clock
