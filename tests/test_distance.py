@@ -63,3 +63,12 @@ def test_depth_scales_with_the_mesh(scale):
     depth_s, grad_s = distance_field(scale * queries, scale * sphere.vertices, sphere.faces)
     np.testing.assert_allclose(depth_s, scale * depth_1, rtol=1e-5)
     np.testing.assert_allclose(grad_s, grad_1, atol=1e-4)
+
+
+def test_sample_hausdorff_of_a_shifted_sphere():
+    from warpfem.distance import hausdorff
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    a_to_b, b_to_a = hausdorff(sphere.vertices, sphere.faces, sphere.vertices + [0.05, 0.0, 0.0], sphere.faces)
+    # for two unit spheres 0.05 apart the distance is 0.05, reached at the poles on the x axis
+    assert a_to_b == pytest.approx(0.05, rel=0.02) and b_to_a == pytest.approx(0.05, rel=0.02)

@@ -1,5 +1,6 @@
 """Simplification, Netgen tetrahedralization and prepare() with its cache."""
 
+import sys
 from collections import Counter
 
 import numpy as np
@@ -9,7 +10,7 @@ import trimesh
 from warpfem.errors import InputError
 from warpfem.preprocess import prepare
 from warpfem.simplify import simplify
-from warpfem.tetmesh import tetrahedralize
+from warpfem.tetmesh import tet_quality, tet_signed_volumes, tetrahedralize
 
 
 def _once_used_faces(tets):
@@ -129,3 +130,61 @@ def test_cache_hit_and_rebuild_of_a_damaged_file(ellipsoid_file, tmp_path):
 def test_prepare_reports_bad_input(tmp_path):
     with pytest.raises(InputError, match="missing.obj.*not found"):
         prepare(tmp_path / "missing.obj", faces=100)
+
+
+def test_killed_netgen_child_goes_to_the_next_rung(tmp_path, monkeypatch, ellipsoid_file):
+    # the first Netgen child is killed (SIGKILL, as the OOM killer or a 'double free' abort would end it);
+    # the parent survives and the ladder's next rung runs the real worker
+    marker = tmp_path / "killed-once"
+    fake = tmp_path / "python"
+    fake.write_text(
+        f'#!/bin/sh\nif [ "$3" = netgen ] && [ ! -e {marker} ]; then touch {marker}; echo "Meshing"; kill -KILL $$; fi\n'
+        f'exec {sys.executable} "$@"\n'
+    )
+    fake.chmod(0o755)
+    monkeypatch.setattr("warpfem._worker.sys.executable", str(fake))
+    body = prepare(ellipsoid_file, faces=200, maxh=0.3)
+    assert marker.exists()
+    assert body.stats["failed_rungs"].startswith("1) Netgen crashed (SIGKILL); last output: Meshing")
+    assert body.stats["rung"].startswith("2 ")
+    assert np.all(tet_signed_volumes(body.tet_vertices, body.tets) > 0)
+
+
+def test_every_stage_has_a_time_limit(ellipsoid_file):
+    with pytest.raises(
+        InputError, match="every rung failed: 1\\) QEM simplification did not finish within 0.01 s"
+    ) as err:
+        prepare(ellipsoid_file, faces=200, timeout_s=0.01)
+    assert "outer surface did not finish within 0.01 s" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_corrupted_cache_entry_is_rebuilt(ellipsoid_file, tmp_path):
+    cache = tmp_path / "cache"
+    first = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    (entry,) = cache.iterdir()
+    data = bytearray(entry.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte in the middle, same length
+    entry.write_bytes(bytes(data))
+    again = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    assert again.stats["cache"] == "miss"
+    np.testing.assert_array_equal(again.embed_bary, first.embed_bary)
+
+
+def test_stats_report_quality_volume_and_hausdorff(ellipsoid_file):
+    import igl
+
+    body = prepare(ellipsoid_file, faces=200, maxh=0.3)
+    dihedral, ratio = tet_quality(body.tet_vertices, body.tets)
+    assert body.stats["tet_min_dihedral_deg"] == pytest.approx(dihedral.min(), rel=1e-9)
+    assert dihedral.min() >= 0.5
+    assert body.stats["tet_min_radius_ratio"] == pytest.approx(ratio.min(), rel=1e-6)
+    assert 0 < ratio.min() <= 1
+    dense = trimesh.Trimesh(body.dense_vertices, body.dense_faces, process=False)
+    assert body.stats["volume_ratio"] == pytest.approx(
+        tet_signed_volumes(body.tet_vertices, body.tets).sum() / dense.volume, rel=1e-9
+    )
+    # libigl's Hausdorff distance (vertex-based) as the independent reference
+    reference = igl.hausdorff(
+        body.dense_vertices, body.dense_faces.astype(np.int64), body.coarse_vertices, body.coarse_faces.astype(np.int64)
+    )
+    assert body.stats["hausdorff"] == pytest.approx(reference, rel=0.05)
