@@ -138,7 +138,8 @@ def test_killed_netgen_child_goes_to_the_next_rung(tmp_path, monkeypatch, ellips
     marker = tmp_path / "killed-once"
     fake = tmp_path / "python"
     fake.write_text(
-        f'#!/bin/sh\nif [ "$3" = netgen ] && [ ! -e {marker} ]; then touch {marker}; echo "Meshing"; kill -KILL $$; fi\n'
+        f'#!/bin/sh\nif [ "$3" = netgen ] && [ ! -e {marker} ]; then\n'
+        f'  touch {marker}; echo "Meshing"; kill -KILL $$\nfi\n'
         f'exec {sys.executable} "$@"\n'
     )
     fake.chmod(0o755)
