@@ -35,6 +35,8 @@ def cg_init(
     free: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
+    extra_ax: wp.array(dtype=wp.vec3),
+    has_extra: int,
     # outputs
     r_out: wp.array(dtype=wp.vec3),
     z_out: wp.array(dtype=wp.vec3),
@@ -42,7 +44,7 @@ def cg_init(
     rz_out: wp.array(dtype=float),
     bz_out: wp.array(dtype=float),
 ):
-    """R = b - A x, z = M^-1 r, p = z; accumulates r.z into rz[0] and b.M^-1 b into bz[0]."""
+    """r = b - A x (A x plus extra_ax, its matrix-free part), z = M^-1 r, p = z; r.z into rz[0], b.M^-1 b to bz[0]."""
     i = wp.tid()
     if free[i] == 0:
         r_out[i] = wp.vec3()
@@ -50,6 +52,8 @@ def cg_init(
         p_out[i] = wp.vec3()
         return
     r = b[i] - spmv_row(row_start, cols, values, x, i)
+    if has_extra != 0:
+        r -= extra_ax[i]
     z = diag_inv[i] * r
     r_out[i] = r
     z_out[i] = z
@@ -84,15 +88,19 @@ def cg_spmv(
     free: wp.array(dtype=wp.int32),
     p: wp.array(dtype=wp.vec3),
     iteration: wp.array(dtype=wp.int32),
+    extra_q: wp.array(dtype=wp.vec3),
+    has_extra: int,
     q_out: wp.array(dtype=wp.vec3),
     pq_out: wp.array(dtype=float),
 ):
-    """Q = A p on free rows (zero on pinned rows); accumulates p.q into pq[k]."""
+    """q = A p (+ extra_q, a matrix-free part computed before) on free rows, zero on pinned rows; p.q into pq[k]."""
     i = wp.tid()
     if free[i] == 0:
         q_out[i] = wp.vec3()
         return
     q = spmv_row(row_start, cols, values, p, i)
+    if has_extra != 0:
+        q += extra_q[i]
     q_out[i] = q
     wp.atomic_add(pq_out, iteration[0], wp.dot(p[i], q))
 
@@ -110,7 +118,7 @@ def cg_update_xr(
     z_out: wp.array(dtype=wp.vec3),
     rz_out: wp.array(dtype=float),
 ):
-    """X += alpha p, r -= alpha q, z = M^-1 r with alpha = rz[k] / pq[k]; accumulates r.z into rz[k+1]."""
+    """x += alpha p, r -= alpha q, z = M^-1 r with alpha = rz[k] / pq[k]; accumulates r.z into rz[k+1]."""
     i = wp.tid()
     k = iteration[0]
     denom = pq[k]
@@ -132,7 +140,7 @@ def cg_update_p(
     rz: wp.array(dtype=float),
     p_out: wp.array(dtype=wp.vec3),
 ):
-    """P = z + beta p with beta = rz[k+1] / rz[k]."""
+    """p = z + beta p with beta = rz[k+1] / rz[k]."""
     i = wp.tid()
     k = iteration[0]
     beta = 0.0

@@ -41,9 +41,7 @@ def shape_gradient(dm_inv: wp.mat33, a: int) -> wp.vec3:
 @wp.func
 def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float) -> wp.mat33:
     """Unwarped linear-elastic stiffness block K_ab (N/m) of one tet."""
-    return vol * (
-        mu * wp.dot(ga, gb) * wp.identity(n=3, dtype=float) + mu * wp.outer(gb, ga) + lam * wp.outer(ga, gb)
-    )
+    return vol * (mu * wp.dot(ga, gb) * wp.identity(n=3, dtype=float) + mu * wp.outer(gb, ga) + lam * wp.outer(ga, gb))
 
 
 @wp.kernel

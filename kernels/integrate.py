@@ -1,20 +1,53 @@
-"""Implicit (backward) Euler: per-vertex system assembly, ground contact, position update, NaN guard.
+"""Implicit (backward) Euler: per-vertex system assembly, static colliders, position update, NaN guard.
 
 The linearised backward-Euler step solves for the new velocity v+:
-``((1 + dt alpha) M + (dt^2 + dt beta) K + dt^2 K_ground + dt C_friction) v+ = M v + dt (f_el + M g + f_ground)``
-where K is the warped stiffness (assembled by the FEM kernel), alpha/beta the Rayleigh coefficients.
+``((1 + dt alpha) M + (dt^2 + dt beta) K + dt^2 K_c + dt C_friction) v+ = M v + dt (f_el + M g + f_c)``
+where K is the warped stiffness (assembled by the FEM kernel), alpha/beta the Rayleigh coefficients and
+K_c, C_friction, f_c the static colliders' penalty and friction (the ground is a plane collider).
 """
 
 import warp as wp
 
-# indices into the ground parameter array
-GROUND_ENABLED = 0
-GROUND_HEIGHT = 1
-GROUND_STIFFNESS = 2
-GROUND_FRICTION = 3
+# static collider kinds
+PLANE = wp.constant(0)
+SPHERE = wp.constant(1)
+BOX = wp.constant(2)
 
 # a tangential speed below this (m/s) counts as sticking when the friction coefficient is computed
 FRICTION_SPEED_EPS = 1.0e-3
+
+
+@wp.func
+def collider_distance(kind: int, center: wp.vec3, size: wp.vec3, p: wp.vec3) -> wp.vec4:
+    """Signed distance (m, negative inside) of ``p`` to a static collider and its outward unit normal.
+
+    Plane: ``center`` is a point on it, ``size`` its normal. Sphere: radius ``size[0]``. Box: axis-aligned,
+    half extents ``size``.
+    """
+    if kind == PLANE:
+        return wp.vec4(wp.dot(size, p - center), size[0], size[1], size[2])
+    d = p - center
+    if kind == SPHERE:
+        r = wp.length(d)
+        n = wp.vec3(0.0, 1.0, 0.0)
+        if r > 0.0:
+            n = d / r
+        return wp.vec4(r - size[0], n[0], n[1], n[2])
+    q = wp.vec3(wp.abs(d[0]) - size[0], wp.abs(d[1]) - size[1], wp.abs(d[2]) - size[2])
+    s = wp.vec3(wp.sign(d[0]), wp.sign(d[1]), wp.sign(d[2]))
+    outside = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
+    if wp.length(outside) > 0.0:
+        n = wp.normalize(wp.cw_mul(outside, s))
+        return wp.vec4(wp.length(outside), n[0], n[1], n[2])
+    # inside: leave through the nearest face
+    axis = int(0)
+    if q[1] > q[axis]:
+        axis = 1
+    if q[2] > q[axis]:
+        axis = 2
+    n = wp.vec3()
+    n[axis] = s[axis]
+    return wp.vec4(q[axis], n[0], n[1], n[2])
 
 
 @wp.kernel
@@ -30,8 +63,10 @@ def build_system(
     # inputs: forces and parameters
     force: wp.array(dtype=wp.vec3),
     gravity: wp.array(dtype=wp.vec3),
-    up: wp.array(dtype=wp.vec3),
-    ground: wp.array(dtype=float),
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_center: wp.array(dtype=wp.vec3),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_response: wp.array(dtype=wp.vec2),
     dt: float,
     # outputs
     matrix_out: wp.array(dtype=wp.mat33),
@@ -39,26 +74,34 @@ def build_system(
     diag_inv_out: wp.array(dtype=wp.mat33),
     v_guess_out: wp.array(dtype=wp.vec3),
 ):
-    """Adds mass, damping and ground terms to the diagonal block, builds the right-hand side and M^-1."""
+    """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
+
+    A collider (stiffness k per unit mass and friction mu in ``collider_response``) acts on a vertex below its
+    surface, or about to cross it within this step (speculative contact): the penalty k m depth n on the
+    right-hand side, dt^2 k m n n^T in the matrix (above the surface only this velocity term acts, which damps
+    the approach and never attracts), and implicit friction dt c (I - n n^T), c = mu k m depth / |v_t|.
+    """
     i = wp.tid()
     m = mass[i]
     vi = v[i]
+    xi = x[i]
     ident = wp.identity(n=3, dtype=float)
     slot = diag_slot[i]
     block = matrix_out[slot] + (1.0 + dt * alpha[i]) * m * ident
     rhs = m * vi + dt * (force[i] + m * gravity[0])
 
-    if ground[GROUND_ENABLED] > 0.0:
-        n = up[0]
-        depth = ground[GROUND_HEIGHT] - wp.dot(n, x[i])
-        if depth > 0.0:
-            k = ground[GROUND_STIFFNESS] * m
-            rhs += dt * k * depth * n
+    for o in range(collider_kind.shape[0]):
+        dn = collider_distance(collider_kind[o], collider_center[o], collider_size[o], xi)
+        n = wp.vec3(dn[1], dn[2], dn[3])
+        depth = -dn[0]
+        if depth - dt * wp.dot(n, vi) > 0.0:
+            k = collider_response[o][0] * m
+            pen = wp.max(depth, 0.0)
+            rhs += dt * k * pen * n
             nn = wp.outer(n, n)
-            block += dt * dt * k * nn
             vt = vi - wp.dot(vi, n) * n
-            c = ground[GROUND_FRICTION] * k * depth / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
-            block += dt * c * (ident - nn)
+            c = collider_response[o][1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
+            block += dt * dt * k * nn + dt * c * (ident - nn)
 
     matrix_out[slot] = block
     if free[i] == 0:

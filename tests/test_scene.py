@@ -9,6 +9,8 @@ import pytest
 
 from warpfem.errors import InputError
 from warpfem.scene import (
+    CameraConfig,
+    CollisionConfig,
     GroundConfig,
     ObjectConfig,
     SceneConfig,
@@ -36,7 +38,10 @@ def test_every_default_applied(tmp_path):
     assert scene.gravity == (0.0, -9.81, 0.0)
     assert scene.up_axis == "Y"
     assert scene.solver == SolverConfig(cg_mode="tolerance", cg_iterations=100, cg_tolerance=1e-4)
-    assert scene.ground == GroundConfig(enabled=True, height=0.0, stiffness=1e6, friction=0.5)
+    assert scene.ground == GroundConfig(enabled=True, height=0.0, stiffness=1e7, friction=0.5)
+    assert scene.collision == CollisionConfig(enabled=True, stiffness=1e6, friction=0.5)
+    assert scene.camera == CameraConfig(position=None, target=None, fov=35.0)
+    assert scene.obstacles == []
     (obj,) = scene.objects
     assert obj == ObjectConfig(
         name="bunny",
@@ -173,6 +178,33 @@ ERRORS = [
     ("no objects", "[scene]\nframes = 3\n", "object", "at least one [[object]]"),
     ("object as a table", '[object]\nname = "a"\nmesh = "builtin:bunny"\n', "object", "[[object]]"),
     ("scene not a table", "scene = 3\n" + OBJ, "scene", "must be a table"),
+    ("collision stiffness 0", "[collision]\nstiffness = 0\n" + OBJ, "collision.stiffness", "> 0 1/s^2"),
+    ("collision unknown key", "[collision]\nself = true\n" + OBJ, "collision.self", "not a known key"),
+    ("self_collision not bool", OBJ + "self_collision = 1\n", "object[0] 'bunny': self_collision", "true or false"),
+    ("collision_spacing < 0", OBJ + "collision_spacing = -0.1\n", "collision_spacing", ">= 0"),
+    (
+        "obstacle kind",
+        '[[obstacle]]\nkind = "cone"\ncenter = [0, 0, 0]\n' + OBJ,
+        "obstacle[0]: kind",
+        '"sphere" or "box"',
+    ),
+    (
+        "sphere without radius",
+        '[[obstacle]]\nkind = "sphere"\ncenter = [0, 0, 0]\n' + OBJ,
+        "obstacle[0]: radius",
+        "required",
+    ),
+    ("sphere radius 0", '[[obstacle]]\nkind = "sphere"\ncenter = [0, 0, 0]\nradius = 0\n' + OBJ, "radius", "> 0"),
+    ("box without extents", '[[obstacle]]\nkind = "box"\ncenter = [0, 0, 0]\n' + OBJ, "half_extents", "required"),
+    (
+        "box flat",
+        '[[obstacle]]\nkind = "box"\ncenter = [0, 0, 0]\nhalf_extents = [1, 0, 1]\n' + OBJ,
+        "obstacle[0]: half_extents",
+        "> 0",
+    ),
+    ("obstacle missing center", '[[obstacle]]\nkind = "box"\n' + OBJ, "obstacle[0]: center", "is required"),
+    ("camera fov 180", "[camera]\nfov = 180\n" + OBJ, "camera.fov", "< 180"),
+    ("camera at target", "[camera]\nposition = [1, 1, 1]\ntarget = [1, 1, 1]\n" + OBJ, "camera.target", "differ"),
 ]
 
 
@@ -186,6 +218,22 @@ def test_error_is_one_line_naming_file_and_key(tmp_path, text, key, phrase):
     assert message.startswith(f"{path}: "), message
     assert key in message, message
     assert phrase in message, message
+
+
+def test_obstacles_and_collision_keys_are_read(tmp_path):
+    text = (
+        "[collision]\nstiffness = 2e6\nfriction = 0.1\n"
+        '[[obstacle]]\nkind = "sphere"\ncenter = [0, 1, 0]\nradius = 0.5\n'
+        '[[obstacle]]\nkind = "box"\ncenter = [1, 0, 0]\nhalf_extents = [0.5, 0.25, 1]\nfriction = 0.0\n'
+        + OBJ
+        + "self_collision = true\ncollision_spacing = 0.01\n"
+    )
+    scene = load_scene(write(tmp_path, text))
+    assert scene.collision == CollisionConfig(enabled=True, stiffness=2e6, friction=0.1)
+    sphere, box = scene.obstacles
+    assert (sphere.kind, sphere.center, sphere.radius) == ("sphere", (0.0, 1.0, 0.0), 0.5)
+    assert (box.kind, box.half_extents, box.friction) == ("box", (0.5, 0.25, 1.0), 0.0)
+    assert scene.objects[0].self_collision is True and scene.objects[0].collision_spacing == 0.01
 
 
 def test_error_message_format_example(tmp_path):

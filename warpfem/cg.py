@@ -7,6 +7,7 @@ tolerance and the iteration count live in device arrays: changing them needs no 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,7 @@ class CGSolver:
         self.z = wp.zeros_like(self.r)
         self.p = wp.zeros_like(self.r)
         self.q = wp.zeros_like(self.r)
+        self.extra_q = wp.zeros_like(self.r)
         self.rz = wp.zeros(self.capacity + 2, dtype=float, device=self.device)
         self.pq = wp.zeros(self.capacity + 1, dtype=float, device=self.device)
         self.bz = wp.zeros(1, dtype=float, device=self.device)
@@ -73,18 +75,32 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
-    def solve(self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array) -> None:
-        """Solve ``A x = b`` starting from the ``x`` given; ``diag_inv`` holds the inverse diagonal blocks."""
+    def solve(
+        self,
+        values: wp.array,
+        diag_inv: wp.array,
+        b: wp.array,
+        x: wp.array,
+        extra: Callable[[wp.array, wp.array], None] | None = None,
+    ) -> None:
+        """Solve ``A x = b`` starting from the ``x`` given; ``diag_inv`` holds the inverse diagonal blocks.
+
+        ``extra(p, q_out)``, if given, launches kernels writing a matrix-free part of ``A p`` (for example the
+        contacts) into ``q_out``; it is added to the assembled product everywhere A is applied.
+        """
         n = self.free.shape[0]
         dev = self.device
         self.rz.zero_()
         self.pq.zero_()
         self.bz.zero_()
         structure = [self.row_start, self.cols, values]
+        has_extra = int(extra is not None)
+        if extra is not None:
+            extra(x, self.extra_q)
         wp.launch(
             K.cg_init,
             dim=n,
-            inputs=[*structure, diag_inv, self.free, b, x],
+            inputs=[*structure, diag_inv, self.free, b, x, self.extra_q, has_extra],
             outputs=[self.r, self.z, self.p, self.rz, self.bz],
             device=dev,
         )
@@ -98,10 +114,12 @@ class CGSolver:
         )
 
         def iterate() -> None:
+            if extra is not None:
+                extra(self.p, self.extra_q)
             wp.launch(
                 K.cg_spmv,
                 dim=n,
-                inputs=[*structure, self.free, self.p, self.iteration],
+                inputs=[*structure, self.free, self.p, self.iteration, self.extra_q, has_extra],
                 outputs=[self.q, self.pq],
                 device=dev,
             )

@@ -1,11 +1,88 @@
-"""Host side of the implicit Euler stage: system assembly per vertex and the position update."""
+"""Host side of the implicit Euler stage: static colliders, system assembly per vertex, position update."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
 from warpfem.model import Model, State
+
+
+@dataclass(frozen=True)
+class Ground:
+    """A ground plane (a plane collider).
+
+    Attributes:
+        height: Plane offset along ``up`` (m).
+        stiffness: Penalty stiffness per unit vertex mass (1/s^2); resting penetration is about g / stiffness.
+        friction: Coulomb friction coefficient.
+        up: Unit normal of the plane, pointing into the free half-space.
+    """
+
+    height: float = 0.0
+    stiffness: float = 1.0e7
+    friction: float = 0.5
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A static sphere collider: ``center`` (m), ``radius`` (m), penalty ``stiffness`` (1/s^2), ``friction``."""
+
+    center: tuple[float, float, float]
+    radius: float
+    stiffness: float = 1.0e7
+    friction: float = 0.5
+
+
+@dataclass(frozen=True)
+class Box:
+    """A static axis-aligned box collider: ``center`` and ``half_extents`` (m), ``stiffness`` (1/s^2), ``friction``."""
+
+    center: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+    stiffness: float = 1.0e7
+    friction: float = 0.5
+
+
+class StaticColliders:
+    """Device arrays of the static colliders (ground, spheres, boxes); one loop over them per vertex."""
+
+    def __init__(self, colliders: Sequence[Ground | Sphere | Box], device) -> None:
+        kind, center, size, response = [], [], [], []
+        for c in colliders:
+            if isinstance(c, Ground):
+                up = np.asarray(c.up, dtype=np.float64)
+                up /= np.linalg.norm(up)
+                kind.append(int(K.PLANE))
+                center.append(c.height * up)
+                size.append(up)
+            elif isinstance(c, Sphere):
+                kind.append(int(K.SPHERE))
+                center.append(c.center)
+                size.append((c.radius, 0.0, 0.0))
+            else:
+                kind.append(int(K.BOX))
+                center.append(c.center)
+                size.append(c.half_extents)
+            response.append((c.stiffness, c.friction))
+
+        def arr(data, dtype, shape):
+            return wp.array(
+                np.asarray(data, dtype=np.float32 if dtype != wp.int32 else np.int32).reshape(shape),
+                dtype=dtype,
+                device=device,
+            )
+
+        n = len(kind)
+        self.kind = arr(kind, wp.int32, (n,))
+        self.center = arr(center, wp.vec3, (n, 3))
+        self.size = arr(size, wp.vec3, (n, 3))
+        self.response = arr(response, wp.vec2, (n, 2))
 
 
 def build_system(
@@ -13,8 +90,7 @@ def build_system(
     state: State,
     force: wp.array,
     gravity: wp.array,
-    up: wp.array,
-    ground: wp.array,
+    colliders: StaticColliders,
     dt: float,
     matrix_out: wp.array,
     rhs_out: wp.array,
@@ -23,8 +99,8 @@ def build_system(
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
-    ``matrix_out`` must already hold the elastic blocks; mass, damping and ground terms are added to its
-    diagonal. ``v_guess_out`` receives the CG start (the current velocity; zero on pinned vertices).
+    ``matrix_out`` must already hold the elastic blocks; mass, damping and static-collider terms are added to
+    its diagonal. ``v_guess_out`` receives the CG start (the current velocity; zero on pinned vertices).
     """
     wp.launch(
         K.build_system,
@@ -38,8 +114,10 @@ def build_system(
             model.diag_slot,
             force,
             gravity,
-            up,
-            ground,
+            colliders.kind,
+            colliders.center,
+            colliders.size,
+            colliders.response,
             dt,
         ],
         outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out],

@@ -13,7 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpfem.collision import surface_points
+from warpfem.distance import distance_field
 from warpfem.errors import InputError
+from warpfem.tetmesh import boundary_faces
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,15 @@ class Model:
     dense_bary: wp.array  # vec4, barycentric coordinates in that tet
     vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
     vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
+    tet_body: wp.array  # int32, body of each tet
+    tet_surface: wp.array  # int32, bit k set where the face opposite corner k is on the body's surface
+    body_self: wp.array  # int32, 1 where a body collides with itself
+    point_tet: wp.array  # int32, global tet of each collision point
+    point_bary: wp.array  # vec4, its barycentric weights there
+    point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
+    point_body: wp.array  # int32
+    point_mass: wp.array  # float, lumped vertex mass interpolated at each collision point (kg)
+    collision_cell: float  # hash grid cell width (m): the median largest edge component of a tet
 
     @property
     def vertex_count(self) -> int:
@@ -105,6 +117,11 @@ class Model:
     def state(self) -> State:
         """A new state at the rest shape with the bodies' initial velocities."""
         return State(x=wp.clone(self.rest_x), v=wp.clone(self.initial_v))
+
+    @property
+    def has_collisions(self) -> bool:
+        """True if any two bodies can touch (several bodies) or some body collides with itself."""
+        return len(self.bodies) > 1 or bool(self.body_self.numpy().any())
 
     def body_of_vertex(self, vertex: int) -> Body:
         """The body owning tet vertex ``vertex``."""
@@ -149,6 +166,16 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
     )
 
 
+def surface_face_mask(tets: np.ndarray, surface_faces: np.ndarray) -> np.ndarray:
+    """Per tet, a bit mask of its faces on the surface: bit k for the face opposite corner k."""
+    keys = {tuple(f) for f in np.sort(surface_faces, axis=1)}
+    mask = np.zeros(len(tets), dtype=np.int32)
+    for k in range(4):
+        face = np.sort(np.delete(tets, k, axis=1), axis=1)
+        mask |= np.array([tuple(f) in keys for f in face], dtype=np.int32) << k
+    return mask
+
+
 class ModelBuilder:
     """Collects bodies, then builds one flat :class:`Model` on a device."""
 
@@ -173,6 +200,9 @@ class ModelBuilder:
         embed_bary: np.ndarray | None = None,
         vertex_depth: np.ndarray | None = None,
         vertex_grad: np.ndarray | None = None,
+        surface_faces: np.ndarray | None = None,
+        self_collision: bool = False,
+        collision_spacing: float = 0.0,
     ) -> int:
         """Add a body in world coordinates.
 
@@ -191,8 +221,11 @@ class ModelBuilder:
             dense_faces: Optional (m, 3) dense triangles.
             embed_tet: (n,) tet of each dense vertex (local index); required with dense_vertices.
             embed_bary: (n, 4) barycentric coordinates; required with dense_vertices.
-            vertex_depth: Optional (p,) distance to the surface (m).
-            vertex_grad: Optional (p, 3) outward unit gradient of that distance.
+            vertex_depth: (p,) distance to the surface (m); computed from the surface when not given.
+            vertex_grad: (p, 3) outward unit gradient of that distance; computed when not given.
+            surface_faces: Optional (l, 3) outward boundary triangles (default: the tet mesh's boundary).
+            self_collision: Whether the body collides with itself.
+            collision_spacing: Spacing of extra collision samples on the surface (m); 0: vertices only.
 
         Returns:
             The body's index.
@@ -221,6 +254,11 @@ class ModelBuilder:
         if pinned is not None:
             free &= ~np.asarray(pinned, dtype=bool)
         n_dense = 0 if dense_vertices is None else len(dense_vertices)
+        if surface_faces is None:
+            surface_faces = boundary_faces(tets)
+        if vertex_depth is None or vertex_grad is None:
+            vertex_depth, vertex_grad = distance_field(vertices, vertices, np.asarray(surface_faces, np.int32))
+        points = surface_points(tets, np.asarray(surface_faces, np.int32), vertices, collision_spacing)
         self._bodies.append(
             dict(
                 name=name,
@@ -238,9 +276,14 @@ class ModelBuilder:
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
                 embed_tet=np.zeros(0, np.int32) if n_dense == 0 else np.asarray(embed_tet, np.int32),
                 embed_bary=np.zeros((0, 4)) if n_dense == 0 else np.asarray(embed_bary, np.float64),
-                depth=np.zeros(len(vertices)) if vertex_depth is None else np.asarray(vertex_depth, np.float64),
-                grad=np.zeros((len(vertices), 3)) if vertex_grad is None else np.asarray(vertex_grad, np.float64),
+                depth=np.asarray(vertex_depth, np.float64),
+                grad=np.asarray(vertex_grad, np.float64),
                 size=size,
+                self_collision=bool(self_collision),
+                points=points,
+                point_mass=np.einsum("pk,pk->p", points.bary, mass[tets[points.tet]]),
+                tet_extent=np.abs(d).max(axis=(1, 2)),
+                tet_surface=surface_face_mask(tets, np.asarray(surface_faces, np.int32)),
             )
         )
         return len(self._bodies) - 1
@@ -251,10 +294,14 @@ class ModelBuilder:
             raise InputError("a scene needs at least one body")
         device = wp.get_device(device)
         bodies, v0, t0, d0 = [], 0, 0, 0
-        tets, dense_tet = [], []
-        for b in self._bodies:
+        tets, dense_tet, point_tet, point_anchor, point_body, tet_body = [], [], [], [], [], []
+        for index, b in enumerate(self._bodies):
             tets.append(b["tets"] + v0)
             dense_tet.append(b["embed_tet"] + t0)
+            point_tet.append(b["points"].tet + t0)
+            point_anchor.append(np.where(b["points"].anchor >= 0, b["points"].anchor + v0, -1))
+            point_body.append(np.full(len(b["points"].tet), index))
+            tet_body.append(np.full(len(b["tets"]), index))
             bodies.append(
                 Body(
                     b["name"],
@@ -303,4 +350,13 @@ class ModelBuilder:
             dense_bary=arr(cat("embed_bary").astype(f32).reshape(-1, 4), wp.vec4),
             vertex_depth=arr(cat("depth").astype(f32), float),
             vertex_grad=arr(cat("grad").astype(f32).reshape(-1, 3), wp.vec3),
+            tet_body=arr(np.concatenate(tet_body).astype(np.int32), wp.int32),
+            tet_surface=arr(cat("tet_surface").astype(np.int32), wp.int32),
+            body_self=arr(np.array([b["self_collision"] for b in self._bodies], np.int32), wp.int32),
+            point_tet=arr(np.concatenate(point_tet).astype(np.int32), wp.int32),
+            point_bary=arr(np.concatenate([b["points"].bary for b in self._bodies]).astype(f32), wp.vec4),
+            point_anchor=arr(np.concatenate(point_anchor).astype(np.int32), wp.vec3i),
+            point_body=arr(np.concatenate(point_body).astype(np.int32), wp.int32),
+            point_mass=arr(cat("point_mass").astype(f32), float),
+            collision_cell=float(np.median(cat("tet_extent"))),
         )

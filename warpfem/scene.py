@@ -160,7 +160,7 @@ class GroundConfig:
 
     enabled: bool = True
     height: float = 0.0
-    stiffness: float = 1e6
+    stiffness: float = 1e7
     friction: float = 0.5
 
     def validate(self, origin: str = "<scene>") -> None:
@@ -171,6 +171,99 @@ class GroundConfig:
         _check_float(err, "height", self.height)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
+
+
+@dataclass
+class CollisionConfig:
+    """Collisions between bodies (and of a body with itself where the object asks for it).
+
+    Attributes:
+        enabled: Whether bodies collide with each other at all (a scene of one body without
+            self-collision never runs the collision stage).
+        stiffness: Penalty per unit mass (1/s^2): a collision point at depth d inside another body is
+            pushed out with acceleration ``stiffness * d`` (> 0).
+        friction: Coulomb friction coefficient between bodies (>= 0).
+    """
+
+    enabled: bool = True
+    stiffness: float = 1e6
+    friction: float = 0.5
+
+    def validate(self, origin: str = "<scene>") -> None:
+        """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
+        err = _table(origin, "collision")
+        if not isinstance(self.enabled, bool):
+            raise err("enabled", f"must be true or false, got {_shown(self.enabled)}")
+        _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
+        _check_range(err, "friction", self.friction, ge=0.0)
+
+
+@dataclass
+class ObstacleConfig:
+    """A static collider: a sphere or an axis-aligned box, acting like the ground (penalty and friction).
+
+    Attributes:
+        kind: ``"sphere"`` or ``"box"``.
+        center: Its centre (m).
+        radius: The sphere's radius (m, > 0; spheres only).
+        half_extents: The box's half sizes along x, y, z (m, each > 0; boxes only).
+        stiffness: Penalty per unit mass (1/s^2, > 0).
+        friction: Coulomb friction coefficient (>= 0).
+    """
+
+    kind: str
+    center: Vec3
+    radius: float | None = None
+    half_extents: Vec3 | None = None
+    stiffness: float = 1e7
+    friction: float = 0.5
+
+    def validate(self, origin: str = "<scene>", index: int = 0) -> None:
+        """Raise :class:`InputError` naming ``origin`` and ``obstacle[index]`` on the first bad value."""
+        err = _Problem(origin, f"obstacle[{index}]: ")
+        _check_choice(err, "kind", self.kind, ("sphere", "box"))
+        _check_vec3(err, "center", self.center)
+        if self.kind == "sphere":
+            if self.half_extents is not None:
+                raise err("half_extents", "is for boxes; a sphere takes radius")
+            if self.radius is None:
+                raise err("radius", "is required for a sphere")
+            _check_range(err, "radius", self.radius, "m", gt=0.0)
+        else:
+            if self.radius is not None:
+                raise err("radius", "is for spheres; a box takes half_extents")
+            if self.half_extents is None:
+                raise err("half_extents", "is required for a box")
+            _check_vec3(err, "half_extents", self.half_extents)
+            if min(self.half_extents) <= 0.0:
+                raise err("half_extents", f"must all be > 0 m, got {list(self.half_extents)}")
+        _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
+        _check_range(err, "friction", self.friction, ge=0.0)
+
+
+@dataclass
+class CameraConfig:
+    """Where the preview camera looks from (``warpfem run --preview``); unset keys are chosen automatically.
+
+    Attributes:
+        position: Camera position (m), or unset to frame every body.
+        target: The point it looks at (m), or unset for the centre of the framed bodies.
+        fov: Vertical field of view (degrees, 0 < fov < 180).
+    """
+
+    position: Vec3 | None = None
+    target: Vec3 | None = None
+    fov: float = 35.0
+
+    def validate(self, origin: str = "<scene>") -> None:
+        """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
+        err = _table(origin, "camera")
+        for key in ("position", "target"):
+            if getattr(self, key) is not None:
+                _check_vec3(err, key, getattr(self, key))
+        _check_range(err, "fov", self.fov, "degrees", gt=0.0, lt=180.0)
+        if self.position is not None and self.position == self.target:
+            raise err("target", "must differ from position")
 
 
 @dataclass
@@ -220,6 +313,8 @@ class ObjectConfig:
     damping_stiffness: float = 0.0
     pin_min: Vec3 | None = None
     pin_max: Vec3 | None = None
+    self_collision: bool = False
+    collision_spacing: float = 0.0
 
     @property
     def is_builtin(self) -> bool:
@@ -247,6 +342,9 @@ class ObjectConfig:
         _check_range(err, "density", self.density, "kg/m^3", gt=0.0)
         _check_range(err, "damping_mass", self.damping_mass, "1/s", ge=0.0)
         _check_range(err, "damping_stiffness", self.damping_stiffness, "s", ge=0.0)
+        if not isinstance(self.self_collision, bool):
+            raise err("self_collision", f"must be true or false, got {_shown(self.self_collision)}")
+        _check_range(err, "collision_spacing", self.collision_spacing, "m", ge=0.0)
         if (self.pin_min is None) != (self.pin_max is None):
             given, missing = ("pin_min", "pin_max") if self.pin_max is None else ("pin_max", "pin_min")
             raise err(missing, f"must be given together with {given} (both or neither)")
@@ -282,7 +380,10 @@ class SceneConfig:
         up_axis: ``"Y"`` or ``"Z"``: the ground's normal, also written to the USD stage.
         solver: Linear solver settings.
         ground: Ground plane settings.
+        collision: Body-body collision settings.
+        camera: Preview camera.
         objects: The bodies (at least one, unique names).
+        obstacles: Static spheres and boxes.
     """
 
     path: Path
@@ -293,7 +394,10 @@ class SceneConfig:
     up_axis: str = "Y"
     solver: SolverConfig = field(default_factory=SolverConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
+    collision: CollisionConfig = field(default_factory=CollisionConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     objects: list[ObjectConfig] = field(default_factory=list)
+    obstacles: list[ObstacleConfig] = field(default_factory=list)
 
     @property
     def dt(self) -> float:
@@ -311,6 +415,10 @@ class SceneConfig:
         _check_choice(err, "up_axis", self.up_axis, ("Y", "Z"))
         self.solver.validate(origin)
         self.ground.validate(origin)
+        self.collision.validate(origin)
+        self.camera.validate(origin)
+        for index, obstacle in enumerate(self.obstacles):
+            obstacle.validate(origin, index)
         if not self.objects:
             raise InputError(f"{origin}: object: at least one [[object]] table is required")
         seen: dict[str, int] = {}
@@ -404,7 +512,7 @@ def load_scene(path: str | Path) -> SceneConfig:
         message = str(exc).replace("\n", " ")
         raise InputError(f"{origin}: TOML syntax error: {message}") from exc
 
-    known = ("scene", "solver", "ground", "object")
+    known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle")
     for key in doc:
         if key not in known:
             close = difflib.get_close_matches(key, known, n=1)
@@ -422,6 +530,12 @@ def load_scene(path: str | Path) -> SceneConfig:
         if "mesh" in raw:
             raw["mesh"] = _resolve_mesh(raw["mesh"], folder)
         objects.append(_build(ObjectConfig, raw, err))
+    raw_obstacles = doc.get("obstacle", [])
+    if not isinstance(raw_obstacles, list) or not all(isinstance(o, dict) for o in raw_obstacles):
+        raise InputError(f"{origin}: obstacle must be an array of tables, written [[obstacle]]")
+    obstacles = [
+        _build(ObstacleConfig, raw, _Problem(origin, f"obstacle[{index}]: ")) for index, raw in enumerate(raw_obstacles)
+    ]
 
     scene = _build(
         SceneConfig,
@@ -431,7 +545,10 @@ def load_scene(path: str | Path) -> SceneConfig:
             "path": path,
             "solver": _build(SolverConfig, _sub_table(doc, origin, "solver"), _table(origin, "solver")),
             "ground": _build(GroundConfig, _sub_table(doc, origin, "ground"), _table(origin, "ground")),
+            "collision": _build(CollisionConfig, _sub_table(doc, origin, "collision"), _table(origin, "collision")),
+            "camera": _build(CameraConfig, _sub_table(doc, origin, "camera"), _table(origin, "camera")),
             "objects": objects,
+            "obstacles": obstacles,
         },
     )
     scene.validate()

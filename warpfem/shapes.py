@@ -41,20 +41,3 @@ def box_tet_mesh(
     flip = np.linalg.det(d) < 0
     tets[flip] = tets[flip][:, [0, 2, 1, 3]]
     return vertices, tets.astype(np.int32)
-
-
-def box_surface(tets: np.ndarray) -> np.ndarray:
-    """Boundary triangles (faces used by exactly one tet) of a tet mesh, wound outward.
-
-    Args:
-        tets: (q, 4) positively oriented tets.
-
-    Returns:
-        (l, 3) int32 boundary faces.
-    """
-    # faces opposite corner 0..3, each wound outward for a positive tet
-    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-    faces = tets[:, local].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse.ravel()] == 1].astype(np.int32)

@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from warpfem.collision import CollisionSettings
 from warpfem.embedding import map_dense
 from warpfem.errors import InputError, SimulationError
+from warpfem.integrate import Box, Ground, Sphere
 from warpfem.model import Model, ModelBuilder
 from warpfem.preprocess import PreparedBody, prepare
 from warpfem.scene import ObjectConfig, SceneConfig
-from warpfem.solver import Ground, Solver
+from warpfem.solver import Solver
 
 
 @dataclass
@@ -96,6 +98,9 @@ def add_prepared_body(builder: ModelBuilder, obj: ObjectConfig, prepared: Prepar
         embed_bary=prepared.embed_bary,
         vertex_depth=obj.scale * prepared.vertex_depth,
         vertex_grad=prepared.vertex_grad @ rot.T,
+        surface_faces=prepared.boundary_faces,
+        self_collision=obj.self_collision,
+        collision_spacing=obj.collision_spacing,
     )
 
 
@@ -106,6 +111,30 @@ def ground_of(scene: SceneConfig) -> Ground | None:
     up = (0.0, 1.0, 0.0) if scene.up_axis == "Y" else (0.0, 0.0, 1.0)
     g = scene.ground
     return Ground(height=g.height, stiffness=g.stiffness, friction=g.friction, up=up)
+
+
+def obstacles_of(scene: SceneConfig) -> list[Sphere | Box]:
+    """The scene's static spheres and boxes in solver terms."""
+    return [
+        Sphere(o.center, o.radius, o.stiffness, o.friction)
+        if o.kind == "sphere"
+        else Box(o.center, o.half_extents, o.stiffness, o.friction)
+        for o in scene.obstacles
+    ]
+
+
+def solver_of(scene: SceneConfig, model: Model) -> Solver:
+    """The solver a scene asks for."""
+    c = scene.collision
+    return Solver(
+        model,
+        gravity=scene.gravity,
+        ground=ground_of(scene),
+        obstacles=obstacles_of(scene),
+        cg_iterations=scene.solver.cg_iterations,
+        cg_tolerance=scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
+        collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
+    )
 
 
 class Simulation:
@@ -214,13 +243,7 @@ def run_scene(
     for obj, prep in zip(scene.objects, prepared, strict=True):
         add_prepared_body(builder, obj, prep)
     model = builder.finalize(device)
-    solver = Solver(
-        model,
-        gravity=scene.gravity,
-        ground=ground_of(scene),
-        cg_iterations=scene.solver.cg_iterations,
-        cg_tolerance=scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
-    )
+    solver = solver_of(scene, model)
     sim = Simulation(model, solver, scene.substeps, scene.dt)
     seconds["build"] = time.perf_counter() - t0
 

@@ -2,39 +2,26 @@
 
 Everything is allocated in the constructor; a step launches kernels only (no allocation, no host
 synchronisation on CUDA), so a frame of steps can be captured as a CUDA graph and replayed. Tunable
-scalars (gravity, ground, CG limits) live in device arrays and can change between replays.
+scalars (gravity, collider and contact parameters, CG limits) live in device arrays and can change between
+replays.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
 
 from warpfem import fem, integrate
 from warpfem.cg import CGSolver, CGStats
-from warpfem.kernels import integrate as IK
+from warpfem.collision import DEFAULT_COLLISION, Collider, CollisionSettings
+from warpfem.integrate import Box, Ground, Sphere, StaticColliders
 from warpfem.model import Model, State
 
+DEFAULT_GROUND = Ground()
+
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
-
-
-@dataclass(frozen=True)
-class Ground:
-    """A ground plane answered with an implicit penalty and implicit Coulomb-like friction.
-
-    Attributes:
-        height: Plane offset along ``up`` (m).
-        stiffness: Penalty stiffness per unit vertex mass (1/s^2); resting penetration is about g / stiffness.
-        friction: Coulomb friction coefficient.
-        up: Unit normal of the plane, pointing into the free half-space.
-    """
-
-    height: float = 0.0
-    stiffness: float = 1.0e6
-    friction: float = 0.5
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
 
 
 class Solver:
@@ -44,17 +31,22 @@ class Solver:
         model: The scene's model.
         gravity: Gravity (m/s^2).
         ground: The ground plane, or None for none.
+        obstacles: Static spheres and boxes.
         cg_iterations: Fixed iteration count (``cg_tolerance == 0``) or cap.
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
+        collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
+            touch (one body without self-collision) gets no collision stage at all.
     """
 
     def __init__(
         self,
         model: Model,
         gravity: tuple[float, float, float] = (0.0, -9.81, 0.0),
-        ground: Ground | None = Ground(),
+        ground: Ground | None = DEFAULT_GROUND,
+        obstacles: Sequence[Sphere | Box] = (),
         cg_iterations: int = 100,
         cg_tolerance: float = 1.0e-4,
+        collision: CollisionSettings | None = DEFAULT_COLLISION,
     ) -> None:
         self.model = model
         dev = model.device
@@ -65,29 +57,16 @@ class Solver:
         self.matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev)
         self.rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
-        self.up = wp.zeros(1, dtype=wp.vec3, device=dev)
-        self.ground = wp.zeros(4, dtype=float, device=dev)
+        self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev)
         self.cg.configure(cg_iterations, cg_tolerance)
+        self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         self.set_gravity(gravity)
-        self.set_ground(ground)
 
     def set_gravity(self, gravity: tuple[float, float, float]) -> None:
         """Set gravity (m/s^2); takes effect in captured graphs too."""
         self.gravity.assign(np.array([gravity], dtype=np.float32))
-
-    def set_ground(self, ground: Ground | None) -> None:
-        """Set or remove (None) the ground plane; takes effect in captured graphs too."""
-        g = ground or Ground()
-        params = np.zeros(4, dtype=np.float32)
-        params[IK.GROUND_ENABLED] = 1.0 if ground is not None else 0.0
-        params[IK.GROUND_HEIGHT] = g.height
-        params[IK.GROUND_STIFFNESS] = g.stiffness
-        params[IK.GROUND_FRICTION] = g.friction
-        up = np.asarray(g.up, dtype=np.float64)
-        self.up.assign((up / np.linalg.norm(up)).astype(np.float32)[None])
-        self.ground.assign(params)
 
     def step(self, state_in: State, state_out: State, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states)."""
@@ -95,20 +74,24 @@ class Solver:
         self.force.zero_()
         self.matrix.zero_()
         fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
+        extra = None
+        if self.collider is not None:
+            self.collider.respond(state_in.x, state_in.v, self.rotation, dt, self.force, self.matrix)
+
+            extra = self.collider.product
         integrate.build_system(
             model,
             state_in,
             self.force,
             self.gravity,
-            self.up,
-            self.ground,
+            self.colliders,
             dt,
             self.matrix,
             self.rhs,
             self.diag_inv,
             state_out.v,
         )
-        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, extra)
         integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
 
     def first_bad_vertex(self) -> int | None:

@@ -1,0 +1,310 @@
+"""Body-body and self collisions: collision points against tets, penalty response from the distance field.
+
+Depth and direction: in a tet with a face on the body's surface, the point's distance below the nearest
+such face along that face's current outward normal (flat on faces, so a body resting on a face is pushed
+straight out, not sideways by the averaged normals at edges); in a tet deep inside, the paper's
+interpolated distance field and rotated gradients.
+
+Collision points are the coarse surface vertices of every colliding body plus optional surface samples
+(points embedded in a tet with barycentric weights, like the dense vertices), so thin parts whose vertices
+never enter another body are still caught. A point ``p`` inside tet ``t`` of another body (or of its own
+body, outside ``t``'s one-ring) gets the penalty force ``f = a d g`` with depth ``d`` and direction ``g``
+interpolated from ``t``'s vertex depths and rotated gradients (Kondo & Kanai, after Fisher & Lin); the
+reaction ``-f`` goes to ``t``'s corners by the barycentric weights, so momentum is conserved. Implicitly,
+the contact is a spring along ``g`` between the point and its image in ``t``: row ``J`` of the constraint
+``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product.
+"""
+
+import warp as wp
+from warpfem.kernels.integrate import FRICTION_SPEED_EPS
+
+
+@wp.kernel
+def point_positions(
+    x: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    point_tet: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    points_out: wp.array(dtype=wp.vec3),
+):
+    """Current position of every collision point from its tet and barycentric weights."""
+    i = wp.tid()
+    t = tets[point_tet[i]]
+    w = point_bary[i]
+    points_out[i] = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
+
+
+@wp.kernel
+def accumulate_gradients(
+    tets: wp.array(dtype=wp.vec4i),
+    rotation: wp.array(dtype=wp.mat33),
+    rest_grad: wp.array(dtype=wp.vec3),
+    grad_out: wp.array(dtype=wp.vec3),
+):
+    """grad[v] += R_t g0[v] for each corner v of each tet t (zero ``grad_out`` first)."""
+    e = wp.tid()
+    t = tets[e]
+    R = rotation[e]
+    for a in range(4):
+        wp.atomic_add(grad_out, t[a], R * rest_grad[t[a]])
+
+
+@wp.kernel
+def normalize_gradients(grad_out: wp.array(dtype=wp.vec3)):
+    """g = normalize(sum_k R_k g0) per tet vertex (Kondo & Kanai step 7)."""
+    i = wp.tid()
+    g = grad_out[i]
+    n = wp.length(g)
+    if n > 0.0:
+        grad_out[i] = g / n
+
+
+@wp.func
+def adjacent(row_start: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32), a: int, b: int) -> bool:
+    """True if vertices a and b share a tet (b is in a's sorted row of the block matrix pattern)."""
+    lo = row_start[a]
+    hi = row_start[a + 1]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        c = cols[mid]
+        if c == b:
+            return True
+        if c < b:
+            lo = mid + 1
+        else:
+            hi = mid
+    return False
+
+
+@wp.func
+def near_tet(
+    row_start: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32), anchor: wp.vec3i, t: wp.vec4i
+) -> bool:
+    """True if any anchor vertex of a point is a corner of tet t or in the one-ring of one of its corners."""
+    for k in range(3):
+        a = anchor[k]
+        if a >= 0:
+            for c in range(4):
+                if adjacent(row_start, cols, t[c], a):
+                    return True
+    return False
+
+
+@wp.func
+def surface_face_depth(x: wp.array(dtype=wp.vec3), t: wp.vec4i, k: int, q: wp.vec3) -> wp.vec4:
+    """Depth of ``q`` below the face of tet ``t`` opposite corner ``k`` (m) and that face's outward normal."""
+    a = x[t[(k + 1) % 4]]
+    b = x[t[(k + 2) % 4]]
+    c = x[t[(k + 3) % 4]]
+    n = wp.normalize(wp.cross(b - a, c - a))
+    if wp.dot(n, x[t[k]] - a) > 0.0:
+        n = -n
+    return wp.vec4(wp.dot(n, a - q), n[0], n[1], n[2])
+
+
+@wp.kernel
+def detect_contacts(
+    # inputs: geometry
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    tet_body: wp.array(dtype=wp.int32),
+    tet_surface: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3),
+    point_body: wp.array(dtype=wp.int32),
+    point_anchor: wp.array(dtype=wp.vec3i),
+    body_self: wp.array(dtype=wp.int32),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    capacity: int,
+    # outputs
+    claim_out: wp.array(dtype=wp.int32),
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+):
+    """Per tet: collision points in the grid cells its bounding box covers, box test, barycentric inside test.
+
+    A contact is recorded with the point, the tet, the point's barycentric weights in the tet, the
+    interpolated unit gradient and the interpolated depth (m). ``stats_out[0]`` keeps the largest depth.
+    ``count_out[0]`` counts every contact found; those past ``capacity`` are dropped (the host sees the
+    overflow as count > capacity). ``claim_out`` (zeroed per step) keeps a point on a face shared by two
+    tets from answering twice.
+    """
+    e = wp.tid()
+    t = tets[e]
+    x0 = x[t[0]]
+    x1 = x[t[1]]
+    x2 = x[t[2]]
+    x3 = x[t[3]]
+    lo = wp.min(wp.min(x0, x1), wp.min(x2, x3))
+    hi = wp.max(wp.max(x0, x1), wp.max(x2, x3))
+    center = 0.5 * (lo + hi)
+    radius = 0.5 * wp.length(hi - lo)
+    A = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
+    if wp.abs(wp.determinant(A)) < 1.0e-20:
+        return
+    A_inv = wp.inverse(A)
+    body = tet_body[e]
+
+    query = wp.hash_grid_query(grid, center, radius)
+    p = int(0)
+    while wp.hash_grid_query_next(query, p):
+        q = points[p]
+        if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+            continue
+        same = point_body[p] == body
+        if same and body_self[body] == 0:
+            continue
+        b = A_inv * (q - x0)
+        b0 = 1.0 - b[0] - b[1] - b[2]
+        if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0:
+            continue
+        if same:
+            if near_tet(row_start, cols, point_anchor[p], t):
+                continue
+        w = wp.vec4(b0, b[0], b[1], b[2])
+        d = float(0.0)
+        g = wp.vec3()
+        mask = tet_surface[e]
+        if mask != 0:
+            # a tet on the surface: below its nearest surface face, along that face's normal
+            d = 1.0e30
+            for k in range(4):
+                if (mask >> k) & 1 != 0:
+                    dn = surface_face_depth(x, t, k, q)
+                    if dn[0] < d:
+                        d = dn[0]
+                        g = wp.vec3(dn[1], dn[2], dn[3])
+        else:
+            # deep inside: the paper's interpolated distance field and rotated gradients
+            d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
+            g = w[0] * grad[t[0]] + w[1] * grad[t[1]] + w[2] * grad[t[2]] + w[3] * grad[t[3]]
+        if d <= 0.0 or wp.length(g) == 0.0:
+            continue
+        if wp.atomic_add(claim_out, p, 1) > 0:
+            continue  # on a face shared by two tets: one contact per point
+        slot = wp.atomic_add(count_out, 0, 1)
+        if slot < capacity:
+            contact_point_out[slot] = p
+            contact_tet_out[slot] = e
+            contact_bary_out[slot] = w
+            contact_normal_out[slot] = wp.normalize(g)
+            contact_depth_out[slot] = d
+            wp.atomic_max(stats_out, 0, d)
+
+
+@wp.kernel
+def contact_forces(
+    # inputs: contacts
+    count: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.int32),
+    contact_tet: wp.array(dtype=wp.int32),
+    contact_bary: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_depth: wp.array(dtype=float),
+    # inputs: model and state
+    v: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    point_tet: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    point_stiffness: wp.array(dtype=float),
+    friction: wp.array(dtype=float),
+    diag_slot: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    contact_matrix_out: wp.array(dtype=wp.mat33),
+    force_out: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
+):
+    """Penalty force a d g on the point's tet corners (by its weights), the reaction on the contact tet's.
+
+    Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
+    through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
+    friction across it, with c = mu a d / max(|u_t|, eps) from the step's start velocity. C goes to
+    ``contact_matrix_out`` for the matrix-free product; its diagonal blocks to the matrix.
+    """
+    i = wp.tid()
+    if i >= wp.min(count[0], contact_point.shape[0]):
+        return
+    p = contact_point[i]
+    a = point_stiffness[p]
+    g = contact_normal[i]
+    f = a * contact_depth[i] * g
+    tp = tets[point_tet[p]]
+    w_p = point_bary[p]
+    tt = tets[contact_tet[i]]
+    w_t = contact_bary[i]
+    u = wp.vec3()
+    for k in range(4):
+        u += w_p[k] * v[tp[k]] - w_t[k] * v[tt[k]]
+    ut = u - wp.dot(u, g) * g
+    c = friction[0] * a * contact_depth[i] / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
+    gg = wp.outer(g, g)
+    C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
+    contact_matrix_out[i] = C
+    for k in range(4):
+        wp.atomic_add(force_out, tp[k], w_p[k] * f)
+        wp.atomic_add(force_out, tt[k], -w_t[k] * f)
+        wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
+        wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
+
+
+@wp.kernel
+def contact_product(
+    # inputs
+    count: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.int32),
+    contact_tet: wp.array(dtype=wp.int32),
+    contact_bary: wp.array(dtype=wp.vec4),
+    contact_matrix: wp.array(dtype=wp.mat33),
+    tets: wp.array(dtype=wp.vec4i),
+    point_tet: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    free: wp.array(dtype=wp.int32),
+    p: wp.array(dtype=wp.vec3),
+    # outputs
+    q_out: wp.array(dtype=wp.vec3),
+):
+    """q += J^T C J p for every contact, less the diagonal blocks already in the assembled matrix."""
+    i = wp.tid()
+    if i >= wp.min(count[0], contact_point.shape[0]):
+        return
+    pt = contact_point[i]
+    C = contact_matrix[i]
+    tp = tets[point_tet[pt]]
+    w_p = point_bary[pt]
+    tt = tets[contact_tet[i]]
+    w_t = contact_bary[i]
+    s = wp.vec3()
+    for k in range(4):
+        s += w_p[k] * p[tp[k]] - w_t[k] * p[tt[k]]
+    for k in range(4):
+        # the full product minus each vertex's own (diagonal) term, which the assembled matrix applies
+        if free[tp[k]] != 0:
+            wp.atomic_add(q_out, tp[k], w_p[k] * (C * (s - w_p[k] * p[tp[k]])))
+        if free[tt[k]] != 0:
+            wp.atomic_add(q_out, tt[k], -w_t[k] * (C * (s + w_t[k] * p[tt[k]])))
+
+
+@wp.kernel
+def count_contacts(count: wp.array(dtype=wp.int32), totals_out: wp.array(dtype=wp.int32)):
+    """Single thread: totals[0] += contacts this step; totals[1] = max(totals[1], contacts this step)."""
+    n = count[0]
+    totals_out[0] = totals_out[0] + n
+    totals_out[1] = wp.max(totals_out[1], n)
+
+
+@wp.kernel
+def scale_point_stiffness(
+    point_mass: wp.array(dtype=float), stiffness: float, point_stiffness_out: wp.array(dtype=float)
+):
+    """a_p = stiffness * m_p (N/m)."""
+    i = wp.tid()
+    point_stiffness_out[i] = stiffness * point_mass[i]

@@ -1,0 +1,205 @@
+"""Body-body and self collisions: stacking, momentum, thin parts, and paying only for what a scene uses."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpfem.collision import CollisionSettings
+from warpfem.distance import distance_field
+from warpfem.model import ModelBuilder
+from warpfem.shapes import box_tet_mesh
+from warpfem.solver import Ground, Solver
+from warpfem.tetmesh import boundary_faces
+
+
+def _box(lo, size, cells):
+    hi = tuple(np.add(lo, size))
+    return box_tet_mesh(lo, hi, cells)
+
+
+def _run(solver, model, steps, dt, each=None):
+    s0, s1 = model.state(), model.state()
+    for _ in range(steps):
+        solver.step(s0, s1, dt)
+        s0, s1 = s1, s0
+        if each:
+            each(s0)
+    return s0
+
+
+def penetration(points, vertices, tets):
+    """Deepest of ``points`` inside the deformed tet mesh (vertices, tets): 0 if none is inside.
+
+    Inside: a barycentric test against every tet (NumPy); depth: the distance to the mesh's boundary.
+    """
+    A = np.stack([vertices[tets[:, k]] - vertices[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    b = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - vertices[tets[:, 0]][None])
+    inside = np.any((b >= 0).all(axis=2) & (b.sum(axis=2) <= 1), axis=1)
+    if not inside.any():
+        return 0.0
+    depth, _ = distance_field(points[inside], vertices, boundary_faces(tets))
+    return float(depth.max())
+
+
+def test_two_cubes_come_to_rest_stacked(device):
+    b = ModelBuilder()
+    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    b.add_body("b", *_box((0.025, 0.3, 0.025), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    model = b.finalize(device)
+    solver = Solver(model, ground=Ground(), cg_iterations=200, cg_tolerance=1e-5, collision=CollisionSettings())
+    x = _run(solver, model, 480, 1 / 240).x.numpy()
+    assert solver.first_bad_vertex() is None
+    a, top = model.bodies
+    xa = x[: a.vertex_count]
+    xb = x[top.vertex_start :]
+    _, _, deepest, overflow = solver.collider.read_stats()
+    assert not overflow
+    # b rests on a: its bottom sits at a's top, centred, not slid off
+    assert xa[:, 1].max() - 0.01 < xb[:, 1].min() < xa[:, 1].max() + 0.005
+    assert np.all((xb[:, [0, 2]] > -0.01) & (xb[:, [0, 2]] < 0.21))
+    # penetration, measured independently: b's vertices inside a's deformed tet mesh
+    assert penetration(xb, xa, model.tets.numpy()[: a.tet_count]) < 0.02 * 0.15
+    assert penetration(xa, xb, model.tets.numpy()[top.tet_start :] - top.vertex_start) < 0.02 * 0.15
+    assert deepest < 0.05 * 0.15  # the deepest contact over the whole run, impact included
+
+
+def test_head_on_collision_conserves_momentum(device):
+    b = ModelBuilder()
+    b.add_body("left", *_box((-0.35, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 1000.0, velocity=(2.0, 0.0, 0.0))
+    b.add_body(
+        "right", *_box((0.15, 0.02, 0.01), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 500.0, velocity=(-1.0, 0.0, 0.0)
+    )
+    model = b.finalize(device)
+    solver = Solver(model, gravity=(0, 0, 0), ground=None, cg_iterations=300, cg_tolerance=1e-6)
+    mass = model.mass.numpy()
+    p0 = (mass[:, None] * model.initial_v.numpy()).sum(axis=0)
+    contacts = []
+    s = _run(solver, model, 120, 1 / 240, each=lambda _: contacts.append(solver.collider.read_stats()[0]))
+    assert sum(contacts) > 0  # they did collide
+    p1 = (mass[:, None] * s.v.numpy()).sum(axis=0)
+    assert np.linalg.norm(p1 - p0) < 0.01 * np.abs(mass[:, None] * model.initial_v.numpy()).sum(axis=0)[0]
+    v_left = s.v.numpy()[: model.bodies[0].vertex_count, 0].mean()
+    v_right = s.v.numpy()[model.bodies[1].vertex_start :, 0].mean()
+    assert v_left < v_right  # they bounced apart
+
+
+@pytest.mark.parametrize("spacing", [0.0, 0.01])
+def test_thin_bar_dropped_across_a_thin_bar(device, spacing):
+    """Vertices only (the paper) miss two crossing bars; surface samples catch them.
+
+    Nine cells along each 1 m bar put vertices at +-0.056 m from the crossing, outside the other bar's
+    0.04 m width: no vertex ever enters the other bar, only the surfaces cross.
+    """
+    b = ModelBuilder()
+    lower = _box((-0.5, 0.0, -0.02), (1.0, 0.04, 0.04), (9, 1, 1))
+    upper = _box((-0.02, 0.1, -0.5), (0.04, 0.04, 1.0), (1, 1, 9))
+    b.add_body("lower", *lower, 1e7, 0.3, 1000.0, pinned=np.ones(len(lower[0]), bool))
+    b.add_body("upper", *upper, 1e7, 0.3, 1000.0, damping_stiffness=0.002, collision_spacing=spacing)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None, cg_iterations=200, cg_tolerance=1e-5)
+    x = _run(solver, model, 90, 1 / 240).x.numpy()
+    up = model.bodies[1]
+    xu = x[up.vertex_start :]
+    if spacing == 0.0:
+        assert xu[:, 1].max() < 0.0  # fell straight through the lower bar
+        return
+    near = np.abs(xu[:, 2]) < 0.1
+    assert 0.04 - 0.002 < xu[near, 1].min() < 0.045  # resting on top at the crossing
+    # the upper bar's bottom face, sampled finely, against the lower bar's tets
+    bottom = np.flatnonzero(np.isclose(upper[0][:, 1], 0.1))
+    t = np.linspace(0.0, 1.0, 41)
+    edges = [(i, j) for i in bottom for j in bottom if i < j and np.linalg.norm(upper[0][i] - upper[0][j]) < 0.112]
+    samples = np.concatenate([xu[i] + t[:, None] * (xu[j] - xu[i]) for i, j in edges])
+    lower_tets = model.tets.numpy()[: model.bodies[0].tet_count]
+    assert penetration(samples, x[: model.bodies[0].vertex_count], lower_tets) < 0.02 * 0.04
+
+
+def test_self_collision_follows_the_scene(device):
+    """Two blocks in ONE tet mesh: they collide only when the body collides with itself."""
+    va, ta = _box((0, 0.0, 0), (0.2, 0.2, 0.2), (2, 2, 2))
+    vb, tb = _box((0.02, 0.25, 0.02), (0.16, 0.16, 0.16), (2, 2, 2))
+    vertices = np.concatenate([va, vb])
+    tets = np.concatenate([ta, tb + len(va)])
+    lows = []
+    for self_collision in (False, True):
+        b = ModelBuilder()
+        b.add_body(
+            "pair",
+            vertices,
+            tets,
+            1e5,
+            0.3,
+            1000.0,
+            self_collision=self_collision,
+            pinned=np.arange(len(vertices)) < len(va),
+        )
+        model = b.finalize(device)
+        solver = Solver(model, ground=None, cg_iterations=200, cg_tolerance=1e-5)
+        assert (solver.collider is not None) == self_collision
+        lows.append(_run(solver, model, 120, 1 / 240).x.numpy()[len(va) :, 1].min())
+    assert lows[0] < 0.0  # passed through its own lower block
+    assert lows[1] > 0.2 - 0.02 * 0.16  # rests on it
+
+
+def test_a_body_at_rest_has_no_self_contacts(device):
+    v, t = _box((0, 0, 0), (0.3, 0.1, 0.2), (3, 2, 2))
+    b = ModelBuilder()
+    b.add_body("block", v, t, 1e5, 0.3, 1000.0, self_collision=True, collision_spacing=0.02)
+    model = b.finalize(device)
+    solver = Solver(model, gravity=(0, 0, 0), ground=None)
+    x = _run(solver, model, 5, 1 / 240).x.numpy()
+    total, most, depth, _ = solver.collider.read_stats()
+    assert total == 0 and depth == 0.0
+    np.testing.assert_allclose(x, v, atol=1e-5)
+
+
+def _count_launches(monkeypatch, solver, model):
+    names = []
+    real = wp.launch
+
+    def counting(kernel, *args, **kwargs):
+        names.append(kernel.key)
+        return real(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", counting)
+    s0, s1 = model.state(), model.state()
+    solver.step(s0, s1, 1 / 240)
+    monkeypatch.setattr(wp, "launch", real)
+    return names
+
+
+def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
+    collision_kernels = {
+        "point_positions",
+        "detect_contacts",
+        "contact_forces",
+        "contact_product",
+        "accumulate_gradients",
+    }
+    single = ModelBuilder()
+    single.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    model = single.finalize(device)
+    names = _count_launches(monkeypatch, Solver(model, cg_iterations=10, cg_tolerance=0.0), model)
+    assert not collision_kernels & set(names)
+    # a fixed count of 10 CG iterations: 4 launches each, plus the fixed stages
+    assert names.count("cg_spmv") == 10 and len(names) <= 4 * 10 + 8
+
+    pair = ModelBuilder()
+    pair.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    pair.add_body("two", *_box((0, 0.9, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    model = pair.finalize(device)
+    assert collision_kernels <= set(
+        _count_launches(monkeypatch, Solver(model, cg_iterations=10, cg_tolerance=0.0), model)
+    )
+    assert not collision_kernels & set(_count_launches(monkeypatch, Solver(model, collision=None), model))
+
+
+def test_contact_buffer_overflow_is_reported(device):
+    b = ModelBuilder()
+    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    b.add_body("b", *_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, collision_spacing=0.01)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None, collision=CollisionSettings(contacts_per_point=0.001))
+    _run(solver, model, 1, 1 / 240)
+    *_, overflow = solver.collider.read_stats()
+    assert overflow

@@ -1,0 +1,250 @@
+"""Host side of collisions: collision points (built once) and the per-step detection and response.
+
+Detection (Teschner et al. 2003): every step the collision points are hashed into a ``wp.HashGrid``; each
+tet visits the cells its bounding box covers, tests the box, then the barycentric inside test. Response
+(Kondo & Kanai, step 7): a penalty force from the tet's distance field, implicit (see
+:mod:`warpfem.kernels.collision`). Self-collision rule: a point is tested against tets of its own body only
+if none of its anchor vertices (the vertex itself, or the three corners of the surface triangle a sample
+lies on) is a corner of the tet or shares a tet with one of its corners (the one-ring); this keeps a body
+at rest free of false contacts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import collision as K
+
+
+@dataclass(frozen=True)
+class CollisionSettings:
+    """Collision response and capacity.
+
+    Attributes:
+        stiffness: Penalty stiffness per unit point mass (1/s^2): a = stiffness * m_point, where m_point is
+            the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
+            behaves like the ground's penalty (resting depth about g / stiffness).
+        friction: Coulomb friction coefficient between bodies.
+        contacts_per_point: Contact buffer capacity per collision point.
+    """
+
+    stiffness: float = 1.0e6
+    friction: float = 0.5
+    contacts_per_point: float = 2.0
+
+
+DEFAULT_COLLISION = CollisionSettings()
+
+
+@dataclass(frozen=True)
+class CollisionPoints:
+    """Collision points of one body, in its local vertex and tet indices.
+
+    Attributes:
+        tet: (c,) owning tet of each point.
+        bary: (c, 4) barycentric weights in that tet.
+        anchor: (c, 3) vertices the point lies on (-1 for unused): one for a vertex, three for a sample.
+    """
+
+    tet: np.ndarray
+    bary: np.ndarray
+    anchor: np.ndarray
+
+
+def surface_points(
+    tets: np.ndarray, surface_faces: np.ndarray, vertices: np.ndarray, spacing: float
+) -> CollisionPoints:
+    """The surface vertices of a body, plus samples on its surface triangles every ``spacing`` metres.
+
+    Each triangle is split into m^2 sub-triangles with m = ceil(longest edge / spacing) and a sample is put at
+    each sub-triangle's centroid, so no gap between samples exceeds about ``spacing``. ``spacing`` <= 0
+    gives the vertices only (the paper's method).
+
+    Args:
+        tets: (q, 4) positive tets.
+        surface_faces: (l, 3) outward boundary triangles indexing the tet vertices.
+        vertices: (p, 3) tet vertex positions (m).
+        spacing: Sample spacing (m).
+    """
+    from warpfem.embedding import boundary_face_tets
+
+    face_tet = boundary_face_tets(tets, surface_faces)
+    corner = np.argmax(tets[face_tet][:, :, None] == surface_faces[:, None, :], axis=1)  # (l, 3) slot in tet
+    verts, first = np.unique(surface_faces.ravel(), return_index=True)
+    f_idx, k_idx = np.divmod(first, 3)
+    tet = [face_tet[f_idx]]
+    bary = np.zeros((len(verts), 4))
+    bary[np.arange(len(verts)), corner[f_idx, k_idx]] = 1.0
+    bary = [bary]
+    anchor = [np.stack([verts, np.full_like(verts, -1), np.full_like(verts, -1)], axis=1)]
+    if spacing > 0.0:
+        tri = vertices[surface_faces]
+        longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+        for m in np.unique(np.ceil(longest / spacing).astype(int)):
+            faces = np.flatnonzero(np.ceil(longest / spacing).astype(int) == m)
+            up = [(i + 1 / 3, j + 1 / 3, m - 1 - i - j + 1 / 3) for i in range(m) for j in range(m - i)]
+            down = [(i + 2 / 3, j + 2 / 3, m - 2 - i - j + 2 / 3) for i in range(m - 1) for j in range(m - 1 - i)]
+            uvw = np.array(up + down) / m  # (s, 3) weights on the triangle's corners
+            n = len(uvw)
+            w = np.zeros((len(faces), n, 4))
+            rows = np.arange(len(faces))[:, None]
+            for k in range(3):
+                w[rows, np.arange(n)[None, :], corner[faces, k][:, None]] += uvw[None, :, k]
+            tet.append(np.repeat(face_tet[faces], n))
+            bary.append(w.reshape(-1, 4))
+            anchor.append(np.repeat(surface_faces[faces], n, axis=0))
+    return CollisionPoints(
+        tet=np.concatenate(tet).astype(np.int32),
+        bary=np.concatenate(bary),
+        anchor=np.concatenate(anchor).astype(np.int32),
+    )
+
+
+class Collider:
+    """Buffers and launches of the collision stage for a model with collision points.
+
+    Args:
+        model: The model (its ``point_*`` arrays define the collision points).
+        settings: Stiffness and capacity.
+    """
+
+    def __init__(self, model, settings: CollisionSettings) -> None:
+        self.model = model
+        dev = model.device
+        n_points = model.point_tet.shape[0]
+        self.capacity = max(64, int(settings.contacts_per_point * n_points))
+        self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
+        self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
+        self.count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.claim = wp.zeros(n_points, dtype=wp.int32, device=dev)
+        self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self.contact_tet = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
+        self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
+        self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
+        self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
+        self.friction = wp.zeros(1, dtype=float, device=dev)
+        self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
+        self.depth_max = wp.zeros(1, dtype=float, device=dev)
+        self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
+        self.grid = wp.HashGrid(128, 128, 128, device=dev)
+        self.grid.reserve(n_points)
+        self.set_response(settings.stiffness, settings.friction)
+
+    def set_response(self, stiffness: float, friction: float) -> None:
+        """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays)."""
+        self.friction.fill_(float(friction))
+        wp.launch(
+            K.scale_point_stiffness,
+            dim=self.points.shape[0],
+            inputs=[self.model.point_mass, float(stiffness)],
+            outputs=[self.point_stiffness],
+            device=self.model.device,
+        )
+
+    def respond(
+        self, x: wp.array, v: wp.array, rotation: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array
+    ) -> None:
+        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs."""
+        m = self.model
+        dev = m.device
+        wp.launch(
+            K.point_positions,
+            dim=self.points.shape[0],
+            inputs=[x, m.tets, m.point_tet, m.point_bary],
+            outputs=[self.points],
+            device=dev,
+        )
+        self.grid.build(self.points, m.collision_cell)
+        self.grad.zero_()
+        wp.launch(
+            K.accumulate_gradients,
+            dim=m.tet_count,
+            inputs=[m.tets, rotation, m.vertex_grad],
+            outputs=[self.grad],
+            device=dev,
+        )
+        wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=dev)
+        self.count.zero_()
+        self.claim.zero_()
+        wp.launch(
+            K.detect_contacts,
+            dim=m.tet_count,
+            inputs=[
+                self.grid.id,
+                x,
+                m.tets,
+                m.tet_body,
+                m.tet_surface,
+                self.points,
+                m.point_body,
+                m.point_anchor,
+                m.body_self,
+                m.row_start,
+                m.cols,
+                m.vertex_depth,
+                self.grad,
+                self.capacity,
+            ],
+            outputs=[
+                self.claim,
+                self.count,
+                self.contact_point,
+                self.contact_tet,
+                self.contact_bary,
+                self.contact_normal,
+                self.contact_depth,
+                self.depth_max,
+            ],
+            device=dev,
+        )
+        wp.launch(K.count_contacts, dim=1, inputs=[self.count], outputs=[self.contacts_total], device=dev)
+        wp.launch(
+            K.contact_forces,
+            dim=self.capacity,
+            inputs=[
+                *self._contacts(),
+                self.contact_normal,
+                self.contact_depth,
+                v,
+                m.tets,
+                m.point_tet,
+                m.point_bary,
+                self.point_stiffness,
+                self.friction,
+                m.diag_slot,
+                dt,
+            ],
+            outputs=[self.contact_matrix, force_out, matrix_out],
+            device=dev,
+        )
+
+    def _contacts(self) -> list:
+        return [self.count, self.contact_point, self.contact_tet, self.contact_bary]
+
+    def product(self, p: wp.array, q_out: wp.array) -> None:
+        """q_out = the contacts' off-diagonal part of the system matrix times ``p``."""
+        m = self.model
+        q_out.zero_()
+        wp.launch(
+            K.contact_product,
+            dim=self.capacity,
+            inputs=[*self._contacts(), self.contact_matrix, m.tets, m.point_tet, m.point_bary, m.free, p],
+            outputs=[q_out],
+            device=m.device,
+        )
+
+    def read_stats(self) -> tuple[int, int, float, bool]:
+        """Contact statistics since the last call (one host synchronisation).
+
+        Returns:
+            (contacts summed over steps, most contacts in one step, deepest contact (m), buffer overflowed).
+        """
+        total, most = (int(c) for c in self.contacts_total.numpy())
+        depth = float(self.depth_max.numpy()[0])
+        self.contacts_total.zero_()
+        self.depth_max.zero_()
+        return total, most, depth, most > self.capacity
