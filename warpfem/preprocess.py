@@ -203,15 +203,16 @@ class _Attempt:
     faces: int
     timeout_s: float
     say: Callable[[str], None]
-    dense_volume: float | None
+    dense_volume: float
+    dense_clean: bool
     surfaces: dict[tuple, tuple[np.ndarray, np.ndarray, float] | InputError]
     seconds: dict[str, float]
 
     def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray, float]:
         """Return the validated coarse surface of ``rung`` and its reference volume.
 
-        The reference is the dense surface's volume, or, where that is None (the dense surface
-        intersects itself), the volume of the outer surface the coarse one was simplified from.
+        The reference is the dense surface's volume, or, for an outer surface made because the dense
+        one intersects itself or has overlapping shells, the volume of that outer surface.
 
         Raises:
             InputError: The memoized reason why this rung's surface could not be made or is invalid.
@@ -239,11 +240,14 @@ class _Attempt:
         name = self.dense.source
         vertices, faces = self.dense.vertices, self.dense.faces
         reference = self.dense_volume
+        if source == "qslim" and self.dense.overlapping:
+            raise InputError(f"{name}: shells overlap, so the body is their union (an outer surface)")
         clock = time.perf_counter()
         if source == "outer":
             self.say(f"{name}: rebuilding the outer surface on a {cells}-cell grid")
             vertices, faces = outer_surface(vertices, faces, cells, name=name, timeout_s=self.timeout_s)
-            reference = reference or signed_volume(vertices, faces)
+            if not self.dense_clean:
+                reference = signed_volume(vertices, faces)
             self.seconds["outer"] = self.seconds.get("outer", 0.0) + time.perf_counter() - clock
             clock = time.perf_counter()
         self.say(f"{name}: simplifying {len(faces)} faces to {target}")
@@ -254,7 +258,7 @@ class _Attempt:
         self.seconds["validate"] = self.seconds.get("validate", 0.0) + time.perf_counter() - clock
         if pairs:
             raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself ({pairs} pairs)")
-        return coarse_v, coarse_f, reference or float("nan")
+        return coarse_v, coarse_f, reference
 
 
 def _tet_mesh(
@@ -312,9 +316,7 @@ def _build(
     seconds = {"validate": time.perf_counter() - clock}
     # a surface crossing itself or overlapping shells count some volume twice: the outer surface's is used
     clean = dense_pairs == 0 and not dense.overlapping
-    attempt = _Attempt(
-        unit, faces, timeout_s, say, signed_volume(unit.vertices, unit.faces) if clean else None, {}, seconds
-    )
+    attempt = _Attempt(unit, faces, timeout_s, say, signed_volume(unit.vertices, unit.faces), clean, {}, seconds)
     failures = []
     for index, rung in enumerate(LADDER):
         say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
