@@ -188,6 +188,7 @@ def detect_contacts(
             g = w[0] * grad[t[0]] + w[1] * grad[t[1]] + w[2] * grad[t[2]] + w[3] * grad[t[3]]
         if d <= 0.0 or wp.length(g) == 0.0:
             continue
+        wp.atomic_max(stats_out, 0, d)
         if wp.atomic_add(claim_out, p, 1) > 0:
             continue  # on a face shared by two tets: one contact per point
         slot = wp.atomic_add(count_out, 0, 1)
@@ -197,7 +198,6 @@ def detect_contacts(
             contact_bary_out[slot] = w
             contact_normal_out[slot] = wp.normalize(g)
             contact_depth_out[slot] = d
-            wp.atomic_max(stats_out, 0, d)
 
 
 @wp.kernel

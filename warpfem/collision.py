@@ -159,48 +159,8 @@ class Collider:
             device=dev,
         )
         self.grid.build(self.points, m.collision_cell)
-        self.grad.zero_()
-        wp.launch(
-            K.accumulate_gradients,
-            dim=m.tet_count,
-            inputs=[m.tets, rotation, m.vertex_grad],
-            outputs=[self.grad],
-            device=dev,
-        )
-        wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=dev)
-        self.count.zero_()
-        self.claim.zero_()
-        wp.launch(
-            K.detect_contacts,
-            dim=m.tet_count,
-            inputs=[
-                self.grid.id,
-                x,
-                m.tets,
-                m.tet_body,
-                m.tet_surface,
-                self.points,
-                m.point_body,
-                m.point_anchor,
-                m.body_self,
-                m.row_start,
-                m.cols,
-                m.vertex_depth,
-                self.grad,
-                self.capacity,
-            ],
-            outputs=[
-                self.claim,
-                self.count,
-                self.contact_point,
-                self.contact_tet,
-                self.contact_bary,
-                self.contact_normal,
-                self.contact_depth,
-                self.depth_max,
-            ],
-            device=dev,
-        )
+        self._rotate_gradients(rotation)
+        self._detect(x, self.points, m.point_body, m.point_anchor, m.body_self, self.capacity, self.depth_max)
         wp.launch(K.count_contacts, dim=1, inputs=[self.count], outputs=[self.contacts_total], device=dev)
         wp.launch(
             K.contact_forces,
@@ -221,6 +181,83 @@ class Collider:
             outputs=[self.contact_matrix, force_out, matrix_out],
             device=dev,
         )
+
+    def _rotate_gradients(self, rotation: wp.array) -> None:
+        """grad = normalize(sum over incident tets of R_t g0), per tet vertex."""
+        m = self.model
+        self.grad.zero_()
+        wp.launch(
+            K.accumulate_gradients,
+            dim=m.tet_count,
+            inputs=[m.tets, rotation, m.vertex_grad],
+            outputs=[self.grad],
+            device=m.device,
+        )
+        wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=m.device)
+
+    def _detect(self, x, points, point_body, point_anchor, body_self, capacity: int, depth_max_out) -> None:
+        m = self.model
+        self.count.zero_()
+        self.claim.zero_()
+        wp.launch(
+            K.detect_contacts,
+            dim=m.tet_count,
+            inputs=[
+                self.grid.id,
+                x,
+                m.tets,
+                m.tet_body,
+                m.tet_surface,
+                points,
+                point_body,
+                point_anchor,
+                body_self,
+                m.row_start,
+                m.cols,
+                m.vertex_depth,
+                self.grad,
+                capacity,
+            ],
+            outputs=[
+                self.claim,
+                self.count,
+                self.contact_point,
+                self.contact_tet,
+                self.contact_bary,
+                self.contact_normal,
+                self.contact_depth,
+                depth_max_out,
+            ],
+            device=m.device,
+        )
+
+    def deepest(self, x: wp.array, rotation: wp.array, points: np.ndarray, point_body: np.ndarray) -> float:
+        """Depth (m) of the deepest of ``points`` inside another body's tets at positions ``x`` (0 if none).
+
+        A measure for summaries and tests, with the contacts' own depth rule (allocates: not for the step).
+        """
+        m = self.model
+        dev = m.device
+        self._rotate_gradients(rotation)
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
+        grid = wp.HashGrid(128, 128, 128, device=dev)
+        grid.build(pts, m.collision_cell)
+        saved_grid, saved_claim = self.grid, self.claim
+        self.grid, self.claim = grid, wp.zeros(len(points), dtype=wp.int32, device=dev)
+        deepest = wp.zeros(1, dtype=float, device=dev)
+        try:
+            self._detect(
+                x,
+                pts,
+                wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
+                wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
+                wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
+                0,
+                deepest,
+            )
+        finally:
+            self.grid, self.claim = saved_grid, saved_claim
+        return float(deepest.numpy()[0])
 
     def _contacts(self) -> list:
         return [self.count, self.contact_point, self.contact_tet, self.contact_bary]

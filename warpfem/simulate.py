@@ -18,7 +18,7 @@ from warpfem.integrate import Box, Ground, Sphere
 from warpfem.model import Model, ModelBuilder
 from warpfem.preprocess import PreparedBody, prepare
 from warpfem.scene import ObjectConfig, SceneConfig
-from warpfem.solver import Solver
+from warpfem.solver import PhaseTimer, Solver
 
 
 @dataclass
@@ -38,6 +38,14 @@ class RunSummary:
         cg_iterations_per_step: Mean CG iterations per step.
         cg_residual_max: Largest final relative CG residual.
         seconds: Wall time per phase (s): prepare, build, simulate, map, write.
+        step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
+            with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
+            whose later frames replay a captured graph).
+        contacts_per_step: Mean body-body contacts per step, over the run.
+        contacts_max: Most contacts in one step.
+        contact_depth_max: Deepest contact over the run (m).
+        dense_penetration: Deepest dense vertex inside another body's tet mesh at the last frame (m).
+        dense_penetration_relative: The same relative to the smallest body's size.
     """
 
     output: Path
@@ -52,6 +60,12 @@ class RunSummary:
     cg_iterations_per_step: float
     cg_residual_max: float
     seconds: dict[str, float] = field(default_factory=dict)
+    step_ms: dict[str, float] = field(default_factory=dict)
+    contacts_per_step: float = 0.0
+    contacts_max: int = 0
+    contact_depth_max: float = 0.0
+    dense_penetration: float = 0.0
+    dense_penetration_relative: float = 0.0
 
     @property
     def ms_per_frame(self) -> float:
@@ -150,18 +164,24 @@ class Simulation:
         self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
         self._graph = None
 
-    def _substeps(self) -> None:
+    def _substeps(self, timer: PhaseTimer | None = None) -> None:
         a, b = self.states
+        if timer:
+            timer.start()
         for i in range(self.substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            self.solver.step(src, dst, self.dt)
+            self.solver.step(src, dst, self.dt, timer)
         if self.substeps % 2 == 1:
             a.assign(b)
 
-    def advance(self) -> None:
-        """Advance one output frame (``substeps`` steps)."""
-        if not self.model.device.is_cuda:
-            self._substeps()
+    def advance(self, timer: PhaseTimer | None = None) -> None:
+        """Advance one output frame (``substeps`` steps).
+
+        With a ``timer`` the frame runs directly, timing each phase; without one on CUDA, the frame is a
+        captured graph (captured on the first such call).
+        """
+        if timer is not None or not self.model.device.is_cuda:
+            self._substeps(timer)
             return
         if self._graph is None:
             with wp.ScopedCapture(device=self.model.device) as capture:
@@ -248,6 +268,9 @@ def run_scene(
     seconds["build"] = time.perf_counter() - t0
 
     bodies = [(b.name, b.dense_faces) for b in model.bodies]
+    timer = PhaseTimer(device)
+    profiled = 0
+    contacts = Contacts()
     with UsdWriter(output, bodies, fps=scene.fps, up_axis=scene.up_axis) as writer:
         t0 = time.perf_counter()
         points = sim.dense_points()
@@ -256,9 +279,11 @@ def run_scene(
         if on_points:
             on_points(0, points)
         for frame in range(1, scene.frames + 1):
+            profile = not device.is_cuda or frame == 1
             t0 = time.perf_counter()
-            sim.advance()
+            sim.advance(timer if profile else None)
             sim.check_finite(frame)
+            profiled += profile
             t1 = time.perf_counter()
             points = sim.dense_points()
             t2 = time.perf_counter()
@@ -267,6 +292,7 @@ def run_scene(
             seconds["simulate"] += t1 - t0
             seconds["map"] += t2 - t1
             seconds["write"] += t3 - t2
+            contacts.read(solver, frame, progress)
             if on_points:
                 on_points(frame, points)
             if on_frame:
@@ -274,6 +300,7 @@ def run_scene(
         stats = solver.read_cg_stats()
         t_close = time.perf_counter()  # the writer saves the file on leaving this block
     seconds["write"] += time.perf_counter() - t_close
+    penetration = dense_penetration(sim, points)
     return RunSummary(
         output=output,
         device=device.alias,
@@ -287,4 +314,41 @@ def run_scene(
         cg_iterations_per_step=stats.iterations / max(stats.solves, 1),
         cg_residual_max=stats.residual_max,
         seconds=seconds,
+        step_ms={k: 1000.0 * v / max(profiled, 1) for k, v in timer.seconds.items()},
+        contacts_per_step=contacts.total / max(scene.frames * scene.substeps, 1),
+        contacts_max=contacts.most,
+        contact_depth_max=contacts.deepest,
+        dense_penetration=penetration,
+        dense_penetration_relative=penetration / min(b.size for b in model.bodies),
     )
+
+
+class Contacts:
+    """Body-body contact statistics gathered once per frame; warns once if the contact buffer overflows."""
+
+    def __init__(self) -> None:
+        self.total, self.most, self.deepest, self.warned = 0, 0, 0.0, False
+
+    def read(self, solver: Solver, frame: int, progress: Callable[[str], None] | None) -> None:
+        """Add the contacts of the frame just simulated (one host synchronisation)."""
+        if solver.collider is None:
+            return
+        total, most, deepest, overflow = solver.collider.read_stats()
+        self.total += total
+        self.most = max(self.most, most)
+        self.deepest = max(self.deepest, deepest)
+        if overflow and not self.warned and progress:
+            progress(
+                f"warning: frame {frame}: {most} contacts overflowed the buffer of {solver.collider.capacity}; "
+                "the excess were ignored (raise contacts_per_point)"
+            )
+            self.warned = True
+
+
+def dense_penetration(sim: Simulation, points: list[np.ndarray]) -> float:
+    """Deepest dense vertex inside another body's tet mesh in the current state (m); 0 without collisions."""
+    collider = sim.solver.collider
+    if collider is None:
+        return 0.0
+    owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])
+    return collider.deepest(sim.states[0].x, sim.solver.rotation, np.concatenate(points), owner)

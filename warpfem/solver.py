@@ -8,6 +8,7 @@ replays.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -22,6 +23,27 @@ from warpfem.model import Model, State
 DEFAULT_GROUND = Ground()
 
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
+
+
+class PhaseTimer:
+    """Wall time per phase (s), measured by synchronising the device at each phase boundary."""
+
+    def __init__(self, device) -> None:
+        self.device = device
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def start(self) -> None:
+        """Synchronise and start timing the next phase."""
+        wp.synchronize_device(self.device)
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        """Synchronise and add the time since the last lap (or start) to ``phase``."""
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
+        self._last = now
 
 
 class Solver:
@@ -68,17 +90,23 @@ class Solver:
         """Set gravity (m/s^2); takes effect in captured graphs too."""
         self.gravity.assign(np.array([gravity], dtype=np.float32))
 
-    def step(self, state_in: State, state_out: State, dt: float) -> None:
-        """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states)."""
+    def step(self, state_in: State, state_out: State, dt: float, timer: PhaseTimer | None = None) -> None:
+        """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
+
+        With a ``timer`` the device is synchronised after each phase to time it (not capturable).
+        """
         model = self.model
         self.force.zero_()
         self.matrix.zero_()
         fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
+        if timer:
+            timer.lap("elastic")
         extra = None
         if self.collider is not None:
             self.collider.respond(state_in.x, state_in.v, self.rotation, dt, self.force, self.matrix)
-
             extra = self.collider.product
+            if timer:
+                timer.lap("collision")
         integrate.build_system(
             model,
             state_in,
@@ -93,6 +121,8 @@ class Solver:
         )
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, extra)
         integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
+        if timer:
+            timer.lap("solve")
 
     def first_bad_vertex(self) -> int | None:
         """The lowest tet vertex that became NaN/Inf since the last call, or None (one host synchronisation)."""

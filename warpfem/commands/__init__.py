@@ -87,7 +87,7 @@ def add_camera_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default="480x360", help="preview WIDTHxHEIGHT in pixels, even (default 480x360)")
     parser.add_argument("--camera", metavar="X,Y,Z", help="camera position in m (default: framing all bodies)")
     parser.add_argument("--target", metavar="X,Y,Z", help="point the camera looks at (default: centre of the bodies)")
-    parser.add_argument("--fov", type=float, default=35.0, help="vertical field of view, degrees (default 35)")
+    parser.add_argument("--fov", type=float, help="vertical field of view, degrees (default: the scene's, else 35)")
 
 
 def camera_flags(args: argparse.Namespace) -> dict[str, Any]:
@@ -96,12 +96,12 @@ def camera_flags(args: argparse.Namespace) -> dict[str, Any]:
     Raises:
         InputError: A malformed vector, a field of view outside (0, 180) or the camera at its target.
     """
-    if not 0.0 < args.fov < 180.0:
+    if args.fov is not None and not 0.0 < args.fov < 180.0:
         raise InputError(f"--fov must be in (0, 180) degrees, got {args.fov}")
     flags = {
         "position": parse_vec3(args.camera, "--camera") if args.camera else None,
         "target": parse_vec3(args.target, "--target") if args.target else None,
-        "fov": args.fov,
+        "fov": args.fov if args.fov is not None else 35.0,
     }
     if flags["position"] is not None and flags["position"] == flags["target"]:
         raise InputError("--camera and --target are the same point")

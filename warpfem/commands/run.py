@@ -148,6 +148,10 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
     size = parse_size(args.size)
     flags = camera_flags(args)
+    # the scene's [camera] fills in what the command line left unset
+    flags["position"] = flags["position"] or scene.camera.position
+    flags["target"] = flags["target"] or scene.camera.target
+    flags["fov"] = args.fov if args.fov is not None else scene.camera.fov
     if args.preview is not None:
         preview_kind(args.preview)
     check_device(args.device)
@@ -183,6 +187,17 @@ def main(args: argparse.Namespace) -> int:
             "CG iterations per step",
             f"{summary.cg_iterations_per_step:.1f} (max residual {summary.cg_residual_max:.2g})",
         ),
+        (
+            "step phases per frame",
+            ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a",
+        ),
+        ("contacts per step", f"{summary.contacts_per_step:.1f} (most {summary.contacts_max})"),
+        (
+            "max penetration",
+            f"contacts {1e3 * summary.contact_depth_max:.2f} mm over the run; dense vertices at the end "
+            f"{1e3 * summary.dense_penetration:.2f} mm ({100 * summary.dense_penetration_relative:.2f} % of the "
+            "smallest body)",
+        ),
     ]
     data = {
         "output": str(summary.output),
@@ -200,6 +215,12 @@ def main(args: argparse.Namespace) -> int:
         "dense_vertices": summary.dense_vertices,
         "cg_iterations_per_step": summary.cg_iterations_per_step,
         "cg_residual_max": summary.cg_residual_max,
+        "step_ms": summary.step_ms,
+        "contacts_per_step": summary.contacts_per_step,
+        "contacts_max": summary.contacts_max,
+        "contact_depth_max": summary.contact_depth_max,
+        "dense_penetration": summary.dense_penetration,
+        "dense_penetration_relative": summary.dense_penetration_relative,
     }
     print_summary(rows, data, args.json)
     return 0
