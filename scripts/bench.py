@@ -1,0 +1,295 @@
+"""Benchmark: the paper's scenes, piles of N armadillos, one CG iteration at ~1M tets, memory bandwidth.
+
+Writes one JSON per run under scripts/results/ (device, driver, Warp version, commit, per-phase ms, sizes,
+CG iterations and residual, max penetration) and prints a table. Times are per 1/60 s frame: stepping,
+collisions and dense mapping on the device (a captured CUDA graph on GPUs), file output excluded.
+
+    python scripts/bench.py --quick                  # CPU, under a minute: tests the harness itself
+    python scripts/bench.py --assets ../shared/assets --cache-dir .warpfem-cache   # the full run (GPU)
+
+Meshes must already be in the preprocessing cache where Netgen is not installed (the GPU machine):
+``--prepare-only`` fills it here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from warpfem.embedding import map_dense  # noqa: E402
+from warpfem.model import ModelBuilder  # noqa: E402
+from warpfem.preprocess import prepare  # noqa: E402
+from warpfem.scene import ObjectConfig, load_scene  # noqa: E402
+from warpfem.simulate import Contacts, Simulation, add_prepared_body, dense_penetration, solver_of  # noqa: E402
+from warpfem.solver import PhaseTimer  # noqa: E402
+
+PILES = (1, 4, 16, 64, 256, 1024)
+
+
+def environment(device) -> dict:
+    """Device, driver, Warp version and commit of this run."""
+    commit = os.environ.get("WARPFEM_COMMIT")
+    if not commit:
+        try:
+            commit = subprocess.run(
+                ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT
+            ).stdout.strip()
+        except OSError:
+            commit = "unknown"
+    driver = None
+    if device.is_cuda:
+        try:
+            query = ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"]
+            driver = subprocess.run(query, capture_output=True, text=True).stdout.strip().splitlines()[0]
+        except (OSError, IndexError):
+            driver = "unknown"
+    return {
+        "device": device.name if device.is_cuda else platform.processor() or "cpu",
+        "device_alias": device.alias,
+        "driver": driver,
+        "warp": wp.config.version,
+        "python": platform.python_version(),
+        "commit": commit,
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+
+
+def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[ObjectConfig]:
+    """N 1 m armadillos (or any mesh) in layers of a 4x4 grid, each turned about y, dropped onto the ground."""
+    rng = np.random.default_rng(n)
+    side = min(4, math.ceil(math.sqrt(n)))
+    objects = []
+    for i in range(n):
+        layer, cell = divmod(i, side * side)
+        row, col = divmod(cell, side)
+        objects.append(
+            ObjectConfig(
+                name=f"body_{i}",
+                mesh=mesh,
+                faces=faces,
+                scale=scale,
+                rotate=(0.0, float(rng.uniform(0, 360)), 0.0),
+                translate=(1.1 * (col - (side - 1) / 2), 0.7 + 1.1 * layer, 1.1 * (row - (side - 1) / 2)),
+                young=1e6,
+                poisson=0.3,
+                density=1000.0,
+                damping_stiffness=0.005,
+            )
+        )
+    return objects
+
+
+def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2) -> dict:
+    """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures."""
+    prepared = {}
+    builder = ModelBuilder()
+    for obj in objects:
+        key = (obj.mesh, obj.faces, obj.subdivide, obj.maxh)
+        if key not in prepared:
+            prepared[key] = prepare(
+                obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir
+            )
+        add_prepared_body(builder, obj, prepared[key])
+    model = builder.finalize(device)
+    solver = solver_of(scene, model)
+    sim = Simulation(model, solver, scene.substeps, scene.dt)
+
+    def frame(timer=None):
+        sim.advance(timer)
+        map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)
+
+    timer = PhaseTimer(device)
+    frame(timer)  # one frame with a sync per phase: the phase split
+    for _ in range(warmup):
+        frame()  # captures the graph on CUDA
+    solver.read_cg_stats()
+    contacts = Contacts()
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        frame()
+    wp.synchronize_device(device)
+    ms = 1000.0 * (time.perf_counter() - t0) / frames
+    stats = solver.read_cg_stats()
+    contacts.read(solver, frames, None)
+    t1 = time.perf_counter()
+    map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)
+    wp.synchronize_device(device)
+    map_ms = 1000.0 * (time.perf_counter() - t1)
+    dense = sim.dense.numpy()
+    points = [dense[b.dense_start : b.dense_start + b.dense_count] for b in model.bodies]
+    penetration = dense_penetration(sim, points)
+    lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
+    return {
+        "ms_per_frame": ms,
+        "fps": 1000.0 / ms,
+        "phase_ms_first_frame": {**{k: 1000.0 * v for k, v in timer.seconds.items()}, "map": map_ms},
+        "frames_timed": frames,
+        "substeps": scene.substeps,
+        "bodies": len(model.bodies),
+        "tets": model.tet_count,
+        "tet_vertices": model.vertex_count,
+        "dense_vertices": model.dense_count,
+        "dense_triangles": int(sum(len(b.dense_faces) for b in model.bodies)),
+        "cg_iterations_per_step": stats.iterations / max(stats.solves, 1),
+        "cg_residual_max": stats.residual_max,
+        "contacts_max_per_step": contacts.most,
+        "contact_depth_max_m": contacts.deepest,
+        "dense_penetration_m": penetration,
+        "lowest_dense_point_m": lowest,
+    }
+
+
+def cg_at_scale(device, cells: tuple[int, int, int], iterations: int = 50) -> dict:
+    """Time of one fixed-count CG iteration on a box of ~1M tets, and the streaming bandwidth in the same run."""
+    from warpfem.shapes import box_tet_mesh
+    from warpfem.solver import Solver
+
+    V, T = box_tet_mesh((0, 0, 0), (1.0, 1.0, 1.0), cells)
+    b = ModelBuilder()
+    b.add_body("block", V, T, 1e6, 0.3, 1000.0, pinned=V[:, 1] < 1e-9)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None, collision=None, cg_iterations=iterations, cg_tolerance=0.0)
+    s0, s1 = model.state(), model.state()
+    solver.step(s0, s1, 1 / 240)  # assemble and compile
+
+    def solve():
+        solver.cg.solve(solver.matrix, solver.diag_inv, solver.rhs, s1.v)
+
+    if device.is_cuda:
+        with wp.ScopedCapture(device=device) as capture:
+            solve()
+        run = lambda: wp.capture_launch(capture.graph)  # noqa: E731
+    else:
+        run = solve
+    run()
+    wp.synchronize_device(device)
+    reps = 20 if device.is_cuda else 2
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        run()
+    wp.synchronize_device(device)
+    per_iteration_us = 1e6 * (time.perf_counter() - t0) / (reps * iterations)
+
+    nnz = model.nnz_blocks
+    n = model.vertex_count
+    # bytes one SpMV must move: blocks (36 B) + column ids (4 B) + row offsets, p gathered (12 B per row
+    # at best), q written (12 B)
+    spmv_bytes = nnz * 40 + (n + 1) * 4 + 2 * n * 12
+    a = wp.zeros(64 * 1024 * 1024, dtype=wp.vec4, device=device)  # 1 GiB
+    c = wp.zeros_like(a)
+    wp.copy(c, a)
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    copies = 20 if device.is_cuda else 1
+    for _ in range(copies):
+        wp.copy(c, a)
+    wp.synchronize_device(device)
+    bandwidth = 2 * a.capacity * copies / (time.perf_counter() - t0)
+    return {
+        "tets": model.tet_count,
+        "vertices": n,
+        "nnz_blocks": nnz,
+        "cg_iteration_us": per_iteration_us,
+        "spmv_bytes": spmv_bytes,
+        "stream_bandwidth_GBps": bandwidth / 1e9,
+        "spmv_floor_us": 1e6 * spmv_bytes / bandwidth,
+        "ratio_to_spmv_floor": per_iteration_us / (1e6 * spmv_bytes / bandwidth),
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="CPU, small: test the harness in under a minute")
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
+    parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
+    parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--piles", default=",".join(map(str, PILES)))
+    parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
+    args = parser.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
+    skip = set(filter(None, args.skip.split(",")))
+    scene_defaults = load_scene(ROOT / "scenes" / "default.toml")
+    results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
+
+    if args.quick:
+        work = [("pile", n, pile_objects(n, "builtin:bunny", 300, scale=0.5), scene_defaults) for n in (1, 2)]
+        frames, cg_cells = 5, (8, 8, 8)
+    else:
+        armadillo = str((args.assets / "armadillo.off").resolve())
+        work = []
+        if "paper" not in skip:
+            for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
+                scene = load_scene_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
+                work.append((name, len(scene.objects), scene.objects, scene))
+        if "piles" not in skip:
+            for n in map(int, args.piles.split(",")):
+                work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))
+        frames, cg_cells = args.frames, (60, 60, 52)
+
+    if args.prepare_only:
+        for _, _, objs, _ in work:
+            for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in objs}:
+                prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
+        return 0
+
+    for kind, n, objs, scene in work:
+        t0 = time.perf_counter()
+        run = time_scene(scene, objs, device, args.cache_dir, frames)
+        run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
+        results["runs"].append(run)
+        print(
+            f"{kind:28s} N={n:5d} tets={run['tets']:8d} dense tris={run['dense_triangles']:10d} "
+            f"{run['ms_per_frame']:9.2f} ms/frame  CG it/step {run['cg_iterations_per_step']:6.1f}  "
+            f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
+            flush=True,
+        )
+    if "cg" not in skip:
+        results["cg_at_scale"] = cg_at_scale(device, cg_cells)
+        print("CG at scale:", json.dumps(results["cg_at_scale"]), flush=True)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    path = args.out / f"bench-{results['mode']}-{device.alias.replace(':', '')}-{stamp}.json"
+    path.write_text(json.dumps(results, indent=1))
+    print(f"wrote {path}")
+    return 0
+
+
+def load_scene_with_assets(path: Path, assets: Path):
+    """A paper scene with its ../../shared/assets meshes taken from ``assets`` instead."""
+    import tomllib
+
+    scene = load_scene(path) if (assets == ROOT.parent / "shared" / "assets") else None
+    if scene is not None:
+        return scene
+    text = path.read_text().replace("../../shared/assets", str(assets.resolve()))
+    tmp = path.parent / f".bench-{path.name}"
+    tmp.write_text(text)
+    try:
+        tomllib.loads(text)
+        return load_scene(tmp)
+    finally:
+        tmp.unlink()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

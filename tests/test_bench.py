@@ -1,0 +1,36 @@
+"""The benchmark harness itself, in its quick CPU mode (the figures come from the GPU machine)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_quick_benchmark_writes_a_complete_json(tmp_path):
+    cmd = [
+        sys.executable,
+        str(ROOT / "scripts" / "bench.py"),
+        "--quick",
+        "--out",
+        str(tmp_path),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    (path,) = tmp_path.glob("bench-quick-cpu-*.json")
+    result = json.loads(path.read_text())
+    env = result["environment"]
+    assert env["warp"] and env["commit"] and env["device_alias"] == "cpu"
+    runs = result["runs"]
+    assert [r["n"] for r in runs] == [1, 2]
+    assert runs[1]["tets"] == 2 * runs[0]["tets"] and runs[1]["dense_triangles"] == 2 * runs[0]["dense_triangles"]
+    for run in runs:
+        assert run["ms_per_frame"] > 0 and run["cg_iterations_per_step"] > 0
+        assert {"elastic", "solve", "map"} <= set(run["phase_ms_first_frame"])
+        assert run["lowest_dense_point_m"] > -0.05  # they fell onto the ground and stayed above it
+    assert "collision" in runs[1]["phase_ms_first_frame"] and "collision" not in runs[0]["phase_ms_first_frame"]
+    cg = result["cg_at_scale"]
+    assert cg["cg_iteration_us"] > 0 and cg["stream_bandwidth_GBps"] > 0 and cg["ratio_to_spmv_floor"] > 0
