@@ -15,6 +15,9 @@ import warp as wp
 
 from warpfem.kernels import cg as K
 
+BLOCK = 256
+"""Threads per block of the kernels that reduce dot products."""
+
 
 @dataclass(frozen=True)
 class CGStats:
@@ -46,6 +49,7 @@ class CGSolver:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
         n = free.shape[0]
+        self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.r = wp.zeros(n, dtype=wp.vec3, device=self.device)
         self.z = wp.zeros_like(self.r)
@@ -97,10 +101,12 @@ class CGSolver:
         has_extra = int(extra is not None)
         if extra is not None:
             extra(x, self.extra_q)
+        rows = self.padded
         wp.launch(
             K.cg_init,
-            dim=n,
-            inputs=[*structure, diag_inv, self.free, b, x, self.extra_q, has_extra],
+            dim=rows,
+            block_dim=BLOCK,
+            inputs=[n, *structure, diag_inv, self.free, b, x, self.extra_q, has_extra],
             outputs=[self.r, self.z, self.p, self.rz, self.bz],
             device=dev,
         )
@@ -118,15 +124,17 @@ class CGSolver:
                 extra(self.p, self.extra_q)
             wp.launch(
                 K.cg_spmv,
-                dim=n,
-                inputs=[*structure, self.free, self.p, self.iteration, self.extra_q, has_extra],
+                dim=rows,
+                block_dim=BLOCK,
+                inputs=[n, *structure, self.free, self.p, self.iteration, self.extra_q, has_extra],
                 outputs=[self.q, self.pq],
                 device=dev,
             )
             wp.launch(
                 K.cg_update_xr,
-                dim=n,
-                inputs=[diag_inv, self.p, self.q, self.iteration, self.pq, self.rz],
+                dim=rows,
+                block_dim=BLOCK,
+                inputs=[n, diag_inv, self.p, self.q, self.iteration, self.pq, self.rz],
                 outputs=[x, self.r, self.z, self.rz],
                 device=dev,
             )

@@ -9,7 +9,7 @@ replays.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import warp as wp
@@ -90,39 +90,48 @@ class Solver:
         """Set gravity (m/s^2); takes effect in captured graphs too."""
         self.gravity.assign(np.array([gravity], dtype=np.float32))
 
+    def phases(self, state_in: State, state_out: State, dt: float) -> list[tuple[str, Callable[[], None]]]:
+        """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve."""
+        model = self.model
+
+        def elastic() -> None:
+            self.force.zero_()
+            self.matrix.zero_()
+            fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
+
+        def collision() -> None:
+            self.collider.respond(state_in.x, state_in.v, self.rotation, dt, self.force, self.matrix)
+
+        def solve() -> None:
+            integrate.build_system(
+                model,
+                state_in,
+                self.force,
+                self.gravity,
+                self.colliders,
+                dt,
+                self.matrix,
+                self.rhs,
+                self.diag_inv,
+                state_out.v,
+            )
+            extra = self.collider.product if self.collider is not None else None
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, extra)
+            integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
+
+        if self.collider is None:
+            return [("elastic", elastic), ("solve", solve)]
+        return [("elastic", elastic), ("collision", collision), ("solve", solve)]
+
     def step(self, state_in: State, state_out: State, dt: float, timer: PhaseTimer | None = None) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
 
         With a ``timer`` the device is synchronised after each phase to time it (not capturable).
         """
-        model = self.model
-        self.force.zero_()
-        self.matrix.zero_()
-        fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
-        if timer:
-            timer.lap("elastic")
-        extra = None
-        if self.collider is not None:
-            self.collider.respond(state_in.x, state_in.v, self.rotation, dt, self.force, self.matrix)
-            extra = self.collider.product
+        for name, phase in self.phases(state_in, state_out, dt):
+            phase()
             if timer:
-                timer.lap("collision")
-        integrate.build_system(
-            model,
-            state_in,
-            self.force,
-            self.gravity,
-            self.colliders,
-            dt,
-            self.matrix,
-            self.rhs,
-            self.diag_inv,
-            state_out.v,
-        )
-        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, extra)
-        integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
-        if timer:
-            timer.lap("solve")
+                timer.lap(name)
 
     def first_bad_vertex(self) -> int | None:
         """The lowest tet vertex that became NaN/Inf since the last call, or None (one host synchronisation)."""
