@@ -232,6 +232,8 @@ def run_scene(
     progress: Callable[[str], None] | None = None,
     on_frame: Callable[[], None] | None = None,
     on_points: Callable[[int, list[np.ndarray]], None] | None = None,
+    overwrite: bool = True,
+    save_every: float | None = 10.0,
 ) -> RunSummary:
     """Run ``scene`` and write its dense meshes to ``output`` (USD).
 
@@ -246,6 +248,9 @@ def run_scene(
         on_points: Called as ``on_points(frame, points)`` with each frame's dense points (one (n_i, 3) array
             per body), frame 0 (the initial pose) included, after the frame is written; its time is not
             counted in the summary's phases.
+        overwrite: Whether an existing ``output`` may be replaced (else FileExistsError).
+        save_every: Shortest time between USD snapshots (s), so a killed process keeps the frames up to the
+            last one (see :mod:`warpfem.usd_out`); None: write only at the end.
 
     Returns:
         The run's summary.
@@ -271,7 +276,9 @@ def run_scene(
     timer = PhaseTimer(device)
     profiled = 0
     contacts = Contacts()
-    with UsdWriter(output, bodies, fps=scene.fps, up_axis=scene.up_axis) as writer:
+    with UsdWriter(
+        output, bodies, fps=scene.fps, up_axis=scene.up_axis, overwrite=overwrite, save_every=save_every
+    ) as writer:
         t0 = time.perf_counter()
         points = sim.dense_points()
         writer.add_frame(0, points)

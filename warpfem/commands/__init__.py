@@ -7,9 +7,13 @@ To add a command, write ``warpfem/commands/<name>.py`` with ``register`` and add
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +21,59 @@ from warpfem.errors import InputError
 
 COMMANDS = ("run", "render", "prepare", "info", "tradeoff")
 """Command modules in the order ``--help`` lists them."""
+
+
+EXIT_INTERRUPTED = 130
+"""Exit code after Ctrl-C (SIGINT), the frames finished so far kept."""
+
+EXIT_TERMINATED = 143
+"""Exit code after SIGTERM (128 + 15), the frames finished so far kept."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that everything computed so far is saved on the way out."""
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """Inside the block, SIGINT raises ``KeyboardInterrupt`` and SIGTERM raises :class:`Terminated`.
+
+    After the first of them both signals are ignored until the block ends, so a second Ctrl-C or SIGTERM
+    cannot break the saving of the frames so far (SIGKILL still can; see :mod:`warpfem.usd_out`). Outside
+    the main thread (where Python cannot set handlers) the block runs unchanged.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: object) -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated("terminated (SIGTERM)") if signum == signal.SIGTERM else KeyboardInterrupt
+
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, signal.SIG_DFL if h is None else h)
+
+
+def stopped(err: KeyboardInterrupt, kept: list[Path], what: str = "frames finished") -> int:
+    """Report a stop by Ctrl-C or SIGTERM in one line on stderr; returns the exit code (130 or 143).
+
+    Args:
+        err: The interrupt caught.
+        kept: Output paths that may hold what was done so far (those that exist are named).
+        what: What they hold, for the message.
+    """
+    done = [str(p) for p in kept if p is not None and p.exists()]
+    saved = f"; the {what} so far are in {' and '.join(done)}" if done else "; nothing was written"
+    terminated = isinstance(err, Terminated)
+    print(f"warpfem: {'terminated' if terminated else 'interrupted'}{saved}", file=sys.stderr)
+    return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
 
 
 def default_cache_dir() -> Path:

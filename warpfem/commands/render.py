@@ -15,7 +15,10 @@ from warpfem.commands import (
     make_camera,
     print_summary,
     shows_progress,
+    stop_signals,
+    stopped,
 )
+from warpfem.errors import InputError
 
 EXAMPLES = """examples:
   warpfem render default.usdc                    writes default.mp4 here
@@ -23,7 +26,8 @@ EXAMPLES = """examples:
   warpfem render anim.usdc --out frames/ --camera 2,1.5,3 --target 0,0.4,0
   warpfem render anim.usdz --out still/ --no-ground --json
 
-exit codes: 0 ok, 2 bad input (missing or unreadable file, bad option), 130 interrupted (frames so far kept)
+exit codes: 0 ok, 2 bad input (missing or unreadable file, bad option, --out exists), 130 interrupted,
+143 terminated (SIGTERM); after 130 and 143 the frames rendered so far are kept
 """
 
 
@@ -40,6 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     cmd.add_argument("usd", type=Path, help="animated .usdc, .usda or .usd file")
     cmd.add_argument("--out", type=Path, help="FILE.mp4, FILE.gif or a new FOLDER for PNG frames (default: <name>.mp4)")
+    cmd.add_argument("--overwrite", action="store_true", help="replace the --out file if it exists (else: an error)")
     cmd.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
     cmd.add_argument("--ground-height", type=float, default=0.0, help="ground plane height along up, m (default 0)")
     cmd.add_argument("--no-ground", action="store_true", help="draw no ground plane")
@@ -56,6 +61,8 @@ def main(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     flags = camera_flags(args)
     preview_kind(out)
+    if out.is_file() and not args.overwrite:
+        raise InputError(f"--out {out}: the file exists; pass --overwrite to replace it")
     check_device(args.device)
     anim = read_usd(args.usd)
     import numpy as np
@@ -74,6 +81,7 @@ def main(args: argparse.Namespace) -> int:
     render_seconds = 0.0
     try:
         with (
+            stop_signals(),
             PreviewWriter(out, anim.fps, size) as writer,
             tqdm(anim.times, unit="frame", desc="rendering", disable=not show, file=sys.stderr) as bar,
         ):
@@ -83,10 +91,8 @@ def main(args: argparse.Namespace) -> int:
                 image = renderer.render(points)
                 render_seconds += time.perf_counter() - tick
                 writer.add(image)
-    except KeyboardInterrupt:
-        kept = f"; the frames rendered so far are in {out}" if out.exists() else "; nothing was written"
-        print(f"warpfem: interrupted{kept}", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        return stopped(err, [out], "frames rendered")
     frames = len(anim.times)
     rows = [
         ("output", f"{out} ({writer.kind}, {size[0]}x{size[1]}, {anim.fps:g} fps)"),

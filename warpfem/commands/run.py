@@ -19,6 +19,8 @@ from warpfem.commands import (
     make_camera,
     print_summary,
     shows_progress,
+    stop_signals,
+    stopped,
 )
 from warpfem.errors import InputError
 
@@ -29,7 +31,9 @@ EXAMPLES = """examples:
   warpfem run --preview out.mp4 --size 640x480               H.264 video beside the USD file
   warpfem run --preview frames/ --quiet --json               PNG frames, a JSON summary for scripts
 
-exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input, 130 interrupted
+exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input (or not enough memory), 130 interrupted,
+143 terminated (SIGTERM); after 1, 130 and 143 the USD file holds every frame finished. A killed run
+(SIGKILL) leaves the last snapshot: the frames up to --save-every seconds (or more, for big files) back.
 """
 
 
@@ -45,6 +49,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     run.add_argument("scene", nargs="?", type=Path, help="scene TOML file (default: the shipped default scene)")
     run.add_argument("--out", type=Path, help="output .usdc or .usda (default: <scene name>.usdc here)")
+    run.add_argument("--overwrite", action="store_true", help="replace --out if it exists (else: an error)")
+    run.add_argument(
+        "--save-every",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="save the frames so far to --out at least this often, so a killed run keeps them (default 10; "
+        "longer when a save would take over 5%% of the run)",
+    )
     run.add_argument("--frames", type=int, help="override the scene's frame count")
     run.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
     run.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
@@ -91,6 +104,7 @@ def _simulate(
     """
     from tqdm import tqdm
 
+    from warpfem.memory import check_fits, scene_estimate
     from warpfem.render import AUTO_MARGIN, PreviewWriter, Renderer, framing_box
     from warpfem.simulate import run_scene
 
@@ -101,6 +115,7 @@ def _simulate(
         if cache is None:  # --no-cache: a private cache for this run only, so run_scene reuses what _prepare made
             cache = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="warpfem-run-")))
         prepared, prepare_seconds = _prepare(scene, cache, show)
+        check_fits(scene_estimate(scene, prepared), device)
         bar = stack.enter_context(
             tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
         )
@@ -125,10 +140,28 @@ def _simulate(
             if bar.n == scene.frames:
                 bar.set_description("writing")
 
-        summary = run_scene(scene, out, device, cache, None, on_frame, on_points if preview else None)
+        summary = run_scene(
+            scene,
+            out,
+            device,
+            cache,
+            None,
+            on_frame,
+            on_points if preview else None,
+            overwrite=args.overwrite,
+            save_every=args.save_every,
+        )
         if preview is not None:
             preview.close()
     return summary, prepare_seconds, render_seconds
+
+
+def _identity(path: Path | None) -> tuple[int, int, int] | None:
+    """What tells a file at ``path`` from the one there before an atomic replace (None: no file)."""
+    if path is None or not path.exists():
+        return None
+    st = path.stat()
+    return st.st_dev, st.st_ino, st.st_mtime_ns
 
 
 def main(args: argparse.Namespace) -> int:
@@ -146,6 +179,11 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: the output must end in .usdc or .usda")
     if not out.resolve().parent.is_dir():
         raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
+    for option, path in (("--out", out), ("--preview", args.preview)):
+        if path is not None and path.is_file() and not args.overwrite:
+            raise InputError(f"{option} {path}: the file exists; pass --overwrite to replace it")
+    if not (args.save_every >= 0 and args.save_every < float("inf")):
+        raise InputError(f"--save-every must be a number of seconds >= 0, got {args.save_every}")
     size = parse_size(args.size)
     flags = camera_flags(args)
     # the scene's [camera] fills in what the command line left unset
@@ -158,13 +196,15 @@ def main(args: argparse.Namespace) -> int:
     import warp as wp
 
     device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")
+    before = _identity(out), _identity(args.preview)
     try:
-        summary, prepare_seconds, render_seconds = _simulate(args, scene, out, device, size, flags)
-    except KeyboardInterrupt:
-        done = [str(p) for p in (out, args.preview) if p is not None and p.exists()]
-        kept = f"; the frames finished so far are in {' and '.join(done)}" if done else "; nothing was written"
-        print(f"warpfem: interrupted{kept}", file=sys.stderr)
-        return 130
+        with stop_signals():
+            summary, prepare_seconds, render_seconds = _simulate(args, scene, out, device, size, flags)
+    except KeyboardInterrupt as err:  # name only what this run wrote, not a file --overwrite would have replaced
+        written = [p for p, old in zip((out, args.preview), before, strict=True) if _identity(p) != old]
+        return stopped(err, written)
+    except FileExistsError as err:  # a file appeared at --out during the run
+        raise InputError(str(err)) from None
     s = summary.seconds
     s["prepare"] = prepare_seconds  # run_scene's own prepare step only read the cache filled above
     per = 1e3 / summary.frames

@@ -1,0 +1,178 @@
+"""Memory a scene needs on its device, estimated before anything is allocated, and the memory free there.
+
+The estimate adds up the arrays :class:`warpfem.model.Model`, :class:`warpfem.solver.Solver` (with its CG
+workspace and collider) and :class:`warpfem.simulate.Simulation` allocate, from the preprocessed bodies'
+sizes: per tet vertex (rest and initial state, two states, masses, forces, preconditioner, CG vectors),
+per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block and its
+column; blocks are counted exactly from the tets' edges), per dense vertex (embedding and mapped position),
+and for collisions per collision point, per contact slot and the fixed 128^3 hash grid.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from warpfem.errors import InputError
+
+if TYPE_CHECKING:
+    from warpfem.preprocess import PreparedBody
+    from warpfem.scene import SceneConfig
+
+VERTEX_BYTES = 228
+"""Device bytes per tet vertex: rest/initial x and v, 2 states, mass, damping, pins, depth and gradient,
+CSR row and diagonal slot, force, rhs, inverse diagonal block, 5 CG vectors, collision gradient."""
+
+TET_BYTES = 176
+"""Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
+16 matrix slots, rotation."""
+
+BLOCK_BYTES = 40
+"""Device bytes per 3x3 matrix block: the float block and its int32 column."""
+
+DENSE_BYTES = 32
+"""Device bytes per dense vertex: embedding tet and barycentric weights, mapped position."""
+
+POINT_BYTES = 40
+"""Model bytes per collision point: tet, weights, anchors, body, mass (allocated even without collisions)."""
+
+COLLIDER_POINT_BYTES = 36
+"""Collider bytes per collision point: position, claim, stiffness, hash grid sort keys."""
+
+CONTACT_BYTES = 76
+"""Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block."""
+
+GRID_BYTES = 2 * 4 * 128**3
+"""The collider's hash grid: cell start and end, int32, 128^3 cells."""
+
+CONTACTS_PER_POINT = 2.0
+"""Contact slots per collision point (the collider's default capacity)."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Estimated device bytes of a scene, by part.
+
+    Attributes:
+        parts: Bytes per part: tets, tet vertices, matrix, dense vertices, collision.
+    """
+
+    parts: dict[str, int]
+
+    @property
+    def total(self) -> int:
+        """All parts together (bytes)."""
+        return sum(self.parts.values())
+
+    def describe(self) -> str:
+        """The parts as ``tets 1.2 MB, ...``."""
+        return ", ".join(f"{name} {format_bytes(size)}" for name, size in self.parts.items())
+
+
+def format_bytes(size: int | float) -> str:
+    """A byte count in B, kB, MB, GB or TB (powers of 1000), e.g. ``'18.4 MB'``."""
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(size) < 1000:
+            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1000
+    return f"{size:.1f} TB"
+
+
+def matrix_blocks(tets: np.ndarray) -> int:
+    """Blocks of the 3x3-block stiffness matrix of a tet mesh: one per vertex plus two per unique edge."""
+    tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    if len(tets) == 0:
+        return 0
+    pairs = tets[:, [0, 0, 0, 1, 1, 2]], tets[:, [1, 2, 3, 2, 3, 3]]
+    lo, hi = np.minimum(*pairs).ravel(), np.maximum(*pairs).ravel()
+    edges = np.unique(lo * (int(tets.max()) + 1) + hi).size
+    return int(np.unique(tets).size) + 2 * edges
+
+
+def estimate(
+    tets: Sequence[np.ndarray],
+    dense_vertices: Sequence[int],
+    collision_points: Sequence[int],
+    collision: bool,
+) -> Estimate:
+    """Estimate the device memory of a scene from its preprocessed bodies.
+
+    Args:
+        tets: Each body's (q, 4) tet array (local vertex indices).
+        dense_vertices: Each body's dense vertex count.
+        collision_points: Each body's collision point count (:func:`warpfem.collision.surface_points`).
+        collision: Whether body-body collisions are on (the collider: contacts, hash grid).
+
+    Returns:
+        The estimate by part.
+    """
+    q = sum(len(t) for t in tets)
+    n = sum(int(np.unique(t).size) for t in tets)
+    blocks = sum(matrix_blocks(t) for t in tets)
+    parts = {
+        "tets": TET_BYTES * q,
+        "tet vertices": VERTEX_BYTES * n,
+        "matrix": BLOCK_BYTES * blocks,
+        "dense vertices": DENSE_BYTES * sum(dense_vertices),
+    }
+    points = sum(collision_points)
+    parts["collision"] = POINT_BYTES * points
+    if collision:
+        contacts = max(64, int(CONTACTS_PER_POINT * points))
+        parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + GRID_BYTES
+    return Estimate(parts)
+
+
+def scene_estimate(scene: SceneConfig, prepared: Sequence[PreparedBody]) -> Estimate:
+    """Estimate the device memory of ``scene`` built from its preprocessed bodies (in scene order)."""
+    from warpfem.collision import surface_points
+
+    points = [
+        len(surface_points(p.tets, p.boundary_faces, obj.scale * p.tet_vertices, obj.collision_spacing).tet)
+        for obj, p in zip(scene.objects, prepared, strict=True)
+    ]
+    return estimate(
+        [p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, scene.collision.enabled
+    )
+
+
+def free_bytes(device: str) -> tuple[int, int]:
+    """Free and total memory of a Warp device in bytes (the CPU: available and total RAM).
+
+    Args:
+        device: A Warp device alias, ``cpu`` or ``cuda:N``.
+
+    Returns:
+        ``(free, total)``.
+    """
+    import warp as wp
+
+    dev = wp.get_device(device)
+    if dev.is_cuda:
+        return int(dev.free_memory), int(dev.total_memory)
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        with open("/proc/meminfo") as stream:
+            info = dict(line.split(":", 1) for line in stream)
+        return int(info["MemAvailable"].split()[0]) * 1024, total
+    except (OSError, KeyError, ValueError):
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"), total
+
+
+def check_fits(need: Estimate, device: str) -> None:
+    """Refuse a scene whose estimate exceeds the free memory of ``device``.
+
+    Raises:
+        InputError: One line with the estimate (by part) and the free and total memory.
+    """
+    free, total = free_bytes(device)
+    if need.total > free:
+        raise InputError(
+            f"the scene needs about {format_bytes(need.total)} of {device} memory ({need.describe()}), "
+            f"but only {format_bytes(free)} of {format_bytes(total)} is free; use fewer faces or tets "
+            "(faces, maxh), fewer bodies, or another device"
+        )
