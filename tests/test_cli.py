@@ -206,3 +206,32 @@ def test_default_scene_runs_from_a_fresh_process(tmp_path):
     assert triangles >= 100_000
     _, _, frames = _stage_points(out, "/World/bunny")
     assert len(frames) == 3
+
+
+def test_prepare_options_reach_the_pipeline(scene_dir, capsys):
+    assert (
+        _run(
+            [
+                "prepare",
+                scene_dir / "ball.obj",
+                "--faces",
+                "200",
+                "--no-cache",
+                "--shells",
+                "largest",
+                "--max-hole",
+                "0.1",
+                "--timeout",
+                "60",
+            ]
+        )
+        == 0
+    )
+    assert "tets" in capsys.readouterr().out
+    for bad, needle in (
+        (["--shells", "bogus"], "--shells"),
+        (["--timeout", "0"], "--timeout"),
+        (["--max-hole", "-1"], "--max-hole"),
+    ):
+        assert _run(["prepare", scene_dir / "ball.obj", "--no-cache", *bad]) == 2
+        _one_line_error(capsys, needle)

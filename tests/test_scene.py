@@ -322,3 +322,25 @@ def test_validate_on_hand_built_config(tmp_path):
     scene.objects[0].young = float("inf")
     with pytest.raises(InputError, match=r"x\.toml: object\[0\] 'a': young must be finite"):
         scene.validate()
+
+
+def test_quality_preset_fills_unset_keys_only(tmp_path):
+    from warpfem.scene import PRESETS
+
+    text = (
+        '[solver]\nquality = "preview"\ncg_iterations = 7\n'
+        + OBJ
+        + '[[object]]\nname = "b"\nmesh = "builtin:bunny"\nfaces = 500\n'
+    )
+    scene = load_scene(write(tmp_path, text))
+    preview = PRESETS["preview"]
+    assert scene.substeps == preview["substeps"] and scene.solver.cg_mode == preview["cg_mode"]
+    assert scene.solver.cg_iterations == 7  # set by the file: the file wins
+    assert scene.objects[0].faces == preview["faces"] and scene.objects[0].maxh == preview["maxh"]
+    assert scene.objects[1].faces == 500
+
+
+def test_unknown_quality_preset_is_one_line(tmp_path):
+    path = write(tmp_path, '[solver]\nquality = "ultra"\n' + OBJ)
+    with pytest.raises(InputError, match=r"solver\.quality must be one of preview, default, high, got \"ultra\""):
+        load_scene(path)

@@ -8,7 +8,8 @@ import pytest
 from warpfem.cli import main
 from warpfem.errors import InputError
 from warpfem.reference import Cantilever
-from warpfem.tradeoff import PRESETS, BeamScene, Setting, pareto_front, plot, run_setting, score, tip_sag, write_csv
+from warpfem.scene import PRESETS
+from warpfem.tradeoff import BeamScene, Setting, pareto_front, plot, run_setting, score, tip_sag, write_csv
 
 
 def test_pareto_front_against_brute_force():

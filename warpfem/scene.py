@@ -122,6 +122,36 @@ def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ..
         raise err(key, f"must be {allowed}, got {_shown(value)}")
 
 
+PRESETS: dict[str, dict[str, object]] = {
+    "preview": dict(substeps=1, cg_mode="fixed", cg_iterations=10, cg_tolerance=1e-4, faces=250, maxh=0.3),
+    "default": dict(substeps=2, cg_mode="tolerance", cg_iterations=200, cg_tolerance=1e-3, faces=1000, maxh=0.2),
+    "high": dict(substeps=8, cg_mode="tolerance", cg_iterations=1000, cg_tolerance=1e-5, faces=2000, maxh=0.15),
+}
+"""Quality presets a scene names as ``[solver] quality = "<name>"``: defaults for the scene's ``substeps``, the
+solver's ``cg_mode``, ``cg_iterations``, ``cg_tolerance`` and each object's ``faces`` and ``maxh``; keys the
+scene file sets itself win. Each is a point on the measured Pareto front (docs/tradeoff.md)."""
+
+
+def _apply_preset(doc: dict[str, Any], origin: str) -> None:
+    """Fill the keys a ``[solver] quality`` preset sets, where the scene file leaves them unset."""
+    solver = doc.get("solver")
+    if not isinstance(solver, dict) or "quality" not in solver:
+        return
+    name = solver["quality"]
+    if name not in PRESETS:
+        raise InputError(f"{origin}: solver.quality must be one of {', '.join(PRESETS)}, got {_shown(name)}")
+    preset = PRESETS[name]
+    scene = doc.setdefault("scene", {})
+    if isinstance(scene, dict):
+        scene.setdefault("substeps", preset["substeps"])
+    for key in ("cg_mode", "cg_iterations", "cg_tolerance"):
+        solver.setdefault(key, preset[key])
+    for obj in doc.get("object", []) if isinstance(doc.get("object"), list) else []:
+        if isinstance(obj, dict):
+            obj.setdefault("faces", preset["faces"])
+            obj.setdefault("maxh", preset["maxh"])
+
+
 @dataclass
 class SolverConfig:
     """The linear solver of each implicit Euler step (conjugate gradients).
@@ -132,11 +162,13 @@ class SolverConfig:
             choice: predictable frame time, less accuracy).
         cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1).
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
+        quality: A preset of :data:`PRESETS` whose values fill the keys the scene leaves unset, or None.
     """
 
     cg_mode: str = "tolerance"
     cg_iterations: int = 100
     cg_tolerance: float = 1e-4
+    quality: str | None = None
 
     def validate(self, origin: str = "<scene>") -> None:
         """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
@@ -513,6 +545,7 @@ def load_scene(path: str | Path) -> SceneConfig:
         raise InputError(f"{origin}: TOML syntax error: {message}") from exc
 
     known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle")
+    _apply_preset(doc, origin)
     for key in doc:
         if key not in known:
             close = difflib.get_close_matches(key, known, n=1)

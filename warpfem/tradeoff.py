@@ -383,15 +383,6 @@ def plot(path: Path, rows: list[Row], title: str) -> None:
     plt.close(fig)
 
 
-PRESETS: dict[str, dict[str, object]] = {
-    "preview": dict(substeps=1, cg_mode="fixed", cg_iterations=10, cg_tolerance=1e-4, faces=250, maxh=0.3),
-    "default": dict(substeps=2, cg_mode="tolerance", cg_iterations=200, cg_tolerance=1e-3, faces=1000, maxh=0.2),
-    "high": dict(substeps=8, cg_mode="tolerance", cg_iterations=1000, cg_tolerance=1e-5, faces=2000, maxh=0.15),
-}
-"""Quality presets a scene names as ``[solver] quality = "<name>"``: scene-file values of the solver
-(``cg_mode``, ``cg_iterations``, ``cg_tolerance``), the scene (``substeps``) and each object (``faces``,
-``maxh``). Each is a point on the measured Pareto front; see docs/tradeoff.md for its cost and error."""
-
 PRESET_SETTINGS: dict[str, Setting] = {
     "preview": Setting("preset preview", cells=1, substeps=1, cg_mode="fixed", cg_iterations=10),
     "default": Setting("preset default", cells=3, substeps=2, cg_tolerance=1e-3, cg_iterations=200),

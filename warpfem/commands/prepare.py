@@ -32,6 +32,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
     prep.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
+    prep.add_argument("--timeout", type=float, default=120.0, help="time limit per stage in s (default 120)")
+    prep.add_argument(
+        "--shells",
+        default="merge",
+        help="several closed shells: merge (default), largest, error, or K (keep the K-th largest, from 0)",
+    )
+    prep.add_argument(
+        "--max-hole", type=float, default=None, help="largest hole closed, relative to the bbox diagonal (default 0.25)"
+    )
     add_output_flags(prep, progress=False)
     prep.set_defaults(func=main)
 
@@ -44,8 +53,26 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--faces must be >= 4, got {args.faces}")
     if not 0.0 < args.maxh <= 1.0:
         raise InputError(f"--maxh must be in (0, 1], got {args.maxh}")
+    if args.timeout <= 0:
+        raise InputError(f"--timeout must be > 0 s, got {args.timeout}")
+    if args.max_hole is not None and args.max_hole < 0:
+        raise InputError(f"--max-hole must be >= 0, got {args.max_hole}")
+    shells = args.shells
+    if shells not in ("merge", "largest", "error"):
+        if not shells.isdigit():
+            raise InputError(f"--shells must be merge, largest, error or a shell index, got {shells!r}")
+        shells = int(shells)
     cache = cache_dir_of(args)
-    body = prepare(args.mesh, faces=args.faces, subdivide=args.subdivide, maxh=args.maxh, cache_dir=cache)
+    body = prepare(
+        args.mesh,
+        faces=args.faces,
+        subdivide=args.subdivide,
+        maxh=args.maxh,
+        cache_dir=cache,
+        timeout_s=args.timeout,
+        shells=shells,
+        max_hole=args.max_hole,
+    )
     rows = [(key, f"{value:.4g}" if isinstance(value, float) else str(value)) for key, value in body.stats.items()]
     print_summary(rows, body.stats, args.json)
     return 0
