@@ -105,7 +105,8 @@ def estimate(
         tets: Each body's (q, 4) tet array (local vertex indices).
         dense_vertices: Each body's dense vertex count.
         collision_points: Each body's collision point count (:func:`warpfem.collision.surface_points`).
-        collision: Whether body-body collisions are on (the collider: contacts, hash grid).
+        collision: Whether the solver has a collider (contacts, hash grid): collisions are on and there are
+            several bodies or one colliding with itself.
 
     Returns:
         The estimate by part.
@@ -135,9 +136,8 @@ def scene_estimate(scene: SceneConfig, prepared: Sequence[PreparedBody]) -> Esti
         len(surface_points(p.tets, p.boundary_faces, obj.scale * p.tet_vertices, obj.collision_spacing).tet)
         for obj, p in zip(scene.objects, prepared, strict=True)
     ]
-    return estimate(
-        [p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, scene.collision.enabled
-    )
+    collider = scene.collision.enabled and (len(prepared) > 1 or any(obj.self_collision for obj in scene.objects))
+    return estimate([p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, collider)
 
 
 def free_bytes(device: str) -> tuple[int, int]:

@@ -34,28 +34,46 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that everything computed so far is saved on the way out."""
 
 
+class StopRequest:
+    """The first SIGINT or SIGTERM seen inside :func:`stop_signals` (None: none yet)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def check(self) -> None:
+        """Raise the interrupt again if a signal came, in case code in between swallowed the first raise."""
+        if self.signum is not None:
+            raise _interrupt(self.signum)
+
+
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return Terminated("terminated (SIGTERM)") if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
 @contextlib.contextmanager
-def stop_signals() -> Iterator[None]:
+def stop_signals() -> Iterator[StopRequest]:
     """Inside the block, SIGINT raises ``KeyboardInterrupt`` and SIGTERM raises :class:`Terminated`.
 
-    After the first of them both signals are ignored until the block ends, so a second Ctrl-C or SIGTERM
-    cannot break the saving of the frames so far (SIGKILL still can; see :mod:`warpfem.usd_out`). Outside
-    the main thread (where Python cannot set handlers) the block runs unchanged.
+    Later signals are ignored, so a second Ctrl-C or SIGTERM cannot break the saving of the frames so far
+    (SIGKILL still can; see :mod:`warpfem.usd_out`). Long loops should call the yielded request's
+    ``check()`` now and then: a library may catch the first raise (USD's module loader does). Outside the
+    main thread (where Python cannot set handlers) the block runs unchanged.
     """
+    request = StopRequest()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield request
         return
 
     def handler(signum: int, _frame: object) -> None:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise Terminated("terminated (SIGTERM)") if signum == signal.SIGTERM else KeyboardInterrupt
+        if request.signum is None:
+            request.signum = signum
+            raise _interrupt(signum)
 
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     for s in previous:
         signal.signal(s, handler)
     try:
-        yield
+        yield request
     finally:
         for s, h in previous.items():
             signal.signal(s, signal.SIG_DFL if h is None else h)

@@ -81,11 +81,12 @@ def main(args: argparse.Namespace) -> int:
     render_seconds = 0.0
     try:
         with (
-            stop_signals(),
+            stop_signals() as stop,
             PreviewWriter(out, anim.fps, size) as writer,
             tqdm(anim.times, unit="frame", desc="rendering", disable=not show, file=sys.stderr) as bar,
         ):
             for t in bar:
+                stop.check()
                 points = anim.points(t)
                 tick = time.perf_counter()
                 image = renderer.render(points)

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.commands import (
+    StopRequest,
     add_camera_flags,
     add_output_flags,
     cache_dir_of,
@@ -96,11 +97,18 @@ def _prepare(scene: Any, cache: Path, show: bool) -> tuple[list[Any], float]:
 
 
 def _simulate(
-    args: argparse.Namespace, scene: Any, out: Path, device: str, size: tuple[int, int], flags: dict[str, Any]
+    args: argparse.Namespace,
+    scene: Any,
+    out: Path,
+    device: str,
+    size: tuple[int, int],
+    flags: dict[str, Any],
+    stop: StopRequest,
 ) -> tuple[Any, float, float]:
     """Prepare, simulate and (with ``--preview``) render; returns the run summary, prepare and render seconds.
 
-    On an interrupt or a failure the USD file and the preview keep the frames finished so far.
+    On an interrupt or a failure the USD file and the preview keep the frames finished so far; ``stop`` is
+    checked after preprocessing and after every frame.
     """
     from tqdm import tqdm
 
@@ -115,6 +123,7 @@ def _simulate(
         if cache is None:  # --no-cache: a private cache for this run only, so run_scene reuses what _prepare made
             cache = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="warpfem-run-")))
         prepared, prepare_seconds = _prepare(scene, cache, show)
+        stop.check()
         check_fits(scene_estimate(scene, prepared), device)
         bar = stack.enter_context(
             tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
@@ -136,6 +145,7 @@ def _simulate(
             render_seconds += time.perf_counter() - clock
 
         def on_frame() -> None:
+            stop.check()
             bar.update(1)
             if bar.n == scene.frames:
                 bar.set_description("writing")
@@ -196,10 +206,13 @@ def main(args: argparse.Namespace) -> int:
     import warp as wp
 
     device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")
+    import pxr.Sdf  # noqa: F401  loaded before signals are caught: a signal inside USD's module loader breaks it
+    import pxr.UsdGeom  # noqa: F401
+
     before = _identity(out), _identity(args.preview)
     try:
-        with stop_signals():
-            summary, prepare_seconds, render_seconds = _simulate(args, scene, out, device, size, flags)
+        with stop_signals() as stop:
+            summary, prepare_seconds, render_seconds = _simulate(args, scene, out, device, size, flags, stop)
     except KeyboardInterrupt as err:  # name only what this run wrote, not a file --overwrite would have replaced
         written = [p for p, old in zip((out, args.preview), before, strict=True) if _identity(p) != old]
         return stopped(err, written)
