@@ -1,9 +1,10 @@
 """Body-body and self collisions: collision points against tets, penalty response from the distance field.
 
-Depth and direction: in a tet with a face on the body's surface, the point's distance below the nearest
-such face along that face's current outward normal (flat on faces, so a body resting on a face is pushed
-straight out, not sideways by the averaged normals at edges); in a tet deep inside, the paper's
-interpolated distance field and rotated gradients.
+Depth and direction: in a tet touching the body's surface (a corner on it), the point's distance below the
+plane of the surface face it came in through (of the faces around the tet's corners, the one it was outside
+of a step ago, relative to the tet; else the nearest), along that face's current outward normal: flat on
+faces, so a body resting on a face is pushed straight out, not sideways by the averaged normals at edges;
+in a tet deep inside, the paper's interpolated distance field and rotated gradients.
 
 Collision points are the coarse surface vertices of every colliding body plus optional surface samples
 (points embedded in a tet with barycentric weights, like the dense vertices), so thin parts whose vertices
@@ -32,6 +33,21 @@ def point_positions(
     t = tets[point_tet[i]]
     w = point_bary[i]
     points_out[i] = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
+
+
+@wp.kernel
+def point_velocities(
+    v: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    point_tet: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    velocities_out: wp.array(dtype=wp.vec3),
+):
+    """Current velocity of every collision point from its tet and barycentric weights."""
+    i = wp.tid()
+    t = tets[point_tet[i]]
+    w = point_bary[i]
+    velocities_out[i] = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
 
 
 @wp.kernel
@@ -91,14 +107,10 @@ def near_tet(
 
 
 @wp.func
-def surface_face_depth(x: wp.array(dtype=wp.vec3), t: wp.vec4i, k: int, q: wp.vec3) -> wp.vec4:
-    """Depth of ``q`` below the face of tet ``t`` opposite corner ``k`` (m) and that face's outward normal."""
-    a = x[t[(k + 1) % 4]]
-    b = x[t[(k + 2) % 4]]
-    c = x[t[(k + 3) % 4]]
-    n = wp.normalize(wp.cross(b - a, c - a))
-    if wp.dot(n, x[t[k]] - a) > 0.0:
-        n = -n
+def face_plane_depth(x: wp.array(dtype=wp.vec3), face: wp.vec3i, q: wp.vec3) -> wp.vec4:
+    """Depth of ``q`` below the plane of an outward-wound surface face (m) and the face's outward normal."""
+    a = x[face[0]]
+    n = wp.normalize(wp.cross(x[face[1]] - a, x[face[2]] - a))
     return wp.vec4(wp.dot(n, a - q), n[0], n[1], n[2])
 
 
@@ -107,10 +119,14 @@ def detect_contacts(
     # inputs: geometry
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
     tets: wp.array(dtype=wp.vec4i),
     tet_body: wp.array(dtype=wp.int32),
-    tet_surface: wp.array(dtype=wp.int32),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
     points: wp.array(dtype=wp.vec3),
+    point_velocity: wp.array(dtype=wp.vec3),
     point_body: wp.array(dtype=wp.int32),
     point_anchor: wp.array(dtype=wp.vec3i),
     body_self: wp.array(dtype=wp.int32),
@@ -172,16 +188,31 @@ def detect_contacts(
         w = wp.vec4(b0, b[0], b[1], b[2])
         d = float(0.0)
         g = wp.vec3()
-        mask = tet_surface[e]
-        if mask != 0:
-            # a tet on the surface: below its nearest surface face, along that face's normal
-            d = 1.0e30
-            for k in range(4):
-                if (mask >> k) & 1 != 0:
-                    dn = surface_face_depth(x, t, k, q)
-                    if dn[0] < d:
-                        d = dn[0]
-                        g = wp.vec3(dn[1], dn[2], dn[3])
+        f0 = tet_face_start[e]
+        f1 = tet_face_start[e + 1]
+        if f1 > f0:
+            # near the surface: below the surface face the point came in through (the one it was outside of a
+            # step ago, relative to the tet), else below the nearest one; along that face's outward normal
+            u = point_velocity[p] - (w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]])
+            step = dt * u
+            d = float(1.0e30)
+            entered = float(-1.0e30)
+            nearest = float(1.0e30)
+            g_near = wp.vec3()
+            for f in range(f0, f1):
+                dn = face_plane_depth(x, tet_faces[f], q)
+                n_f = wp.vec3(dn[1], dn[2], dn[3])
+                before = dn[0] - wp.dot(n_f, step)  # depth below this face one step ago
+                if before <= 0.0 and before > entered:
+                    entered = before
+                    d = dn[0]
+                    g = n_f
+                if dn[0] < nearest:
+                    nearest = dn[0]
+                    g_near = n_f
+            if entered == -1.0e30:
+                d = nearest
+                g = g_near
         else:
             # deep inside: the paper's interpolated distance field and rotated gradients
             d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]

@@ -162,11 +162,11 @@ def test_interrupted_run_keeps_the_frames_done(scene_dir, capsys, monkeypatch):
     calls = {"n": 0}
     original = simulate.Simulation.advance
 
-    def advance(self):
+    def advance(self, timer=None):
         calls["n"] += 1
         if calls["n"] == 4:
             raise KeyboardInterrupt
-        original(self)
+        original(self, timer)
 
     monkeypatch.setattr(simulate.Simulation, "advance", advance)
     out = scene_dir / "anim.usdc"

@@ -156,11 +156,11 @@ def test_interrupted_run_keeps_preview_frames(tmp_path, capsys, monkeypatch):
     calls = {"n": 0}
     original = simulate.Simulation.advance
 
-    def advance(self):
+    def advance(self, timer=None):
         calls["n"] += 1
         if calls["n"] == 4:
             raise KeyboardInterrupt
-        original(self)
+        original(self, timer)
 
     monkeypatch.setattr(simulate.Simulation, "advance", advance)
     args = ["run", tmp_path / "scene.toml", "--out", tmp_path / "a.usdc", "--preview", tmp_path / "a.gif"]

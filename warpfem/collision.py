@@ -31,7 +31,7 @@ class CollisionSettings:
         contacts_per_point: Contact buffer capacity per collision point.
     """
 
-    stiffness: float = 1.0e6
+    stiffness: float = 1.0e7
     friction: float = 0.5
     contacts_per_point: float = 2.0
 
@@ -117,6 +117,7 @@ class Collider:
         n_points = model.point_tet.shape[0]
         self.capacity = max(64, int(settings.contacts_per_point * n_points))
         self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
+        self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
         self.count = wp.zeros(1, dtype=wp.int32, device=dev)
         self.claim = wp.zeros(n_points, dtype=wp.int32, device=dev)
@@ -158,9 +159,27 @@ class Collider:
             outputs=[self.points],
             device=dev,
         )
+        wp.launch(
+            K.point_velocities,
+            dim=self.points.shape[0],
+            inputs=[v, m.tets, m.point_tet, m.point_bary],
+            outputs=[self.point_velocity],
+            device=dev,
+        )
         self.grid.build(self.points, m.collision_cell)
         self._rotate_gradients(rotation)
-        self._detect(x, self.points, m.point_body, m.point_anchor, m.body_self, self.capacity, self.depth_max)
+        self._detect(
+            x,
+            v,
+            dt,
+            self.points,
+            self.point_velocity,
+            m.point_body,
+            m.point_anchor,
+            m.body_self,
+            self.capacity,
+            self.depth_max,
+        )
         wp.launch(K.count_contacts, dim=1, inputs=[self.count], outputs=[self.contacts_total], device=dev)
         wp.launch(
             K.contact_forces,
@@ -195,7 +214,9 @@ class Collider:
         )
         wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=m.device)
 
-    def _detect(self, x, points, point_body, point_anchor, body_self, capacity: int, depth_max_out) -> None:
+    def _detect(
+        self, x, v, dt, points, point_velocity, point_body, point_anchor, body_self, capacity: int, depth_max_out
+    ) -> None:
         m = self.model
         self.count.zero_()
         self.claim.zero_()
@@ -205,10 +226,14 @@ class Collider:
             inputs=[
                 self.grid.id,
                 x,
+                v,
+                dt,
                 m.tets,
                 m.tet_body,
-                m.tet_surface,
+                m.tet_face_start,
+                m.tet_faces,
                 points,
+                point_velocity,
                 point_body,
                 point_anchor,
                 body_self,
@@ -246,9 +271,13 @@ class Collider:
         self.grid, self.claim = grid, wp.zeros(len(points), dtype=wp.int32, device=dev)
         deepest = wp.zeros(1, dtype=float, device=dev)
         try:
+            still = wp.zeros(len(points), dtype=wp.vec3, device=dev)
             self._detect(
                 x,
+                wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
+                0.0,
                 pts,
+                still,
                 wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
                 wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
                 wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),

@@ -85,7 +85,8 @@ class Model:
     vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
     vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
     tet_body: wp.array  # int32, body of each tet
-    tet_surface: wp.array  # int32, bit k set where the face opposite corner k is on the body's surface
+    tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
+    tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
     body_self: wp.array  # int32, 1 where a body collides with itself
     point_tet: wp.array  # int32, global tet of each collision point
     point_bary: wp.array  # vec4, its barycentric weights there
@@ -166,14 +167,21 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
     )
 
 
-def surface_face_mask(tets: np.ndarray, surface_faces: np.ndarray) -> np.ndarray:
-    """Per tet, a bit mask of its faces on the surface: bit k for the face opposite corner k."""
-    keys = {tuple(f) for f in np.sort(surface_faces, axis=1)}
-    mask = np.zeros(len(tets), dtype=np.int32)
-    for k in range(4):
-        face = np.sort(np.delete(tets, k, axis=1), axis=1)
-        mask |= np.array([tuple(f) in keys for f in face], dtype=np.int32) << k
-    return mask
+def tet_surface_faces(tets: np.ndarray, surface_faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each tet, the surface faces that touch one of its corners (CSR: row offsets, face indices).
+
+    The collision response measures a point's depth below these faces: the body's surface near the tet,
+    not only the tet's own faces (a tet at an edge may have only a side face on the surface).
+    """
+    face_of_vertex = [[] for _ in range(vertex_count)]
+    for f, face in enumerate(surface_faces):
+        for v in face:
+            face_of_vertex[v].append(f)
+    rows = [sorted({f for v in t for f in face_of_vertex[v]}) for t in tets]
+    start = np.zeros(len(tets) + 1, dtype=np.int64)
+    np.cumsum([len(r) for r in rows], out=start[1:])
+    flat = np.fromiter((f for r in rows for f in r), dtype=np.int64, count=int(start[-1]))
+    return start, flat
 
 
 class ModelBuilder:
@@ -283,7 +291,8 @@ class ModelBuilder:
                 points=points,
                 point_mass=np.einsum("pk,pk->p", points.bary, mass[tets[points.tet]]),
                 tet_extent=np.abs(d).max(axis=(1, 2)),
-                tet_surface=surface_face_mask(tets, np.asarray(surface_faces, np.int32)),
+                surface_faces=np.asarray(surface_faces, np.int32),
+                tet_faces=tet_surface_faces(tets, np.asarray(surface_faces, np.int32), len(vertices)),
             )
         )
         return len(self._bodies) - 1
@@ -295,7 +304,11 @@ class ModelBuilder:
         device = wp.get_device(device)
         bodies, v0, t0, d0 = [], 0, 0, 0
         tets, dense_tet, point_tet, point_anchor, point_body, tet_body = [], [], [], [], [], []
+        face_start, faces = [np.zeros(1, np.int64)], []
         for index, b in enumerate(self._bodies):
+            start, flat = b["tet_faces"]
+            face_start.append(start[1:] + sum(len(f) for f in faces))
+            faces.append(b["surface_faces"][flat] + v0)
             tets.append(b["tets"] + v0)
             dense_tet.append(b["embed_tet"] + t0)
             point_tet.append(b["points"].tet + t0)
@@ -351,7 +364,8 @@ class ModelBuilder:
             vertex_depth=arr(cat("depth").astype(f32), float),
             vertex_grad=arr(cat("grad").astype(f32).reshape(-1, 3), wp.vec3),
             tet_body=arr(np.concatenate(tet_body).astype(np.int32), wp.int32),
-            tet_surface=arr(cat("tet_surface").astype(np.int32), wp.int32),
+            tet_face_start=arr(np.concatenate(face_start).astype(np.int32), wp.int32),
+            tet_faces=arr(np.concatenate(faces).astype(np.int32).reshape(-1, 3), wp.vec3i),
             body_self=arr(np.array([b["self_collision"] for b in self._bodies], np.int32), wp.int32),
             point_tet=arr(np.concatenate(point_tet).astype(np.int32), wp.int32),
             point_bary=arr(np.concatenate([b["points"].bary for b in self._bodies]).astype(f32), wp.vec4),

@@ -218,7 +218,7 @@ class CollisionConfig:
     """
 
     enabled: bool = True
-    stiffness: float = 1e6
+    stiffness: float = 1e7
     friction: float = 0.5
 
     def validate(self, origin: str = "<scene>") -> None:
