@@ -40,8 +40,11 @@ DENSE_BYTES = 32
 POINT_BYTES = 40
 """Model bytes per collision point: tet, weights, anchors, body, mass (allocated even without collisions)."""
 
-COLLIDER_POINT_BYTES = 36
-"""Collider bytes per collision point: position, claim, stiffness, hash grid sort keys."""
+COLLIDER_POINT_BYTES = 48
+"""Collider bytes per collision point: position, velocity, claim, stiffness, hash grid sort keys."""
+
+TET_FACE_BYTES = 12
+"""Model bytes per (tet, nearby surface face) pair: the face's vertex indices (the contact depth rule)."""
 
 CONTACT_BYTES = 76
 """Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block."""
@@ -98,6 +101,7 @@ def estimate(
     dense_vertices: Sequence[int],
     collision_points: Sequence[int],
     collision: bool,
+    tet_face_refs: Sequence[int] = (),
 ) -> Estimate:
     """Estimate the device memory of a scene from its preprocessed bodies.
 
@@ -107,6 +111,8 @@ def estimate(
         collision_points: Each body's collision point count (:func:`warpfem.collision.surface_points`).
         collision: Whether the solver has a collider (contacts, hash grid): collisions are on and there are
             several bodies or one colliding with itself.
+        tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
+            (:func:`warpfem.model.tet_surface_faces`).
 
     Returns:
         The estimate by part.
@@ -115,7 +121,7 @@ def estimate(
     n = sum(int(np.unique(t).size) for t in tets)
     blocks = sum(matrix_blocks(t) for t in tets)
     parts = {
-        "tets": TET_BYTES * q,
+        "tets": TET_BYTES * q + TET_FACE_BYTES * sum(tet_face_refs),
         "tet vertices": VERTEX_BYTES * n,
         "matrix": BLOCK_BYTES * blocks,
         "dense vertices": DENSE_BYTES * sum(dense_vertices),
@@ -137,7 +143,10 @@ def scene_estimate(scene: SceneConfig, prepared: Sequence[PreparedBody]) -> Esti
         for obj, p in zip(scene.objects, prepared, strict=True)
     ]
     collider = scene.collision.enabled and (len(prepared) > 1 or any(obj.self_collision for obj in scene.objects))
-    return estimate([p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, collider)
+    from warpfem.model import tet_surface_faces
+
+    refs = [len(tet_surface_faces(p.tets, p.boundary_faces, len(p.tet_vertices))[1]) for p in prepared]
+    return estimate([p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, collider, refs)
 
 
 def free_bytes(device: str) -> tuple[int, int]:
