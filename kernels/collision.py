@@ -21,36 +21,6 @@ from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
 
 @wp.kernel
-def point_positions(
-    x: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
-    point_tet: wp.array(dtype=wp.int32),
-    point_bary: wp.array(dtype=wp.vec4),
-    points_out: wp.array(dtype=wp.vec3),
-):
-    """Current position of every collision point from its tet and barycentric weights."""
-    i = wp.tid()
-    t = tets[point_tet[i]]
-    w = point_bary[i]
-    points_out[i] = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
-
-
-@wp.kernel
-def point_velocities(
-    v: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
-    point_tet: wp.array(dtype=wp.int32),
-    point_bary: wp.array(dtype=wp.vec4),
-    velocities_out: wp.array(dtype=wp.vec3),
-):
-    """Current velocity of every collision point from its tet and barycentric weights."""
-    i = wp.tid()
-    t = tets[point_tet[i]]
-    w = point_bary[i]
-    velocities_out[i] = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
-
-
-@wp.kernel
 def accumulate_gradients(
     tets: wp.array(dtype=wp.vec4i),
     rotation: wp.array(dtype=wp.mat33),

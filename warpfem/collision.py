@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpfem.embedding import map_dense
 from warpfem.kernels import collision as K
 
 
@@ -152,20 +153,9 @@ class Collider:
         """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs."""
         m = self.model
         dev = m.device
-        wp.launch(
-            K.point_positions,
-            dim=self.points.shape[0],
-            inputs=[x, m.tets, m.point_tet, m.point_bary],
-            outputs=[self.points],
-            device=dev,
-        )
-        wp.launch(
-            K.point_velocities,
-            dim=self.points.shape[0],
-            inputs=[v, m.tets, m.point_tet, m.point_bary],
-            outputs=[self.point_velocity],
-            device=dev,
-        )
+        # collision points and their velocities: the tet fields interpolated like the dense mesh
+        map_dense(m.tets, x, m.point_tet, m.point_bary, self.points)
+        map_dense(m.tets, v, m.point_tet, m.point_bary, self.point_velocity)
         self.grid.build(self.points, m.collision_cell)
         self._rotate_gradients(rotation)
         self._detect(
