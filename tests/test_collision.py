@@ -170,7 +170,7 @@ def _count_launches(monkeypatch, solver, model):
 
 def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     collision_kernels = {
-        "point_positions",
+        "normalize_gradients",
         "detect_contacts",
         "contact_forces",
         "contact_product",
