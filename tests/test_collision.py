@@ -203,3 +203,27 @@ def test_contact_buffer_overflow_is_reported(device):
     _run(solver, model, 1, 1 / 240)
     *_, overflow = solver.collider.read_stats()
     assert overflow
+
+
+@pytest.mark.parametrize("stiffness", [1e4, 1e6, 1e8, 1e10])
+def test_collision_penalty_across_orders_of_magnitude_stays_stable(device, stiffness):
+    """The implicit penalty: soft to extremely stiff, no NaN and no energy beyond what the drop put in."""
+    b = ModelBuilder()
+    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, pinned=None, damping_stiffness=0.01)
+    b.add_body("b", *_box((0.02, 0.3, 0.02), (0.16, 0.16, 0.16), (2, 2, 2)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    model = b.finalize(device)
+    solver = Solver(
+        model, ground=Ground(), cg_iterations=300, cg_tolerance=1e-5, collision=CollisionSettings(stiffness=stiffness)
+    )
+    mass = model.mass.numpy()
+    drop = 9.81 * 0.3 * mass[model.bodies[1].vertex_start :].sum()  # J: the most the fall can give
+    peak = [0.0]
+
+    def kinetic(s):
+        peak[0] = max(peak[0], 0.5 * float((mass[:, None] * s.v.numpy() ** 2).sum()))
+
+    s = _run(solver, model, 240, 1 / 240, each=kinetic)
+    assert solver.first_bad_vertex() is None and np.isfinite(s.x.numpy()).all()
+    assert peak[0] < 1.05 * drop
+    xb = s.x.numpy()[model.bodies[1].vertex_start :]
+    assert xb[:, 1].mean() > 0.2  # still on top of a, not through it (a soft penalty lets it sink and tilt)
