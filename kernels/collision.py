@@ -21,6 +21,17 @@ from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
 
 @wp.kernel
+def fastest_points(
+    point_velocity: wp.array(dtype=wp.vec3),
+    point_body: wp.array(dtype=wp.int32),
+    speed_max_out: wp.array(dtype=float),
+):
+    """Per body, the largest collision-point speed (m/s), by atomic max (zero ``speed_max_out`` per frame)."""
+    i = wp.tid()
+    wp.atomic_max(speed_max_out, point_body[i], wp.length(point_velocity[i]))
+
+
+@wp.kernel
 def accumulate_gradients(
     tets: wp.array(dtype=wp.vec4i),
     rotation: wp.array(dtype=wp.mat33),

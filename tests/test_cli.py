@@ -235,3 +235,15 @@ def test_prepare_options_reach_the_pipeline(scene_dir, capsys):
     ):
         assert _run(["prepare", scene_dir / "ball.obj", "--no-cache", *bad]) == 2
         _one_line_error(capsys, needle)
+
+
+def test_fast_bodies_warn_once_about_tunnelling(scene_dir, capsys):
+    text = SCENE.replace("substeps = 2", "substeps = 1") + (
+        '[[object]]\nname = "other"\nmesh = "ball.obj"\nfaces = 120\nscale = 0.5\ntranslate = [0.0, 0.6, 3.0]\n'
+        "velocity = [0.0, 0.0, -90.0]\n"
+    )
+    (scene_dir / "fast.toml").write_text(text)
+    out = scene_dir / "fast.usdc"
+    assert _run(["run", scene_dir / "fast.toml", "--out", out, "--device", "cpu", "--no-cache", "--frames", "3"]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "may pass through" in line]
+    assert len(warnings) == 1 and "'other'" in warnings[0] and "raise substeps" in warnings[0]

@@ -131,6 +131,7 @@ class Collider:
         self.friction = wp.zeros(1, dtype=float, device=dev)
         self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
+        self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.grid = wp.HashGrid(128, 128, 128, device=dev)
         self.grid.reserve(n_points)
@@ -156,6 +157,13 @@ class Collider:
         # collision points and their velocities: the tet fields interpolated like the dense mesh
         map_dense(m.tets, x, m.point_tet, m.point_bary, self.points)
         map_dense(m.tets, v, m.point_tet, m.point_bary, self.point_velocity)
+        wp.launch(
+            K.fastest_points,
+            dim=self.points.shape[0],
+            inputs=[self.point_velocity, m.point_body],
+            outputs=[self.speed_max],
+            device=dev,
+        )
         self.grid.build(self.points, m.collision_cell)
         self._rotate_gradients(rotation)
         self._detect(
@@ -304,3 +312,9 @@ class Collider:
         self.contacts_total.zero_()
         self.depth_max.zero_()
         return total, most, depth, most > self.capacity
+
+    def read_speeds(self) -> np.ndarray:
+        """Per body, the fastest collision point's speed (m/s) since the last call (one host synchronisation)."""
+        speeds = self.speed_max.numpy().copy()
+        self.speed_max.zero_()
+        return speeds

@@ -232,6 +232,7 @@ def run_scene(
     progress: Callable[[str], None] | None = None,
     on_frame: Callable[[], None] | None = None,
     on_points: Callable[[int, list[np.ndarray]], None] | None = None,
+    warn: Callable[[str], None] | None = None,
     overwrite: bool = True,
     save_every: float | None = 10.0,
 ) -> RunSummary:
@@ -248,6 +249,8 @@ def run_scene(
         on_points: Called as ``on_points(frame, points)`` with each frame's dense points (one (n_i, 3) array
             per body), frame 0 (the initial pose) included, after the frame is written; its time is not
             counted in the summary's phases.
+        warn: Receives one-line warnings, each at most once per run (contact buffer overflow; a body moving
+            more than half a tet per step, where thin parts may tunnel).
         overwrite: Whether an existing ``output`` may be replaced (else FileExistsError).
         save_every: Shortest time between USD snapshots (s), so a killed process keeps the frames up to the
             last one (see :mod:`warpfem.usd_out`); None: write only at the end.
@@ -299,7 +302,7 @@ def run_scene(
             seconds["simulate"] += t1 - t0
             seconds["map"] += t2 - t1
             seconds["write"] += t3 - t2
-            contacts.read(solver, frame, progress)
+            contacts.read(solver, frame, warn, scene.dt)
             if on_points:
                 on_points(frame, points)
             if on_frame:
@@ -331,21 +334,37 @@ def run_scene(
 
 
 class Contacts:
-    """Body-body contact statistics gathered once per frame; warns once if the contact buffer overflows."""
+    """Body-body contact statistics gathered once per frame.
+
+    Warns once if the contact buffer overflows, and once if a body moves more than half a tet (the hash grid
+    cell, the median tet size) in one step: contacts are then tested too coarsely in time and thin parts may
+    pass through each other (tunnelling); more substeps fix it.
+    """
 
     def __init__(self) -> None:
-        self.total, self.most, self.deepest, self.warned = 0, 0, 0.0, False
+        self.total, self.most, self.deepest, self.warned, self.warned_speed = 0, 0, 0.0, False, False
 
-    def read(self, solver: Solver, frame: int, progress: Callable[[str], None] | None) -> None:
-        """Add the contacts of the frame just simulated (one host synchronisation)."""
+    def read(self, solver: Solver, frame: int, warn: Callable[[str], None] | None, dt: float = 0.0) -> None:
+        """Add the contacts of the frame just simulated (one host synchronisation); ``dt`` is the step (s)."""
         if solver.collider is None:
             return
+        speeds = solver.collider.read_speeds()
+        cell = solver.model.collision_cell
+        fastest = int(np.argmax(speeds)) if len(speeds) else 0
+        if dt > 0 and not self.warned_speed and warn and speeds[fastest] * dt > 0.5 * cell:
+            body = solver.model.bodies[fastest]
+            warn(
+                f"warning: frame {frame}: body '{body.name}' moves {speeds[fastest]:.3g} m/s, "
+                f"{1e3 * speeds[fastest] * dt:.3g} mm per step, more than half a tet ({1e3 * cell:.3g} mm): thin "
+                "parts may pass through each other; raise substeps"
+            )
+            self.warned_speed = True
         total, most, deepest, overflow = solver.collider.read_stats()
         self.total += total
         self.most = max(self.most, most)
         self.deepest = max(self.deepest, deepest)
-        if overflow and not self.warned and progress:
-            progress(
+        if overflow and not self.warned and warn:
+            warn(
                 f"warning: frame {frame}: {most} contacts overflowed the buffer of {solver.collider.capacity}; "
                 "the excess were ignored (raise contacts_per_point)"
             )

@@ -158,6 +158,7 @@ def _simulate(
             None,
             on_frame,
             on_points if preview else None,
+            warn=None if args.quiet else (lambda message: print(f"warpfem: {message}", file=sys.stderr, flush=True)),
             overwrite=args.overwrite,
             save_every=args.save_every,
         )
