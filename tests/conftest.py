@@ -8,9 +8,7 @@ ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
 
 
 def pytest_addoption(parser):
-    parser.addoption(
-        "--device", default="cpu", help="Warp device for the tests: cpu (default), cuda:0, or all"
-    )
+    parser.addoption("--device", default="cpu", help="Warp device for the tests: cpu (default), cuda:0, or all")
 
 
 def _devices(config):

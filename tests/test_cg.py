@@ -22,11 +22,7 @@ def _system(device, seed=0, pinned=()):
         A[np.ix_(idx, idx)] += B @ B.T
     A += 0.5 * np.eye(3 * n)
     values = np.stack(
-        [
-            A[3 * i : 3 * i + 3, 3 * c : 3 * c + 3]
-            for i in range(n)
-            for c in cols[row_start[i] : row_start[i + 1]]
-        ]
+        [A[3 * i : 3 * i + 3, 3 * c : 3 * c + 3] for i in range(n) for c in cols[row_start[i] : row_start[i + 1]]]
     )
     free = np.ones(n, np.int32)
     free[list(pinned)] = 0

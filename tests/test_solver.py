@@ -95,9 +95,7 @@ def test_bodies_in_one_model_match_separate_runs(device):
         alone.add_body(*p, velocity=(0.5, 0, 0))
         m = alone.finalize(device)
         x = _run(Solver(m, **cfg), m, 60, 1 / 120).x.numpy()
-        np.testing.assert_allclose(
-            joint[body.vertex_start : body.vertex_start + body.vertex_count], x, atol=2e-4
-        )
+        np.testing.assert_allclose(joint[body.vertex_start : body.vertex_start + body.vertex_count], x, atol=2e-4)
 
 
 def test_nan_is_flagged_with_its_vertex(device):
