@@ -1,6 +1,7 @@
 """The tradeoff sweep: Pareto front, scoring against references, CSV and plot, the command."""
 
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -69,3 +70,15 @@ def test_command_rejects_a_file_as_out(tmp_path, capsys):
     (tmp_path / "f").write_text("")
     assert main(["tradeoff", "--quick", "--out", str(tmp_path / "f")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_plot_from_an_existing_csv(tmp_path):
+    from PIL import Image
+
+    from warpfem.cli import main
+
+    csv_path = Path(__file__).resolve().parents[1] / "scripts" / "results" / "tradeoff-quick-cpu" / "tradeoff.csv"
+    assert main(["tradeoff", "--plot-from", str(csv_path), "--out", str(tmp_path)]) == 0
+    with Image.open(tmp_path / "tradeoff.png") as image:
+        assert image.size[0] > 500 and image.size[1] > 300
+    assert main(["tradeoff", "--plot-from", str(tmp_path / "missing.csv"), "--out", str(tmp_path)]) == 2

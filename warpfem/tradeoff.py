@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -282,17 +283,30 @@ def sweep(
     reference: Setting,
     device: str | None = None,
     progress: Callable[[str], None] | None = None,
+    reference_sag: float | None = None,
 ) -> tuple[list[Row], Run, float]:
     """Run the reference and every setting; score them.
+
+    Args:
+        scene: The beam scene.
+        settings: The settings to measure.
+        reference: The converged setting the trajectories are compared with.
+        device: Warp device.
+        progress: Receives one-line progress messages.
+        reference_sag: NGSolve's converged nonlinear sag (m) if already known (a machine without NGSolve, such
+            as the GPU machine, takes the value computed elsewhere); None computes it here.
 
     Returns:
         The rows (in ``settings`` order), the reference run, and NGSolve's converged nonlinear sag (m).
     """
-    from warpfem.reference import converged_sag
-
     say = progress or (lambda message: None)
-    say("NGSolve reference: nonlinear cantilever, raising the order until the sag settles")
-    ngsolve_sag = converged_sag(scene.beam, nonlinear=True, rtol=1e-3, orders=(2, 3, 4)).sag
+    if reference_sag is None:
+        from warpfem.reference import converged_sag
+
+        say("NGSolve reference: nonlinear cantilever, raising the order until the sag settles")
+        ngsolve_sag = converged_sag(scene.beam, nonlinear=True, rtol=1e-3, orders=(2, 3, 4)).sag
+    else:
+        ngsolve_sag = reference_sag
     say(f"converged run: {reference.label}")
     ref = run_setting(scene, reference, device)
     runs = []
@@ -347,6 +361,19 @@ def write_csv(path: Path, rows: list[Row]) -> None:
                     int(r.pareto),
                 ]
             )
+
+
+def read_csv(path: Path) -> list[SimpleNamespace]:
+    """Rows of a tradeoff.csv with what :func:`plot` reads (knob, ms per frame, both errors)."""
+    with open(path, newline="") as f:
+        return [
+            SimpleNamespace(
+                run=SimpleNamespace(setting=SimpleNamespace(knob=r["knob"]), ms_per_frame=float(r["ms_per_frame"])),
+                trajectory_error=float(r["trajectory_error_m"]),
+                sag_error=float(r["sag_error"]),
+            )
+            for r in csv.DictReader(f)
+        ]
 
 
 def plot(path: Path, rows: list[Row], title: str) -> None:

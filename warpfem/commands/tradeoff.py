@@ -32,6 +32,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--out", type=Path, default=Path("."), help="folder for tradeoff.csv and tradeoff.png")
     cmd.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
     cmd.add_argument("--quiet", action="store_true", help="no progress output, only the table")
+    cmd.add_argument(
+        "--reference-sag",
+        type=float,
+        help="NGSolve's converged sag in m, computed elsewhere (for a machine without NGSolve); skips that solve",
+    )
+    cmd.add_argument("--no-plot", action="store_true", help="write tradeoff.csv only (no matplotlib needed)")
+    cmd.add_argument("--plot-from", type=Path, help="only draw tradeoff.png into --out from an existing tradeoff.csv")
     cmd.set_defaults(func=main)
 
 
@@ -42,10 +49,19 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: not a folder")
     if not out.resolve().parent.is_dir():
         raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
+    from warpfem import tradeoff as T
+
+    if args.plot_from is not None:
+        if not args.plot_from.is_file():
+            raise InputError(f"--plot-from {args.plot_from}: no such file")
+        out.mkdir(exist_ok=True)
+        T.plot(out / "tradeoff.png", T.read_csv(args.plot_from), f"warpfem tradeoff ({args.plot_from.parent.name})")
+        print(f"wrote {out / 'tradeoff.png'}", file=sys.stderr)
+        return 0
+    if args.reference_sag is not None and not args.reference_sag > 0:
+        raise InputError(f"--reference-sag must be > 0 m, got {args.reference_sag}")
     check_device(args.device)
     import warp as wp
-
-    from warpfem import tradeoff as T
 
     device = wp.get_device(args.device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
     scene = T.BeamScene()
@@ -56,7 +72,7 @@ def main(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(message, file=sys.stderr, flush=True)
 
-    rows, ref, ngsolve_sag = T.sweep(scene, settings, reference, device.alias, say)
+    rows, ref, ngsolve_sag = T.sweep(scene, settings, reference, device.alias, say, args.reference_sag)
     out.mkdir(exist_ok=True)
     T.write_csv(out / "tradeoff.csv", rows)
     title = (
@@ -64,7 +80,8 @@ def main(args: argparse.Namespace) -> int:
         f"{scene.beam.length:g} m, E {scene.beam.young:.0e} Pa, {scene.frames} frames; "
         f"converged run: {reference.label}"
     )
-    T.plot(out / "tradeoff.png", rows, title)
+    if not args.no_plot:
+        T.plot(out / "tradeoff.png", rows, title)
     sag_ref = T.tip_sag(scene, ref.points[-1])
     print(f"NGSolve converged nonlinear sag {ngsolve_sag * 1e3:.2f} mm; converged run's sag {sag_ref * 1e3:.2f} mm")
     print(f"{'setting':<48} {'tets':>6} {'ms/frame':>9} {'CG it/step':>10} {'traj mm':>8} {'sag err':>8}  front")
@@ -74,5 +91,5 @@ def main(args: argparse.Namespace) -> int:
             f"{r.run.cg_iterations_per_step:>10.1f} {r.trajectory_error * 1e3:>8.2f} {100 * r.sag_error:>7.1f}%"
             f"  {'*' if r.pareto else ''}"
         )
-    print(f"wrote {out / 'tradeoff.csv'} and {out / 'tradeoff.png'}", file=sys.stderr)
+    print(f"wrote {out / 'tradeoff.csv'}" + ("" if args.no_plot else f" and {out / 'tradeoff.png'}"), file=sys.stderr)
     return 0
