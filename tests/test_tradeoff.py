@@ -82,3 +82,16 @@ def test_plot_from_an_existing_csv(tmp_path):
     with Image.open(tmp_path / "tradeoff.png") as image:
         assert image.size[0] > 500 and image.size[1] > 300
     assert main(["tradeoff", "--plot-from", str(tmp_path / "missing.csv"), "--out", str(tmp_path)]) == 2
+
+
+def test_contact_sweep_covers_every_penalty(device):
+    from warpfem.tradeoff import PENALTIES, contact_sweep
+
+    rows = contact_sweep(device, frames=60, cells=2)
+    assert [r.stiffness for r in rows] == list(PENALTIES)
+    for r in rows:
+        assert r.ms_per_frame > 0 and np.isfinite(r.impact_depth) and r.cg_iterations_per_step > 0
+        assert 0.0 < r.impact_depth < 0.5 * 0.15  # the cubes met and none passed through
+    soft, firm = rows[0], rows[2]
+    assert firm.resting_depth < soft.resting_depth  # a softer penalty lets the cube sink further
+    assert any(r.pareto for r in rows)

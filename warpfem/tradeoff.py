@@ -316,6 +316,137 @@ def sweep(
     return score(scene, runs, ref, ngsolve_sag), ref, ngsolve_sag
 
 
+PENALTIES = (1e4, 1e5, 1e6, 1e7, 1e8, 1e9)
+"""Collision penalty stiffnesses (1/s^2) of the contact sweep."""
+
+
+@dataclass(frozen=True)
+class ContactRow:
+    """One penalty setting of the contact sweep: a 0.15 m cube dropped 0.1 m onto a 0.2 m cube on the ground.
+
+    Attributes:
+        stiffness: Collision penalty per unit mass (1/s^2).
+        ms_per_frame: Wall time per 1/60 s frame (4 substeps, CG to 1e-4).
+        impact_depth: Deepest contact over the run (m): the penetration at impact.
+        resting_depth: Deepest contact over the last half second (m): the penetration at rest.
+        cg_iterations_per_step: Mean CG iterations per step (stiffer contacts cost iterations).
+        pareto: On the front of time against impact depth.
+    """
+
+    stiffness: float
+    ms_per_frame: float
+    impact_depth: float
+    resting_depth: float
+    cg_iterations_per_step: float
+    pareto: bool = False
+
+
+def contact_sweep(device: str | None = None, frames: int = 120, cells: int = 3) -> list[ContactRow]:
+    """Time and penetration of a cube stacked on a cube for each of :data:`PENALTIES`."""
+    import warp as wp
+
+    from warpfem.collision import CollisionSettings
+    from warpfem.model import ModelBuilder
+    from warpfem.shapes import box_tet_mesh
+    from warpfem.simulate import Simulation
+    from warpfem.solver import Ground, Solver
+
+    rows = []
+    for stiffness in PENALTIES:
+        builder = ModelBuilder()
+        builder.add_body(
+            "a", *box_tet_mesh((0, 0, 0), (0.2, 0.2, 0.2), (cells,) * 3), 1e5, 0.3, 1000.0, damping_stiffness=0.01
+        )
+        builder.add_body(
+            "b",
+            *box_tet_mesh((0.025, 0.3, 0.025), (0.175, 0.45, 0.175), (cells,) * 3),
+            1e5,
+            0.3,
+            1000.0,
+            damping_stiffness=0.01,
+        )
+        model = builder.finalize(device)
+        solver = Solver(
+            model,
+            ground=Ground(),
+            cg_iterations=500,
+            cg_tolerance=1e-4,
+            collision=CollisionSettings(stiffness=stiffness),
+        )
+        sim = Simulation(model, solver, 4, 1.0 / (4 * FPS))
+        seconds, impact, resting = [], 0.0, 0.0
+        for frame in range(1, frames + 1):
+            t0 = time.perf_counter()
+            sim.advance()
+            wp.synchronize_device(model.device)
+            seconds.append(time.perf_counter() - t0)
+            sim.check_finite(frame)
+            deepest = solver.collider.read_stats()[2]
+            impact = max(impact, deepest)
+            if frame > frames - FPS / 2:
+                resting = max(resting, deepest)
+        stats = solver.read_cg_stats()
+        rows.append(
+            ContactRow(
+                stiffness, 1e3 * float(np.mean(seconds[1:])), impact, resting, stats.iterations / max(stats.solves, 1)
+            )
+        )
+    front = pareto_front(np.array([r.ms_per_frame for r in rows]), np.array([r.impact_depth for r in rows]))
+    return [dataclasses.replace(r, pareto=bool(on)) for r, on in zip(rows, front, strict=True)]
+
+
+def plot_contact(path: Path, rows: list[ContactRow], title: str) -> None:
+    """Plot penetration at impact and at rest against time per frame, one point per penalty (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5), layout="constrained")
+    cost = np.array([r.ms_per_frame for r in rows])
+    for key, label, marker in (("impact_depth", "at impact", "o"), ("resting_depth", "at rest", "s")):
+        depth = np.array([1e3 * max(getattr(r, key), 1e-6) for r in rows])
+        ax.plot(cost, depth, marker=marker, label=f"penetration {label}")
+        for r, x, y in zip(rows, cost, depth, strict=True):
+            ax.annotate(f"{r.stiffness:.0e}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time per frame (ms)")
+    ax.set_ylabel("deepest contact (mm)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_contact_csv(path: Path, rows: list[ContactRow]) -> None:
+    """Write the contact sweep, one row per penalty stiffness."""
+    with open(path, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(
+            [
+                "penalty_per_unit_mass",
+                "ms_per_frame",
+                "impact_depth_m",
+                "resting_depth_m",
+                "cg_iterations_per_step",
+                "pareto",
+            ]
+        )
+        for r in rows:
+            out.writerow(
+                [
+                    f"{r.stiffness:.0e}",
+                    f"{r.ms_per_frame:.4g}",
+                    f"{r.impact_depth:.4g}",
+                    f"{r.resting_depth:.4g}",
+                    f"{r.cg_iterations_per_step:.4g}",
+                    int(r.pareto),
+                ]
+            )
+
+
 CSV_FIELDS = (
     "knob",
     "cells",

@@ -91,5 +91,16 @@ def main(args: argparse.Namespace) -> int:
             f"{r.run.cg_iterations_per_step:>10.1f} {r.trajectory_error * 1e3:>8.2f} {100 * r.sag_error:>7.1f}%"
             f"  {'*' if r.pareto else ''}"
         )
-    print(f"wrote {out / 'tradeoff.csv'}" + ("" if args.no_plot else f" and {out / 'tradeoff.png'}"), file=sys.stderr)
+    say("contact sweep: penalty stiffness " + ", ".join(f"{k:.0e}" for k in T.PENALTIES))
+    contact = T.contact_sweep(device.alias)
+    T.write_contact_csv(out / "tradeoff-contact.csv", contact)
+    if not args.no_plot:
+        T.plot_contact(out / "tradeoff-contact.png", contact, f"penalty stiffness: cube on cube ({device.alias})")
+    print(f"{'penalty (1/s^2)':<16} {'ms/frame':>9} {'impact mm':>10} {'rest mm':>8} {'CG it/step':>10}  front")
+    for r in contact:
+        print(
+            f"{r.stiffness:<16.0e} {r.ms_per_frame:>9.2f} {1e3 * r.impact_depth:>10.3f} {1e3 * r.resting_depth:>8.4f}"
+            f" {r.cg_iterations_per_step:>10.1f}  {'*' if r.pareto else ''}"
+        )
+    print(f"wrote the CSVs{'' if args.no_plot else ' and plots'} in {out}", file=sys.stderr)
     return 0
