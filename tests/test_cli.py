@@ -247,3 +247,13 @@ def test_fast_bodies_warn_once_about_tunnelling(scene_dir, capsys):
     assert _run(["run", scene_dir / "fast.toml", "--out", out, "--device", "cpu", "--no-cache", "--frames", "3"]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if "may pass through" in line]
     assert len(warnings) == 1 and "'other'" in warnings[0] and "raise substeps" in warnings[0]
+
+
+def test_fast_rotation_warns_once(scene_dir, capsys, monkeypatch):
+    import warpfem.simulate as simulate
+
+    monkeypatch.setattr(simulate, "FAST_TURN", 0.0)  # any turn counts: the warning's plumbing
+    out = scene_dir / "spin.usdc"
+    assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", "cpu", "--no-cache", "--frames", "4"]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "rad per step" in line]
+    assert len(warnings) == 1 and "'ball'" in warnings[0] and "raise substeps" in warnings[0]

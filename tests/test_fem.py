@@ -110,3 +110,24 @@ def test_rotation_is_proper_for_degenerate_tets(device, kind):
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-5)
     assert np.isfinite(f).all()
     assert f[3, 2] > 0  # the squashed corner is pushed back up
+
+
+def test_rotation_watch_measures_how_far_tets_turned(device):
+    from warpfem.fem import RotationWatch
+
+    V, T = box_tet_mesh((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2))
+    model = _model(V, T, device)
+    n = model.vertex_count
+    force = wp.zeros(n, dtype=wp.vec3, device=device)
+    matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=device)
+    rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=device)
+    fem.elastic_forces_and_stiffness(model, model.rest_x, 1.0, rotation, force, matrix)
+    watch = RotationWatch(model, rotation)
+    angle = 0.1
+    c, s = np.cos(angle), np.sin(angle)
+    turned = V @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    fem.elastic_forces_and_stiffness(
+        model, wp.array(turned.astype(np.float32), dtype=wp.vec3, device=device), 1.0, rotation, force, matrix
+    )
+    assert watch.turned()[0] == pytest.approx(angle, abs=1e-3)
+    assert watch.turned()[0] == pytest.approx(0.0, abs=1e-3)  # nothing turned since

@@ -14,11 +14,15 @@ import warp as wp
 from warpfem.collision import CollisionSettings
 from warpfem.embedding import map_dense
 from warpfem.errors import InputError, SimulationError
+from warpfem.fem import RotationWatch
 from warpfem.integrate import Box, Ground, Sphere
 from warpfem.model import Model, ModelBuilder
 from warpfem.preprocess import PreparedBody, prepare
 from warpfem.scene import ObjectConfig, SceneConfig
 from warpfem.solver import PhaseTimer, Solver
+
+FAST_TURN = 0.03
+"""Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
 
 
 @dataclass
@@ -279,6 +283,8 @@ def run_scene(
     timer = PhaseTimer(device)
     profiled = 0
     contacts = Contacts()
+    spin = RotationWatch(model, solver.rotation)
+    spin_warned = False
     with UsdWriter(
         output, bodies, fps=scene.fps, up_axis=scene.up_axis, overwrite=overwrite, save_every=save_every
     ) as writer:
@@ -303,6 +309,14 @@ def run_scene(
             seconds["map"] += t2 - t1
             seconds["write"] += t3 - t2
             contacts.read(solver, frame, warn, scene.dt)
+            per_step = spin.turned() / scene.substeps
+            if warn and not spin_warned and frame > 1 and per_step.max() > FAST_TURN:
+                body = model.bodies[int(np.argmax(per_step))]
+                warn(
+                    f"warning: frame {frame}: body '{body.name}' turns {per_step.max():.3g} rad per step (over "
+                    f"{FAST_TURN}): one linear solve per step adds energy this fast; raise substeps"
+                )
+                spin_warned = True
             if on_points:
                 on_points(frame, points)
             if on_frame:
