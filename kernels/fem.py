@@ -96,11 +96,11 @@ def rotation_change(
     rotation: wp.array(dtype=wp.mat33),
     rotation_before: wp.array(dtype=wp.mat33),
     tet_body: wp.array(dtype=wp.int32),
-    angle_max_out: wp.array(dtype=float),
+    angle_sum_out: wp.array(dtype=float),
 ):
-    """Per body, the largest angle (rad) any tet turned between two rotation snapshots (atomic max)."""
+    """Per body, the sum of the angles (rad) its tets turned between two rotation snapshots (atomic add)."""
     e = wp.tid()
     turn = rotation[e] * wp.transpose(rotation_before[e])
     # atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32
     axis = 0.5 * wp.vec3(turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1])
-    wp.atomic_max(angle_max_out, tet_body[e], wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)))
+    wp.atomic_add(angle_sum_out, tet_body[e], wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)))

@@ -47,9 +47,13 @@ class RotationWatch:
         self.model, self.rotation = model, rotation
         self.before = wp.clone(rotation)
         self.angle = wp.zeros(len(model.bodies), dtype=float, device=model.device)
+        self.tet_counts = np.array([b.tet_count for b in model.bodies], dtype=np.float64)
 
     def turned(self) -> np.ndarray:
-        """Largest tet rotation per body (rad) since the last call (one host synchronisation)."""
+        """Mean tet rotation per body (rad) since the last call (one host synchronisation).
+
+        The mean, not the largest: a rigid spin turns every tet, an impact only the few near the contact.
+        """
         self.angle.zero_()
         wp.launch(
             K.rotation_change,
@@ -59,4 +63,4 @@ class RotationWatch:
             device=self.model.device,
         )
         wp.copy(self.before, self.rotation)
-        return self.angle.numpy().copy()
+        return self.angle.numpy() / self.tet_counts
