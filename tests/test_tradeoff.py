@@ -95,3 +95,12 @@ def test_contact_sweep_covers_every_penalty(device):
     soft, firm = rows[0], rows[2]
     assert firm.resting_depth < soft.resting_depth  # a softer penalty lets the cube sink further
     assert any(r.pareto for r in rows)
+
+
+def test_bad_reference_sag_is_one_line_exit_2(tmp_path, capsys):
+    from warpfem.cli import main
+
+    assert main(["tradeoff", "--quick", "--out", str(tmp_path / "t"), "--reference-sag", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--reference-sag" in err[0]
+    assert not (tmp_path / "t").exists()
