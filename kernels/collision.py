@@ -212,6 +212,15 @@ def detect_contacts(
             contact_depth_out[slot] = d
 
 
+@wp.func
+def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.vec4i, w_t: wp.vec4) -> wp.vec3:
+    """A per-vertex field at a contact's point minus at its image in the tet: J applied to ``field``."""
+    r = wp.vec3()
+    for k in range(4):
+        r += w_p[k] * field[tp[k]] - w_t[k] * field[tt[k]]
+    return r
+
+
 @wp.kernel
 def contact_forces(
     # inputs: contacts
@@ -253,9 +262,7 @@ def contact_forces(
     w_p = point_bary[p]
     tt = tets[contact_tet[i]]
     w_t = contact_bary[i]
-    u = wp.vec3()
-    for k in range(4):
-        u += w_p[k] * v[tp[k]] - w_t[k] * v[tt[k]]
+    u = relative(v, tp, w_p, tt, w_t)
     ut = u - wp.dot(u, g) * g
     c = friction[0] * a * contact_depth[i] / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
     gg = wp.outer(g, g)
@@ -294,9 +301,7 @@ def contact_product(
     w_p = point_bary[pt]
     tt = tets[contact_tet[i]]
     w_t = contact_bary[i]
-    s = wp.vec3()
-    for k in range(4):
-        s += w_p[k] * p[tp[k]] - w_t[k] * p[tt[k]]
+    s = relative(p, tp, w_p, tt, w_t)
     for k in range(4):
         # the full product minus each vertex's own (diagonal) term, which the assembled matrix applies
         if free[tp[k]] != 0:

@@ -167,6 +167,8 @@ class Collider:
         self.grid.build(self.points, m.collision_cell)
         self._rotate_gradients(rotation)
         self._detect(
+            self.grid,
+            self.claim,
             x,
             v,
             dt,
@@ -213,16 +215,28 @@ class Collider:
         wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=m.device)
 
     def _detect(
-        self, x, v, dt, points, point_velocity, point_body, point_anchor, body_self, capacity: int, depth_max_out
+        self,
+        grid,
+        claim,
+        x,
+        v,
+        dt,
+        points,
+        point_velocity,
+        point_body,
+        point_anchor,
+        body_self,
+        capacity: int,
+        depth_max_out,
     ) -> None:
         m = self.model
         self.count.zero_()
-        self.claim.zero_()
+        claim.zero_()
         wp.launch(
             K.detect_contacts,
             dim=m.tet_count,
             inputs=[
-                self.grid.id,
+                grid.id,
                 x,
                 v,
                 dt,
@@ -242,7 +256,7 @@ class Collider:
                 capacity,
             ],
             outputs=[
-                self.claim,
+                claim,
                 self.count,
                 self.contact_point,
                 self.contact_tet,
@@ -265,25 +279,21 @@ class Collider:
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
         grid = wp.HashGrid(128, 128, 128, device=dev)
         grid.build(pts, m.collision_cell)
-        saved_grid, saved_claim = self.grid, self.claim
-        self.grid, self.claim = grid, wp.zeros(len(points), dtype=wp.int32, device=dev)
         deepest = wp.zeros(1, dtype=float, device=dev)
-        try:
-            still = wp.zeros(len(points), dtype=wp.vec3, device=dev)
-            self._detect(
-                x,
-                wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
-                0.0,
-                pts,
-                still,
-                wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
-                wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
-                wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
-                0,
-                deepest,
-            )
-        finally:
-            self.grid, self.claim = saved_grid, saved_claim
+        self._detect(
+            grid,
+            wp.zeros(len(points), dtype=wp.int32, device=dev),
+            x,
+            wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
+            0.0,
+            pts,
+            wp.zeros(len(points), dtype=wp.vec3, device=dev),
+            wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
+            wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
+            wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
+            0,
+            deepest,
+        )
         return float(deepest.numpy()[0])
 
     def _contacts(self) -> list:
