@@ -301,19 +301,13 @@ def main(argv=None) -> int:
 
 def load_scene_with_assets(path: Path, assets: Path):
     """A paper scene with its ../../shared/assets meshes taken from ``assets`` instead."""
-    import tomllib
+    import tempfile
 
-    scene = load_scene(path) if (assets == ROOT.parent / "shared" / "assets") else None
-    if scene is not None:
-        return scene
     text = path.read_text().replace("../../shared/assets", str(assets.resolve()))
-    tmp = path.parent / f".bench-{path.name}"
-    tmp.write_text(text)
-    try:
-        tomllib.loads(text)
-        return load_scene(tmp)
-    finally:
-        tmp.unlink()
+    with tempfile.TemporaryDirectory() as folder:
+        copy = Path(folder) / path.name
+        copy.write_text(text)
+        return load_scene(copy)
 
 
 if __name__ == "__main__":
