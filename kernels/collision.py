@@ -13,7 +13,8 @@ body, outside ``t``'s one-ring) gets the penalty force ``f = a d g`` with depth 
 interpolated from ``t``'s vertex depths and rotated gradients (Kondo & Kanai, after Fisher & Lin); the
 reaction ``-f`` goes to ``t``'s corners by the barycentric weights, so momentum is conserved. Implicitly,
 the contact is a spring along ``g`` between the point and its image in ``t``: row ``J`` of the constraint
-``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product.
+``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product
+(the contacts are handed to CG as coupled pairs of embedded points).
 """
 
 import warp as wp
@@ -240,6 +241,10 @@ def contact_forces(
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
     # outputs
+    pair_verts_a_out: wp.array(dtype=wp.vec4i),
+    pair_weights_a_out: wp.array(dtype=wp.vec4),
+    pair_verts_b_out: wp.array(dtype=wp.vec4i),
+    pair_weights_b_out: wp.array(dtype=wp.vec4),
     contact_matrix_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
@@ -249,7 +254,8 @@ def contact_forces(
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
     friction across it, with c = mu a d / max(|u_t|, eps) from the step's start velocity. C goes to
-    ``contact_matrix_out`` for the matrix-free product; its diagonal blocks to the matrix.
+    ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
+    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix.
     """
     i = wp.tid()
     if i >= wp.min(count[0], contact_point.shape[0]):
@@ -268,46 +274,15 @@ def contact_forces(
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
     contact_matrix_out[i] = C
+    pair_verts_a_out[i] = tp
+    pair_weights_a_out[i] = w_p
+    pair_verts_b_out[i] = tt
+    pair_weights_b_out[i] = w_t
     for k in range(4):
         wp.atomic_add(force_out, tp[k], w_p[k] * f)
         wp.atomic_add(force_out, tt[k], -w_t[k] * f)
         wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
         wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
-
-
-@wp.kernel
-def contact_product(
-    # inputs
-    count: wp.array(dtype=wp.int32),
-    contact_point: wp.array(dtype=wp.int32),
-    contact_tet: wp.array(dtype=wp.int32),
-    contact_bary: wp.array(dtype=wp.vec4),
-    contact_matrix: wp.array(dtype=wp.mat33),
-    tets: wp.array(dtype=wp.vec4i),
-    point_tet: wp.array(dtype=wp.int32),
-    point_bary: wp.array(dtype=wp.vec4),
-    free: wp.array(dtype=wp.int32),
-    p: wp.array(dtype=wp.vec3),
-    # outputs
-    q_out: wp.array(dtype=wp.vec3),
-):
-    """q += J^T C J p for every contact, less the diagonal blocks already in the assembled matrix."""
-    i = wp.tid()
-    if i >= wp.min(count[0], contact_point.shape[0]):
-        return
-    pt = contact_point[i]
-    C = contact_matrix[i]
-    tp = tets[point_tet[pt]]
-    w_p = point_bary[pt]
-    tt = tets[contact_tet[i]]
-    w_t = contact_bary[i]
-    s = relative(p, tp, w_p, tt, w_t)
-    for k in range(4):
-        # the full product minus each vertex's own (diagonal) term, which the assembled matrix applies
-        if free[tp[k]] != 0:
-            wp.atomic_add(q_out, tp[k], w_p[k] * (C * (s - w_p[k] * p[tp[k]])))
-        if free[tt[k]] != 0:
-            wp.atomic_add(q_out, tt[k], -w_t[k] * (C * (s + w_t[k] * p[tt[k]])))
 
 
 @wp.kernel

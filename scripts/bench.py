@@ -115,6 +115,7 @@ def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int
     timer = PhaseTimer(device)
     frame(timer)  # a frame run directly (also compiles everything)
     phase_ms = phase_split(sim, timer, device)
+    kernels = kernel_profile(lambda: frame(PhaseTimer(device))) if device.is_cuda else None
     for _ in range(warmup):
         frame()  # captures the graph on CUDA
     solver.read_cg_stats()
@@ -139,6 +140,7 @@ def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int
         "ms_per_frame": ms,
         "fps": 1000.0 / ms,
         "phase_ms": {**phase_ms, "map": map_ms},
+        **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "substeps": scene.substeps,
         "bodies": len(model.bodies),
@@ -179,8 +181,36 @@ def phase_split(sim: Simulation, timer: PhaseTimer, device, reps: int = 20) -> d
     return out
 
 
-def cg_at_scale(device, cells: tuple[int, int, int], iterations: int = 50) -> dict:
-    """Time of one fixed-count CG iteration on a box of ~1M tets, and the streaming bandwidth in the same run."""
+def kernel_profile(frame, top: int = 24) -> dict:
+    """GPU time (ms) and launch count per kernel of one frame run directly (not captured), slowest first.
+
+    Direct launches time each kernel on the device alone, without the launch gaps a graph removes, so the
+    list says which kernel's arithmetic or memory traffic to attack; launches per frame say what a graph
+    still pays per node.
+    """
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_KERNEL_BUILTIN | wp.TIMING_MEMSET)
+    frame()
+    results = wp.timing_end()
+    table: dict[str, dict] = {}
+    for r in results:
+        row = table.setdefault(r.name, {"ms": 0.0, "launches": 0})
+        row["ms"] += r.elapsed
+        row["launches"] += 1
+    ranked = sorted(table.items(), key=lambda kv: -kv[1]["ms"])
+    out = dict(ranked[:top])
+    out["total"] = {"ms": sum(r["ms"] for r in table.values()), "launches": sum(r["launches"] for r in table.values())}
+    return out
+
+
+def cg_at_scale(
+    device, cells: tuple[int, int, int], iterations: int = 50, chunks: tuple[int, ...] = (1, 2, 4, 8, 64)
+) -> dict:
+    """Time of one fixed-count CG iteration on a box of ~1M tets, and the streaming bandwidth in the same run.
+
+    The iteration is timed for each ``chunks`` entry (nonzero blocks per thread of the product; 64 is in
+    effect a thread per row); ``cg_iteration_us`` is the device's default.
+    """
+    from warpfem import cg as cg_module
     from warpfem.shapes import box_tet_mesh
     from warpfem.solver import Solver
 
@@ -191,24 +221,37 @@ def cg_at_scale(device, cells: tuple[int, int, int], iterations: int = 50) -> di
     solver = Solver(model, ground=None, collision=None, cg_iterations=iterations, cg_tolerance=0.0)
     s0, s1 = model.state(), model.state()
     solver.step(s0, s1, 1 / 240)  # assemble and compile
+    kind = "cuda" if device.is_cuda else "cpu"
+    default = cg_module.CHUNK[kind]
 
-    def solve():
-        solver.cg.solve(solver.matrix, solver.diag_inv, solver.rhs, s1.v)
+    def iteration_us(chunk: int) -> float:
+        cg_module.CHUNK[kind] = chunk
+        try:
+            cg = cg_module.CGSolver(model.row_start, model.cols, model.free, iterations, device)
+        finally:
+            cg_module.CHUNK[kind] = default
+        x = wp.zeros_like(s1.v)
 
-    if device.is_cuda:
-        with wp.ScopedCapture(device=device) as capture:
-            solve()
-        run = lambda: wp.capture_launch(capture.graph)  # noqa: E731
-    else:
-        run = solve
-    run()
-    wp.synchronize_device(device)
-    reps = 20 if device.is_cuda else 2
-    t0 = time.perf_counter()
-    for _ in range(reps):
+        def solve():
+            cg.solve(solver.matrix, solver.diag_inv, solver.rhs, x)
+
+        if device.is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                solve()
+            run = lambda: wp.capture_launch(capture.graph)  # noqa: E731
+        else:
+            run = solve
         run()
-    wp.synchronize_device(device)
-    per_iteration_us = 1e6 * (time.perf_counter() - t0) / (reps * iterations)
+        wp.synchronize_device(device)
+        reps = 20 if device.is_cuda else 2
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            run()
+        wp.synchronize_device(device)
+        return 1e6 * (time.perf_counter() - t0) / (reps * iterations)
+
+    by_chunk = {str(c): iteration_us(c) for c in chunks}
+    per_iteration_us = by_chunk.get(str(default)) or iteration_us(default)
 
     nnz = model.nnz_blocks
     n = model.vertex_count
@@ -230,6 +273,8 @@ def cg_at_scale(device, cells: tuple[int, int, int], iterations: int = 50) -> di
         "vertices": n,
         "nnz_blocks": nnz,
         "cg_iteration_us": per_iteration_us,
+        "cg_iteration_us_by_chunk": by_chunk,
+        "chunk": default,
         "spmv_bytes": spmv_bytes,
         "stream_bandwidth_GBps": bandwidth / 1e9,
         "spmv_floor_us": 1e6 * spmv_bytes / bandwidth,
@@ -287,6 +332,8 @@ def main(argv=None) -> int:
             f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
             flush=True,
         )
+        for name, row in run.get("kernel_ms", {}).items():
+            print(f"    {row['ms']:8.3f} ms {row['launches']:6d} launches  {name[:90]}", flush=True)
     if "cg" not in skip:
         results["cg_at_scale"] = cg_at_scale(device, cg_cells)
         print("CG at scale:", json.dumps(results["cg_at_scale"]), flush=True)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpfem.cg import CGSolver
+from warpfem.cg import CGSolver, Coupling
 from warpfem.model import block_pattern
 from warpfem.shapes import box_tet_mesh
 
@@ -84,6 +84,58 @@ def test_pinned_rows_keep_their_start_value(device):
     reference[dofs] = np.linalg.solve(A[np.ix_(dofs, dofs)], b.ravel()[dofs])
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
     assert np.all(x.numpy()[list(pinned)] == 0.0)
+
+
+@pytest.mark.parametrize("unroll", [1, 3])
+def test_coupling_pairs_enter_every_product(device, unroll):
+    """Contacts as a matrix-free term: the solve equals the dense solve of A + sum J^T C J."""
+    a, A, _, rng = _system(device, seed=3)
+    n = A.shape[0] // 3
+    pairs, capacity = 5, 8
+    verts = np.stack([rng.permutation(n)[:8] for _ in range(pairs)]).astype(np.int32)  # distinct per pair
+    weights = rng.dirichlet(np.ones(4), size=(pairs, 2))
+    C = []
+    A_full = A.copy()
+    values = a["values"].numpy()
+    row_start, cols = a["row_start"].numpy(), a["cols"].numpy()
+    for c in range(pairs):
+        B = rng.normal(size=(3, 3))
+        C.append(B @ B.T + np.eye(3))
+        J = np.zeros((3, 3 * n))
+        for k in range(4):
+            J[:, 3 * verts[c, k] : 3 * verts[c, k] + 3] += weights[c, 0, k] * np.eye(3)
+            J[:, 3 * verts[c, 4 + k] : 3 * verts[c, 4 + k] + 3] -= weights[c, 1, k] * np.eye(3)
+        A_full += J.T @ C[c] @ J
+        for k in range(8):  # the diagonal blocks go into the assembled matrix
+            v, wk = verts[c, k], weights[c, k // 4, k % 4]
+            slot = row_start[v] + np.flatnonzero(cols[row_start[v] : row_start[v + 1]] == v)[0]
+            values[slot] += wk * wk * C[c]
+    diag_inv = np.stack([np.linalg.inv(A_full[3 * i : 3 * i + 3, 3 * i : 3 * i + 3]) for i in range(n)])
+
+    def pad(x, dtype):
+        full = np.zeros((capacity, *x.shape[1:]), x.dtype)
+        full[: len(x)] = x
+        return wp.array(full.astype(np.float32 if dtype is not wp.vec4i else np.int32), dtype=dtype, device=device)
+
+    coupling = Coupling(
+        wp.array([pairs], dtype=wp.int32, device=device),
+        pad(verts[:, :4], wp.vec4i),
+        pad(weights[:, 0], wp.vec4),
+        pad(verts[:, 4:], wp.vec4i),
+        pad(weights[:, 1], wp.vec4),
+        pad(np.array(C), wp.mat33),
+    )
+    b = rng.normal(size=(n, 3))
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll)
+    cg.configure(500, 1e-6)
+    x0 = rng.normal(size=(n, 3))  # a nonzero start: the coupling enters the initial residual too
+    x = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=device)
+    values_wp = wp.array(values.astype(np.float32), dtype=wp.mat33, device=device)
+    diag_wp = wp.array(diag_inv.astype(np.float32), dtype=wp.mat33, device=device)
+    cg.solve(values_wp, diag_wp, wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
+    reference = np.linalg.solve(A_full, b.ravel())
+    assert cg.read_stats().residual_max <= 1e-6
+    np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
 
 
 def test_configure_rejects_out_of_range(device):

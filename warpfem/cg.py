@@ -1,13 +1,13 @@
 """Block-Jacobi preconditioned conjugate gradients on the device, capturable as one CUDA graph.
 
-The iteration runs under ``wp.capture_while`` on a device-side condition, so the same code gives a fixed
-iteration count (tolerance 0) or iteration to a tolerance, with no host synchronisation on CUDA. The
-tolerance and the iteration count live in device arrays: changing them needs no new graph capture.
+The iteration (Chronopoulos-Gear PCG, two launches per iteration: see :mod:`warpfem.kernels.cg`) runs
+under ``wp.capture_while`` on a device-side condition, ``unroll`` iterations per check, so the same code
+gives a fixed iteration count (tolerance 0) or iteration to a tolerance, with no host synchronisation on
+CUDA. The tolerance and the iteration count live in device arrays: changing them needs no new capture.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +17,33 @@ from warpfem.kernels import cg as K
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
+
+CHUNK = {"cuda": 4, "cpu": 64}
+"""Nonzero blocks per thread of the matrix product, per device kind (the CPU runs one thread at a time)."""
+
+
+@dataclass(frozen=True)
+class Coupling:
+    """Pairs of points embedded in the mesh, coupled by 3x3 matrices (contacts): a matrix-free term of A.
+
+    Pair c ties point a (``sum_k weights_a[k] x[verts_a[k]]``) to point b through ``C_c``: it adds
+    ``J^T C_c J`` to A with ``J x = x_a - x_b``, less the diagonal blocks (``weights^2 C_c``, which the
+    assembled matrix holds so that the preconditioner sees them). Only the first ``count[0]`` pairs (capped
+    at the capacity) are live.
+
+    Attributes:
+        count: (1,) int32 live pairs.
+        verts_a: (capacity,) vec4i vertices of point a. weights_a: (capacity,) vec4 its weights.
+        verts_b: (capacity,) vec4i vertices of point b. weights_b: (capacity,) vec4 its weights.
+        matrix: (capacity,) mat33 C_c (N s/m after the dt factors of the implicit step).
+    """
+
+    count: wp.array
+    verts_a: wp.array
+    weights_a: wp.array
+    verts_b: wp.array
+    weights_b: wp.array
+    matrix: wp.array
 
 
 @dataclass(frozen=True)
@@ -43,28 +70,71 @@ class CGSolver:
         free: (n) int32, 0 for rows held at their initial value.
         max_iterations: Capacity: the most iterations any solve may be asked for.
         device: Warp device.
+        coupling: A matrix-free term of A applied with every product, or None.
+        unroll: Iterations per convergence check of the device-side loop (each check is a graph node and a
+            launch; iterations past convergence inside a check do nothing).
     """
 
-    def __init__(self, row_start: wp.array, cols: wp.array, free: wp.array, max_iterations: int, device) -> None:
+    def __init__(
+        self,
+        row_start: wp.array,
+        cols: wp.array,
+        free: wp.array,
+        max_iterations: int,
+        device,
+        coupling: Coupling | None = None,
+        unroll: int = 4,
+    ) -> None:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
+        self.coupling = coupling
+        self.unroll = int(unroll)
         n = free.shape[0]
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
+        self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
+        starts = row_start.numpy()
+        sizes = -(-np.diff(starts) // self.chunk)
+        rows = np.repeat(np.arange(n, dtype=np.int32), sizes)
+        first = np.repeat(starts[:-1], sizes) + self.chunk * (
+            np.arange(len(rows)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        )
+        self.chunk_row = wp.array(rows, dtype=wp.int32, device=self.device)
+        self.chunk_start = wp.array(first.astype(np.int32), dtype=wp.int32, device=self.device)
+        if coupling is None:
+            zero = dict(shape=0, device=self.device)
+            coupling = Coupling(
+                wp.zeros(1, dtype=wp.int32, device=self.device),
+                wp.zeros(dtype=wp.vec4i, **zero),
+                wp.zeros(dtype=wp.vec4, **zero),
+                wp.zeros(dtype=wp.vec4i, **zero),
+                wp.zeros(dtype=wp.vec4, **zero),
+                wp.zeros(dtype=wp.mat33, **zero),
+            )
+        self._pairs = [coupling.count, coupling.verts_a, coupling.weights_a, coupling.verts_b, coupling.weights_b]
+        self._pairs.append(coupling.matrix)
+        threads = len(rows) + coupling.matrix.shape[0]
+        self._apply_threads = threads
+        self._apply_dim = max(BLOCK, -(-threads // BLOCK) * BLOCK)
         self.r = wp.zeros(n, dtype=wp.vec3, device=self.device)
-        self.z = wp.zeros_like(self.r)
+        self.u = wp.zeros_like(self.r)
         self.p = wp.zeros_like(self.r)
-        self.q = wp.zeros_like(self.r)
-        self.extra_q = wp.zeros_like(self.r)
-        self.rz = wp.zeros(self.capacity + 2, dtype=float, device=self.device)
-        self.pq = wp.zeros(self.capacity + 1, dtype=float, device=self.device)
+        self.s = wp.zeros_like(self.r)
+        self.w = wp.zeros_like(self.r)
+        slots = self.capacity + self.unroll + 2
+        self.gamma = wp.zeros(slots, dtype=float, device=self.device)
+        self.delta = wp.zeros_like(self.gamma)
+        self.alpha = wp.zeros_like(self.gamma)
         self.bz = wp.zeros(1, dtype=float, device=self.device)
+        self.scratch = wp.zeros(1, dtype=float, device=self.device)
         self.iteration = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.done = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.cond = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.tolerance = wp.zeros(1, dtype=float, device=self.device)
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
+        self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
 
     def configure(self, max_iterations: int, tolerance: float) -> None:
@@ -79,82 +149,125 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
-    def solve(
-        self,
-        values: wp.array,
-        diag_inv: wp.array,
-        b: wp.array,
-        x: wp.array,
-        extra: Callable[[wp.array, wp.array], None] | None = None,
-    ) -> None:
-        """Solve ``A x = b`` starting from the ``x`` given; ``diag_inv`` holds the inverse diagonal blocks.
+    def _apply(self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array):
+        """The launch of w += A u (w zeroed before), u.w into ``dot_out[iteration + step]``."""
+        return wp.launch(
+            K.cg_apply,
+            dim=self._apply_dim,
+            block_dim=BLOCK,
+            inputs=[
+                self._apply_threads,
+                self.chunk_row,
+                self.chunk_start,
+                self.chunk,
+                self.row_start,
+                self.cols,
+                values,
+                self.free,
+                *self._pairs,
+                u,
+                gate,
+                self.iteration,
+                step,
+                self.gamma,
+                self.bz,
+                self.tolerance,
+                self.max_iterations,
+            ],
+            outputs=[self.w, dot_out],
+            device=self.device,
+            record_cmd=True,
+        )
 
-        ``extra(p, q_out)``, if given, launches kernels writing a matrix-free part of ``A p`` (for example the
-        contacts) into ``q_out``; it is added to the assembled product everywhere A is applied.
+    def _plan(self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array) -> tuple[list, list, list]:
+        """The recorded launches of a solve: before the loop, one loop body, after it.
+
+        Replaying recorded launches skips the argument packing of ``wp.launch`` (about 3x less host time per
+        launch on the CPU, where every iteration is launched from Python).
         """
         n = self.free.shape[0]
         dev = self.device
-        self.rz.zero_()
-        self.pq.zero_()
-        self.bz.zero_()
-        structure = [self.row_start, self.cols, values]
-        has_extra = int(extra is not None)
-        if extra is not None:
-            extra(x, self.extra_q)
-        rows = self.padded
-        wp.launch(
-            K.cg_init,
-            dim=rows,
-            block_dim=BLOCK,
-            inputs=[n, *structure, diag_inv, self.free, b, x, self.extra_q, has_extra],
-            outputs=[self.r, self.z, self.p, self.rz, self.bz],
-            device=dev,
-        )
-        limits = [self.tolerance, self.max_iterations]
-        wp.launch(
-            K.cg_start,
-            dim=1,
-            inputs=[self.rz, self.bz, *limits],
-            outputs=[self.iteration, self.cond],
-            device=dev,
-        )
-
-        def iterate() -> None:
-            if extra is not None:
-                extra(self.p, self.extra_q)
+        limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
+        vectors = [x, self.r, self.u, self.p, self.s, self.w]
+        before = [
             wp.launch(
-                K.cg_spmv,
-                dim=rows,
-                block_dim=BLOCK,
-                inputs=[n, *structure, self.free, self.p, self.iteration, self.extra_q, has_extra],
-                outputs=[self.q, self.pq],
+                K.cg_reset,
+                dim=max(self.padded, self.gamma.shape[0]),
+                inputs=[n],
+                outputs=[self.w, self.gamma, self.delta, self.bz, self.scratch, self.iteration, self.done],
                 device=dev,
-            )
+                record_cmd=True,
+            ),
+            self._apply(values, x, 0, 0, self.scratch),
             wp.launch(
-                K.cg_update_xr,
-                dim=rows,
+                K.cg_init,
+                dim=self.padded,
                 block_dim=BLOCK,
-                inputs=[n, diag_inv, self.p, self.q, self.iteration, self.pq, self.rz],
-                outputs=[x, self.r, self.z, self.rz],
+                inputs=[n, diag_inv, self.free, b],
+                outputs=[self.w, self.r, self.u, self.p, self.s, self.gamma, self.bz],
                 device=dev,
+                record_cmd=True,
+            ),
+            self._apply(values, self.u, 1, 0, self.delta),
+            wp.launch(K.cg_start, dim=1, inputs=limits, outputs=[self.cond], device=dev, record_cmd=True),
+        ]
+        body = []
+        for step in range(self.unroll):
+            body.append(
+                wp.launch(
+                    K.cg_update,
+                    dim=self.padded,
+                    block_dim=BLOCK,
+                    inputs=[n, diag_inv, self.iteration, step, self.gamma, self.delta, *limits[1:]],
+                    outputs=[self.alpha, self.done, *vectors, self.gamma],
+                    device=dev,
+                    record_cmd=True,
+                )
             )
-            wp.launch(K.cg_update_p, dim=n, inputs=[self.z, self.iteration, self.rz], outputs=[self.p], device=dev)
+            body.append(self._apply(values, self.u, 1, step + 1, self.delta))
+        body.append(
             wp.launch(
                 K.cg_advance,
                 dim=1,
-                inputs=[self.rz, self.pq, self.bz, *limits],
+                inputs=[self.unroll, *limits],
                 outputs=[self.iteration, self.cond],
                 device=dev,
+                record_cmd=True,
             )
+        )
+        after = [
+            wp.launch(
+                K.cg_finish,
+                dim=1,
+                inputs=[self.gamma, self.bz, self.done],
+                outputs=[self.counts, self.residual_max],
+                device=dev,
+                record_cmd=True,
+            )
+        ]
+        return before, body, after
+
+    def solve(self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array) -> None:
+        """Solve ``A x = b`` starting from the ``x`` given; ``diag_inv`` holds the inverse diagonal blocks.
+
+        A is the block matrix ``values`` on the solver's pattern plus the coupling term, if any.
+        """
+        key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr)
+        if key not in self._plans:
+            if len(self._plans) >= 8:
+                self._plans.clear()
+            self._plans[key] = self._plan(values, diag_inv, b, x)
+        before, body, after = self._plans[key]
+        for launch in before:
+            launch.launch()
+
+        def iterate() -> None:
+            for launch in body:
+                launch.launch()
 
         wp.capture_while(self.cond, iterate)
-        wp.launch(
-            K.cg_finish,
-            dim=1,
-            inputs=[self.rz, self.bz, self.iteration],
-            outputs=[self.counts, self.residual_max],
-            device=dev,
-        )
+        for launch in after:
+            launch.launch()
 
     def read_stats(self) -> CGStats:
         """Return and reset the statistics of the solves so far (one host synchronisation)."""

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warpfem.cg import Coupling
 from warpfem.embedding import map_dense
 from warpfem.kernels import collision as K
 
@@ -128,6 +129,15 @@ class Collider:
         self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
         self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
+        self.coupling = Coupling(
+            self.count,
+            wp.zeros(self.capacity, dtype=wp.vec4i, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4i, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4, device=dev),
+            self.contact_matrix,
+        )
+        """The contacts as CG's matrix-free term (filled each step by :meth:`respond`)."""
         self.friction = wp.zeros(1, dtype=float, device=dev)
         self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
@@ -185,7 +195,10 @@ class Collider:
             K.contact_forces,
             dim=self.capacity,
             inputs=[
-                *self._contacts(),
+                self.count,
+                self.contact_point,
+                self.contact_tet,
+                self.contact_bary,
                 self.contact_normal,
                 self.contact_depth,
                 v,
@@ -197,7 +210,15 @@ class Collider:
                 m.diag_slot,
                 dt,
             ],
-            outputs=[self.contact_matrix, force_out, matrix_out],
+            outputs=[
+                self.coupling.verts_a,
+                self.coupling.weights_a,
+                self.coupling.verts_b,
+                self.coupling.weights_b,
+                self.contact_matrix,
+                force_out,
+                matrix_out,
+            ],
             device=dev,
         )
 
@@ -295,21 +316,6 @@ class Collider:
             deepest,
         )
         return float(deepest.numpy()[0])
-
-    def _contacts(self) -> list:
-        return [self.count, self.contact_point, self.contact_tet, self.contact_bary]
-
-    def product(self, p: wp.array, q_out: wp.array) -> None:
-        """q_out = the contacts' off-diagonal part of the system matrix times ``p``."""
-        m = self.model
-        q_out.zero_()
-        wp.launch(
-            K.contact_product,
-            dim=self.capacity,
-            inputs=[*self._contacts(), self.contact_matrix, m.tets, m.point_tet, m.point_bary, m.free, p],
-            outputs=[q_out],
-            device=m.device,
-        )
 
     def read_stats(self) -> tuple[int, int, float, bool]:
         """Contact statistics since the last call (one host synchronisation).

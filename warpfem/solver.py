@@ -81,9 +81,10 @@ class Solver:
         self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
-        self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev)
-        self.cg.configure(cg_iterations, cg_tolerance)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
+        coupling = self.collider.coupling if self.collider is not None else None
+        self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev, coupling=coupling)
+        self.cg.configure(cg_iterations, cg_tolerance)
         self.set_gravity(gravity)
 
     def set_gravity(self, gravity: tuple[float, float, float]) -> None:
@@ -115,8 +116,7 @@ class Solver:
                 self.diag_inv,
                 state_out.v,
             )
-            extra = self.collider.product if self.collider is not None else None
-            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, extra)
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
             integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
 
         if self.collider is None:
