@@ -44,7 +44,6 @@ def embedded_product(
     verts_b: wp.vec4i,
     weights_b: wp.vec4,
     C: wp.mat33,
-    free: wp.array(dtype=wp.int32),
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -59,14 +58,11 @@ def embedded_product(
     for k in range(4):
         va = verts_a[k]
         vb = verts_b[k]
-        if free[va] != 0:
-            da = weights_a[k] * (C * (s - weights_a[k] * u[va]))
-            wp.atomic_add(w_out, va, da)
-            dot += wp.dot(u[va], da)
-        if free[vb] != 0:
-            db = -weights_b[k] * (C * (s + weights_b[k] * u[vb]))
-            wp.atomic_add(w_out, vb, db)
-            dot += wp.dot(u[vb], db)
+        da = weights_a[k] * (C * (s - weights_a[k] * u[va]))
+        db = -weights_b[k] * (C * (s + weights_b[k] * u[vb]))
+        wp.atomic_add(w_out, va, da)
+        wp.atomic_add(w_out, vb, db)
+        dot += wp.dot(u[va], da) + wp.dot(u[vb], db)
     return dot
 
 
@@ -80,7 +76,6 @@ def cg_apply(
     row_start: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
-    free: wp.array(dtype=wp.int32),
     # inputs: coupling pairs (threads past the chunks)
     pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
@@ -101,9 +96,11 @@ def cg_apply(
     w_out: wp.array(dtype=wp.vec3),
     delta_out: wp.array(dtype=float),
 ):
-    """w += A u on free rows (w zeroed before); u.w into delta[k] with k = iteration + step.
+    """w += A u (w zeroed before); u.w into delta[k] with k = iteration + step.
 
-    With ``gate`` set, skipped (adding nothing) when iteration k will not run.
+    ``values`` holds the upper triangle: a block (row, c) with c > row adds A u_c to the row and A^T u_row to
+    row c. u is zero on pinned rows, so they add nothing; what lands in w on them is ignored by
+    ``cg_update``. With ``gate`` set, skipped (adding nothing) when iteration k will not run.
     """
     i = wp.tid()
     k = iteration[0] + step
@@ -115,12 +112,20 @@ def cg_apply(
         n_chunks = chunk_row.shape[0]
         if i < n_chunks:
             row = chunk_row[i]
-            if free[row] != 0:
-                acc = wp.vec3()
-                for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
-                    acc += values[j] * u[cols[j]]
-                wp.atomic_add(w_out, row, acc)
-                dot = wp.dot(u[row], acc)
+            u_row = u[row]
+            acc = wp.vec3()
+            own = wp.vec3()
+            for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
+                c = cols[j]
+                A = values[j]
+                if c != row:
+                    acc += A * u[c]
+                    wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+                else:
+                    own = A * u_row
+            wp.atomic_add(w_out, row, acc + own)
+            # u.(A u) over this chunk's blocks and the transposes of its off-diagonal ones
+            dot = wp.dot(u_row, 2.0 * acc + own)
         else:
             c = i - n_chunks
             if c < wp.min(pair_count[0], pair_matrix.shape[0]):
@@ -130,7 +135,6 @@ def cg_apply(
                     pair_verts_b[c],
                     pair_weights_b[c],
                     pair_matrix[c],
-                    free,
                     u,
                     w_out,
                 )
@@ -228,6 +232,7 @@ def cg_update(
     bz: wp.array(dtype=float),
     tolerance: wp.array(dtype=float),
     max_iterations: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.int32),
     # outputs
     alpha_out: wp.array(dtype=float),
     done_out: wp.array(dtype=wp.int32),
@@ -241,8 +246,9 @@ def cg_update(
 ):
     """One iteration, k = iteration + step (nothing if k does not run).
 
-    p = u + beta p, s = w + beta s (= A p), x += alpha p, r -= alpha s, u = M^-1 r, w = 0; r.u into
-    gamma[k+1]. Thread 0 records alpha[k] and the iterations done.
+    p = u + beta p, s = w + beta s (= A p), x += alpha p, r -= alpha s, u = M^-1 r, w = 0 on free rows
+    (pinned rows keep x and zero r, u, p, s); r.u into gamma[k+1]. Thread 0 records alpha[k] and the
+    iterations done.
     """
     i = wp.tid()
     k = iteration[0] + step
@@ -252,7 +258,9 @@ def cg_update(
         if i == 0:
             alpha_out[k] = a
             done_out[0] = wp.where(a > 0.0, k + 1, k)
-        if i < n and a > 0.0:
+        if i < n and a > 0.0 and free[i] == 0:
+            w_out[i] = wp.vec3()
+        if i < n and a > 0.0 and free[i] != 0:
             p = u_out[i] + beta * p_out[i]
             s = w_out[i] + beta * s_out[i]
             x_out[i] = x_out[i] + a * p

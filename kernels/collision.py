@@ -59,15 +59,17 @@ def normalize_gradients(grad_out: wp.array(dtype=wp.vec3)):
 
 @wp.func
 def adjacent(row_start: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32), a: int, b: int) -> bool:
-    """True if vertices a and b share a tet (b is in a's sorted row of the block matrix pattern)."""
-    lo = row_start[a]
-    hi = row_start[a + 1]
+    """True if vertices a and b share a tet (the larger is in the smaller's sorted row of the upper pattern)."""
+    row = wp.min(a, b)
+    col = wp.max(a, b)
+    lo = row_start[row]
+    hi = row_start[row + 1]
     while lo < hi:
         mid = (lo + hi) // 2
         c = cols[mid]
-        if c == b:
+        if c == col:
             return True
-        if c < b:
+        if c < col:
             lo = mid + 1
         else:
             hi = mid

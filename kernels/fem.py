@@ -63,7 +63,7 @@ def elastic_forces_and_stiffness(
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
 ):
-    """Per tet: rotation, corotational elastic force (N), and (dt^2 + dt beta) R K_ab R^T added to the matrix."""
+    """Per tet: rotation, corotational elastic force (N), (dt^2 + dt beta) R K_ab R^T into the upper triangle."""
     e = wp.tid()
     t = tets[e]
     x0 = x[t[0]]
@@ -86,9 +86,11 @@ def elastic_forces_and_stiffness(
         ga = shape_gradient(dmi, a)
         wp.atomic_add(force_out, t[a], -vol * (P * ga))
         for b in range(4):
-            gb = shape_gradient(dmi, b)
-            block = R * stiffness_block(ga, gb, vol, mu, lam) * wp.transpose(R)
-            wp.atomic_add(matrix_out, tet_slots[e * 16 + a * 4 + b], scale * block)
+            slot = tet_slots[e * 16 + a * 4 + b]
+            if slot >= 0:  # the upper triangle only: the matrix is symmetric
+                gb = shape_gradient(dmi, b)
+                block = R * stiffness_block(ga, gb, vol, mu, lam) * wp.transpose(R)
+                wp.atomic_add(matrix_out, slot, scale * block)
 
 
 @wp.kernel

@@ -27,9 +27,10 @@ def _evaluate(model, x, dt=1.0):
     fem.elastic_forces_and_stiffness(model, xw, dt, rot, force, matrix)
     dense = np.zeros((3 * n, 3 * n))
     rs, cols, vals = model.row_start.numpy(), model.cols.numpy(), matrix.numpy()
-    for i in range(n):
+    for i in range(n):  # the upper triangle is stored; the lower is its transpose
         for s in range(rs[i], rs[i + 1]):
             dense[3 * i : 3 * i + 3, 3 * cols[s] : 3 * cols[s] + 3] = vals[s]
+            dense[3 * cols[s] : 3 * cols[s] + 3, 3 * i : 3 * i + 3] = vals[s].T
     return force.numpy(), dense, rot.numpy()
 
 
