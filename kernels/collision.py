@@ -22,17 +22,6 @@ from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
 
 @wp.kernel
-def fastest_points(
-    point_velocity: wp.array(dtype=wp.vec3),
-    point_body: wp.array(dtype=wp.int32),
-    speed_max_out: wp.array(dtype=float),
-):
-    """Per body, the largest collision-point speed (m/s), by atomic max (zero ``speed_max_out`` per frame)."""
-    i = wp.tid()
-    wp.atomic_max(speed_max_out, point_body[i], wp.length(point_velocity[i]))
-
-
-@wp.kernel
 def accumulate_gradients(
     tets: wp.array(dtype=wp.vec4i),
     rotation: wp.array(dtype=wp.mat33),
@@ -99,13 +88,72 @@ def face_plane_depth(x: wp.array(dtype=wp.vec3), face: wp.vec3i, q: wp.vec3) -> 
 
 
 @wp.kernel
+def collision_points(
+    tets: wp.array(dtype=wp.vec4i),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    point_tet: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    point_body: wp.array(dtype=wp.int32),
+    points_out: wp.array(dtype=wp.vec3),
+    point_velocity_out: wp.array(dtype=wp.vec3),
+    speed_max_out: wp.array(dtype=float),
+):
+    """Collision point positions and velocities (interpolated like the dense mesh); per body the top speed.
+
+    The speed is an atomic max per body, attempted only when above the value already there (few attempts
+    once the maximum is in).
+    """
+    i = wp.tid()
+    t = tets[point_tet[i]]
+    w = point_bary[i]
+    points_out[i] = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
+    u = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
+    point_velocity_out[i] = u
+    speed = wp.length(u)
+    body = point_body[i]
+    if speed > speed_max_out[body]:
+        wp.atomic_max(speed_max_out, body, speed)
+
+
+@wp.kernel
+def tet_bounds(
+    tets: wp.array(dtype=wp.vec4i),
+    x: wp.array(dtype=wp.vec3),
+    lowers_out: wp.array(dtype=wp.vec3),
+    uppers_out: wp.array(dtype=wp.vec3),
+    inverse_out: wp.array(dtype=wp.mat33),
+):
+    """Per tet: its bounding box (for the BVH refit) and the inverse of its edge matrix.
+
+    A degenerate (flat) tet gets an empty box (lower above upper), so no query returns it.
+    """
+    e = wp.tid()
+    t = tets[e]
+    x0 = x[t[0]]
+    x1 = x[t[1]]
+    x2 = x[t[2]]
+    x3 = x[t[3]]
+    A = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
+    if wp.abs(wp.determinant(A)) < 1.0e-20:
+        lowers_out[e] = wp.vec3(1.0e30)
+        uppers_out[e] = wp.vec3(-1.0e30)
+        inverse_out[e] = wp.mat33()
+    else:
+        lowers_out[e] = wp.min(wp.min(x0, x1), wp.min(x2, x3))
+        uppers_out[e] = wp.max(wp.max(x0, x1), wp.max(x2, x3))
+        inverse_out[e] = wp.inverse(A)
+
+
+@wp.kernel
 def detect_contacts(
     # inputs: geometry
-    grid: wp.uint64,
+    bvh: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
+    tet_inverse: wp.array(dtype=wp.mat33),
     tet_body: wp.array(dtype=wp.int32),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
@@ -120,7 +168,6 @@ def detect_contacts(
     grad: wp.array(dtype=wp.vec3),
     capacity: int,
     # outputs
-    claim_out: wp.array(dtype=wp.int32),
     count_out: wp.array(dtype=wp.int32),
     contact_point_out: wp.array(dtype=wp.int32),
     contact_tet_out: wp.array(dtype=wp.int32),
@@ -129,40 +176,26 @@ def detect_contacts(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ):
-    """Per tet: collision points in the grid cells its bounding box covers, box test, barycentric inside test.
+    """Per collision point: the tets whose boxes hold it (BVH query), barycentric inside test, one contact.
 
-    A contact is recorded with the point, the tet, the point's barycentric weights in the tet, the
-    interpolated unit gradient and the interpolated depth (m). ``stats_out[0]`` keeps the largest depth.
-    ``count_out[0]`` counts every contact found; those past ``capacity`` are dropped (the host sees the
-    overflow as count > capacity). ``claim_out`` (zeroed per step) keeps a point on a face shared by two
-    tets from answering twice.
+    The first tet (in BVH order) that holds the point and gives it a positive depth answers it: a contact
+    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
+    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
+    ``capacity`` are dropped (the host sees the overflow as count > capacity).
     """
-    e = wp.tid()
-    t = tets[e]
-    x0 = x[t[0]]
-    x1 = x[t[1]]
-    x2 = x[t[2]]
-    x3 = x[t[3]]
-    lo = wp.min(wp.min(x0, x1), wp.min(x2, x3))
-    hi = wp.max(wp.max(x0, x1), wp.max(x2, x3))
-    center = 0.5 * (lo + hi)
-    radius = 0.5 * wp.length(hi - lo)
-    A = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
-    if wp.abs(wp.determinant(A)) < 1.0e-20:
-        return
-    A_inv = wp.inverse(A)
-    body = tet_body[e]
-
-    query = wp.hash_grid_query(grid, center, radius)
-    p = int(0)
-    while wp.hash_grid_query_next(query, p):
-        q = points[p]
-        if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+    p = wp.tid()
+    q = points[p]
+    body_p = point_body[p]
+    self_ok = body_self[body_p] != 0
+    query = wp.bvh_query_aabb(bvh, q, q)
+    e = int(0)
+    while wp.bvh_query_next(query, e):
+        body = tet_body[e]
+        same = body == body_p
+        if same and not self_ok:
             continue
-        same = point_body[p] == body
-        if same and body_self[body] == 0:
-            continue
-        b = A_inv * (q - x0)
+        t = tets[e]
+        b = tet_inverse[e] * (q - x[t[0]])
         b0 = 1.0 - b[0] - b[1] - b[2]
         if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0:
             continue
@@ -204,8 +237,6 @@ def detect_contacts(
         if d <= 0.0 or wp.length(g) == 0.0:
             continue
         wp.atomic_max(stats_out, 0, d)
-        if wp.atomic_add(claim_out, p, 1) > 0:
-            continue  # on a face shared by two tets: one contact per point
         slot = wp.atomic_add(count_out, 0, 1)
         if slot < capacity:
             contact_point_out[slot] = p
@@ -213,6 +244,7 @@ def detect_contacts(
             contact_bary_out[slot] = w
             contact_normal_out[slot] = wp.normalize(g)
             contact_depth_out[slot] = d
+        break
 
 
 @wp.func

@@ -14,6 +14,7 @@ Meshes must already be in the preprocessing cache where Netgen is not installed 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -297,6 +298,11 @@ def main(argv=None) -> int:
     parser.add_argument("--piles", default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
+    parser.add_argument(
+        "--paper-substeps",
+        default="",
+        help="comma list: also run each paper scene at these substeps per frame (the speed/accuracy trade)",
+    )
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
@@ -314,6 +320,10 @@ def main(argv=None) -> int:
             for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
                 scene = load_scene_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
                 work.append((name, len(scene.objects), scene.objects, scene))
+                for k in map(int, filter(None, args.paper_substeps.split(","))):
+                    if k != scene.substeps:
+                        variant = dataclasses.replace(scene, substeps=k)
+                        work.append((name, len(scene.objects), scene.objects, variant))
         if "piles" not in skip:
             for n in map(int, args.piles.split(",")):
                 work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))
@@ -331,7 +341,7 @@ def main(argv=None) -> int:
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         print(
-            f"{kind:28s} N={n:5d} tets={run['tets']:8d} dense tris={run['dense_triangles']:10d} "
+            f"{kind:28s} N={n:5d} sub={run['substeps']} tets={run['tets']:8d} dense tris={run['dense_triangles']:10d} "
             f"{run['ms_per_frame']:9.2f} ms/frame  CG it/step {run['cg_iterations_per_step']:6.1f}  "
             f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
             flush=True,

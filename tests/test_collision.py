@@ -181,6 +181,8 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
         "normalize_gradients",
         "detect_contacts",
         "contact_forces",
+        "collision_points",
+        "tet_bounds",
         "accumulate_gradients",
     }
     single = ModelBuilder()

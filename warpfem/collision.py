@@ -1,7 +1,9 @@
 """Host side of collisions: collision points (built once) and the per-step detection and response.
 
-Detection (Teschner et al. 2003): every step the collision points are hashed into a ``wp.HashGrid``; each
-tet visits the cells its bounding box covers, tests the box, then the barycentric inside test. Response
+Detection: every step a ``wp.Bvh`` over the tets' bounding boxes is refitted, and each collision point
+queries it for the tets whose boxes hold it, then applies the barycentric inside test (one thread per
+point: the paper's vertex-in-tet test of Teschner et al. 2003 with a BVH in place of the spatial hash; a
+thread per tet walking hash cells measured 0.9-2.3 ms per step on the paper's scenes on an H100). Response
 (Kondo & Kanai, step 7): a penalty force from the tet's distance field, implicit (see
 :mod:`warpfem.kernels.collision`). Self-collision rule: a point is tested against tets of its own body only
 if none of its anchor vertices (the vertex itself, or the three corners of the surface triangle a sample
@@ -17,7 +19,6 @@ import numpy as np
 import warp as wp
 
 from warpfem.cg import Coupling
-from warpfem.embedding import map_dense
 from warpfem.kernels import collision as K
 
 
@@ -122,7 +123,6 @@ class Collider:
         self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
         self.count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.claim = wp.zeros(n_points, dtype=wp.int32, device=dev)
         self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_tet = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
@@ -143,8 +143,11 @@ class Collider:
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
-        self.grid = wp.HashGrid(128, 128, 128, device=dev)
-        self.grid.reserve(n_points)
+        self.lowers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
+        self.uppers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
+        self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
+        self._bound(model.rest_x)
+        self.bvh = wp.Bvh(self.lowers, self.uppers)
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -165,20 +168,17 @@ class Collider:
         m = self.model
         dev = m.device
         # collision points and their velocities: the tet fields interpolated like the dense mesh
-        map_dense(m.tets, x, m.point_tet, m.point_bary, self.points)
-        map_dense(m.tets, v, m.point_tet, m.point_bary, self.point_velocity)
         wp.launch(
-            K.fastest_points,
+            K.collision_points,
             dim=self.points.shape[0],
-            inputs=[self.point_velocity, m.point_body],
-            outputs=[self.speed_max],
+            inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
+            outputs=[self.points, self.point_velocity, self.speed_max],
             device=dev,
         )
-        self.grid.build(self.points, m.collision_cell)
+        self._bound(x)
+        self.bvh.refit()
         self._rotate_gradients(rotation)
         self._detect(
-            self.grid,
-            self.claim,
             x,
             v,
             dt,
@@ -222,6 +222,17 @@ class Collider:
             device=dev,
         )
 
+    def _bound(self, x: wp.array) -> None:
+        """The tets' bounding boxes (the BVH's leaves) and inverse edge matrices at positions ``x``."""
+        m = self.model
+        wp.launch(
+            K.tet_bounds,
+            dim=m.tet_count,
+            inputs=[m.tets, x],
+            outputs=[self.lowers, self.uppers, self.tet_inverse],
+            device=m.device,
+        )
+
     def _rotate_gradients(self, rotation: wp.array) -> None:
         """grad = normalize(sum over incident tets of R_t g0), per tet vertex."""
         m = self.model
@@ -237,8 +248,6 @@ class Collider:
 
     def _detect(
         self,
-        grid,
-        claim,
         x,
         v,
         dt,
@@ -252,16 +261,16 @@ class Collider:
     ) -> None:
         m = self.model
         self.count.zero_()
-        claim.zero_()
         wp.launch(
             K.detect_contacts,
-            dim=m.tet_count,
+            dim=points.shape[0],
             inputs=[
-                grid.id,
+                self.bvh.id,
                 x,
                 v,
                 dt,
                 m.tets,
+                self.tet_inverse,
                 m.tet_body,
                 m.tet_face_start,
                 m.tet_faces,
@@ -277,7 +286,6 @@ class Collider:
                 capacity,
             ],
             outputs=[
-                claim,
                 self.count,
                 self.contact_point,
                 self.contact_tet,
@@ -297,13 +305,11 @@ class Collider:
         m = self.model
         dev = m.device
         self._rotate_gradients(rotation)
+        self._bound(x)
+        self.bvh.refit()
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
-        grid = wp.HashGrid(128, 128, 128, device=dev)
-        grid.build(pts, m.collision_cell)
         deepest = wp.zeros(1, dtype=float, device=dev)
         self._detect(
-            grid,
-            wp.zeros(len(points), dtype=wp.int32, device=dev),
             x,
             wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
             0.0,

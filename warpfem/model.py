@@ -93,7 +93,7 @@ class Model:
     point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
     point_body: wp.array  # int32
     point_mass: wp.array  # float, lumped vertex mass interpolated at each collision point (kg)
-    collision_cell: float  # hash grid cell width (m): the median largest edge component of a tet
+    tet_size: float  # typical tet size (m): the median largest edge component of a tet (tunnelling warning)
 
     @property
     def vertex_count(self) -> int:
@@ -377,5 +377,5 @@ class ModelBuilder:
             point_anchor=arr(np.concatenate(point_anchor).astype(np.int32), wp.vec3i),
             point_body=arr(np.concatenate(point_body).astype(np.int32), wp.int32),
             point_mass=arr(cat("point_mass").astype(f32), float),
-            collision_cell=float(np.median(cat("tet_extent"))),
+            tet_size=float(np.median(cat("tet_extent"))),
         )

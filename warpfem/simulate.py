@@ -363,7 +363,7 @@ class Contacts:
         if solver.collider is None:
             return
         speeds = solver.collider.read_speeds()
-        cell = solver.model.collision_cell
+        cell = solver.model.tet_size
         fastest = int(np.argmax(speeds)) if len(speeds) else 0
         if dt > 0 and not self.warned_speed and warn and speeds[fastest] * dt > 0.5 * cell:
             body = solver.model.bodies[fastest]
