@@ -66,6 +66,55 @@ def embedded_product(
     return dot
 
 
+@wp.func
+def chunk_product(
+    i: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_size: int,
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += chunk i's share of A u (its blocks and the transposes of the off-diagonal ones); returns its u.w."""
+    row = chunk_row[i]
+    u_row = u[row]
+    acc = wp.vec3()
+    own = wp.vec3()
+    for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
+        c = cols[j]
+        A = values[j]
+        if c != row:
+            acc += A * u[c]
+            wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+        else:
+            own = A * u_row
+    wp.atomic_add(w_out, row, acc + own)
+    return wp.dot(u_row, 2.0 * acc + own)
+
+
+@wp.func
+def pair_product(
+    c: int,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += coupling pair c's share of A u if the pair is live; returns its u.w."""
+    if c >= wp.min(pair_count[0], pair_matrix.shape[0]):
+        return 0.0
+    return embedded_product(
+        pair_verts_a[c], pair_weights_a[c], pair_verts_b[c], pair_weights_b[c], pair_matrix[c], u, w_out
+    )
+
+
 @wp.kernel
 def cg_apply(
     # inputs: matrix
@@ -111,33 +160,19 @@ def cg_apply(
     if i < n_threads and run:
         n_chunks = chunk_row.shape[0]
         if i < n_chunks:
-            row = chunk_row[i]
-            u_row = u[row]
-            acc = wp.vec3()
-            own = wp.vec3()
-            for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
-                c = cols[j]
-                A = values[j]
-                if c != row:
-                    acc += A * u[c]
-                    wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
-                else:
-                    own = A * u_row
-            wp.atomic_add(w_out, row, acc + own)
-            # u.(A u) over this chunk's blocks and the transposes of its off-diagonal ones
-            dot = wp.dot(u_row, 2.0 * acc + own)
+            dot = chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
         else:
-            c = i - n_chunks
-            if c < wp.min(pair_count[0], pair_matrix.shape[0]):
-                dot = embedded_product(
-                    pair_verts_a[c],
-                    pair_weights_a[c],
-                    pair_verts_b[c],
-                    pair_weights_b[c],
-                    pair_matrix[c],
-                    u,
-                    w_out,
-                )
+            dot = pair_product(
+                i - n_chunks,
+                pair_count,
+                pair_verts_a,
+                pair_weights_a,
+                pair_verts_b,
+                pair_weights_b,
+                pair_matrix,
+                u,
+                w_out,
+            )
     block_sum(dot, delta_out, k)
 
 
@@ -166,6 +201,68 @@ def cg_reset(
         done_out[0] = 0
 
 
+@wp.func
+def init_row(
+    i: int,
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    u_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+) -> wp.vec2:
+    """Row i of the start: r = b - A x (A x in w), u = M^-1 r, p = s = w = 0; returns (r.u, b.M^-1 b)."""
+    r = wp.vec3()
+    u = wp.vec3()
+    bz = float(0.0)
+    if free[i] != 0:
+        r = b[i] - w_out[i]
+        u = diag_inv[i] * r
+        bz = wp.dot(b[i], diag_inv[i] * b[i])
+    r_out[i] = r
+    u_out[i] = u
+    p_out[i] = wp.vec3()
+    s_out[i] = wp.vec3()
+    w_out[i] = wp.vec3()
+    return wp.vec2(wp.dot(r, u), bz)
+
+
+@wp.func
+def update_row(
+    i: int,
+    a: float,
+    beta: float,
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    u_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """Row i of an iteration: p = u + beta p, s = w + beta s, x += a p, r -= a s, u = M^-1 r, w = 0; returns r.u.
+
+    Pinned rows only get w = 0 (their x stays, their r, u, p, s stay zero).
+    """
+    if free[i] == 0:
+        w_out[i] = wp.vec3()
+        return 0.0
+    p = u_out[i] + beta * p_out[i]
+    s = w_out[i] + beta * s_out[i]
+    x_out[i] = x_out[i] + a * p
+    r = r_out[i] - a * s
+    u = diag_inv[i] * r
+    p_out[i] = p
+    s_out[i] = s
+    r_out[i] = r
+    u_out[i] = u
+    w_out[i] = wp.vec3()
+    return wp.dot(r, u)
+
+
 @wp.kernel
 def cg_init(
     # inputs
@@ -184,23 +281,11 @@ def cg_init(
 ):
     """r = b - A x (given in w), u = M^-1 r, p = s = w = 0; r.u into gamma[0], b.M^-1 b into bz[0]."""
     i = wp.tid()
-    ru = float(0.0)
-    bz = float(0.0)
+    dots = wp.vec2()
     if i < n:
-        r = wp.vec3()
-        u = wp.vec3()
-        if free[i] != 0:
-            r = b[i] - w_out[i]
-            u = diag_inv[i] * r
-            ru = wp.dot(r, u)
-            bz = wp.dot(b[i], diag_inv[i] * b[i])
-        r_out[i] = r
-        u_out[i] = u
-        p_out[i] = wp.vec3()
-        s_out[i] = wp.vec3()
-        w_out[i] = wp.vec3()
-    block_sum(ru, gamma_out, 0)
-    block_sum(bz, bz_out, 0)
+        dots = init_row(i, diag_inv, free, b, w_out, r_out, u_out, p_out, s_out)
+    block_sum(dots[0], gamma_out, 0)
+    block_sum(dots[1], bz_out, 0)
 
 
 @wp.func
@@ -258,20 +343,8 @@ def cg_update(
         if i == 0:
             alpha_out[k] = a
             done_out[0] = wp.where(a > 0.0, k + 1, k)
-        if i < n and a > 0.0 and free[i] == 0:
-            w_out[i] = wp.vec3()
-        if i < n and a > 0.0 and free[i] != 0:
-            p = u_out[i] + beta * p_out[i]
-            s = w_out[i] + beta * s_out[i]
-            x_out[i] = x_out[i] + a * p
-            r = r_out[i] - a * s
-            u = diag_inv[i] * r
-            p_out[i] = p
-            s_out[i] = s
-            r_out[i] = r
-            u_out[i] = u
-            w_out[i] = wp.vec3()
-            ru = wp.dot(r, u)
+        if i < n and a > 0.0:
+            ru = update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
     block_sum(ru, gamma_out, k + 1)
 
 
@@ -319,3 +392,155 @@ def cg_finish(
     if bz[0] > 0.0:
         res = wp.sqrt(wp.max(gamma[k], 0.0) / bz[0])
     residual_max_out[0] = wp.max(residual_max_out[0], res)
+
+
+@wp.func
+def block_total(value: float) -> float:
+    """The sum of ``value`` over the block's threads, returned to every thread.
+
+    Also a barrier: writes before it, atomics included, are visible to the whole block after it.
+    """
+    return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
+
+
+@wp.func
+def block_product(
+    lane: int,
+    threads: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_size: int,
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += A u (w zeroed before) by the block's threads; returns u.w to every thread."""
+    dot = float(0.0)
+    for i in range(lane, chunk_row.shape[0], threads):
+        dot += chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
+    for c in range(lane, pair_matrix.shape[0], threads):
+        dot += pair_product(
+            c, pair_count, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
+        )
+    return block_total(dot)
+
+
+@wp.kernel
+def cg_solve_block(
+    # inputs: matrix
+    threads: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_size: int,
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    # inputs: system and limits
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    tolerance: wp.array(dtype=float),
+    max_iterations: wp.array(dtype=wp.int32),
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    u_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+    counts_out: wp.array(dtype=wp.int32),
+    residual_max_out: wp.array(dtype=float),
+):
+    """The whole solve in one launch of one block (``threads`` threads; one on the CPU), for small systems.
+
+    The same iteration as ``cg_update`` + ``cg_apply``, with the block's reductions as the barriers between
+    phases: no launch per iteration, no device-side loop node. Counts the solve like ``cg_finish``.
+    """
+    lane = wp.tid()
+    n = free.shape[0]
+    for i in range(lane, n, threads):
+        w_out[i] = wp.vec3()
+    block_total(0.0)
+    block_product(
+        lane,
+        threads,
+        chunk_row,
+        chunk_start,
+        chunk_size,
+        row_start,
+        cols,
+        values,
+        pair_count,
+        pair_verts_a,
+        pair_weights_a,
+        pair_verts_b,
+        pair_weights_b,
+        pair_matrix,
+        x_out,
+        w_out,
+    )
+    dots = wp.vec2()
+    for i in range(lane, n, threads):
+        dots += init_row(i, diag_inv, free, b, w_out, r_out, u_out, p_out, s_out)
+    gamma = block_total(dots[0])
+    bz = block_total(dots[1])
+    tol2 = tolerance[0] * tolerance[0]
+    max_k = max_iterations[0]
+    k = int(0)
+    gamma_prev = float(0.0)
+    a_prev = float(0.0)
+    while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
+        delta = block_product(
+            lane,
+            threads,
+            chunk_row,
+            chunk_start,
+            chunk_size,
+            row_start,
+            cols,
+            values,
+            pair_count,
+            pair_verts_a,
+            pair_weights_a,
+            pair_verts_b,
+            pair_weights_b,
+            pair_matrix,
+            u_out,
+            w_out,
+        )
+        beta = float(0.0)
+        denom = delta
+        if k > 0:
+            beta = gamma / gamma_prev
+            denom = delta - beta * gamma / a_prev
+        if denom <= 0.0:
+            break
+        a = gamma / denom
+        ru = float(0.0)
+        for i in range(lane, n, threads):
+            ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
+        gamma_prev = gamma
+        a_prev = a
+        gamma = block_total(ru)
+        k += 1
+    if lane == 0:
+        counts_out[0] = counts_out[0] + 1
+        counts_out[1] = counts_out[1] + k
+        res = float(0.0)
+        if bz > 0.0:
+            res = wp.sqrt(wp.max(gamma, 0.0) / bz)
+        residual_max_out[0] = wp.max(residual_max_out[0], res)

@@ -9,6 +9,12 @@ from warpfem.model import block_pattern
 from warpfem.shapes import box_tet_mesh
 
 
+@pytest.fixture(params=[True, False], ids=["one-block", "per-iteration-launches"])
+def single_block(request):
+    """Both CG paths: the whole solve in one launch, and two launches per iteration."""
+    return request.param
+
+
 def _system(device, seed=0, pinned=()):
     """A random SPD 3x3-block system on a tet mesh's sparsity pattern; returns solver inputs and dense A."""
     rng = np.random.default_rng(seed)
@@ -38,11 +44,11 @@ def _system(device, seed=0, pinned=()):
     return arrays, A, free, rng
 
 
-def test_cg_solves_spd_system_to_tolerance(device):
+def test_cg_solves_spd_system_to_tolerance(device, single_block):
     a, A, _, rng = _system(device)
     n = A.shape[0] // 3
     b = rng.normal(size=(n, 3))
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, single_block=single_block)
     cg.configure(500, 1e-6)
     x = wp.zeros(n, dtype=wp.vec3, device=device)
     cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
@@ -54,11 +60,11 @@ def test_cg_solves_spd_system_to_tolerance(device):
     assert np.linalg.norm(A @ x.numpy().ravel() - b.ravel()) < 1e-4 * np.linalg.norm(b)
 
 
-def test_fixed_iteration_count_is_exact(device):
+def test_fixed_iteration_count_is_exact(device, single_block):
     a, A, _, rng = _system(device, seed=1)
     n = A.shape[0] // 3
     b = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 50, device)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 50, device, single_block=single_block)
     residuals = []
     for iters in (3, 7):
         cg.configure(iters, 0.0)
@@ -69,13 +75,13 @@ def test_fixed_iteration_count_is_exact(device):
     assert residuals[1] < residuals[0]
 
 
-def test_pinned_rows_keep_their_start_value(device):
+def test_pinned_rows_keep_their_start_value(device, single_block):
     pinned = (0, 5, 11)
     a, A, free, rng = _system(device, seed=2, pinned=pinned)
     n = A.shape[0] // 3
     b = rng.normal(size=(n, 3))
     b[list(pinned)] = 0.0
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, single_block=single_block)
     cg.configure(500, 1e-7)
     x = wp.zeros(n, dtype=wp.vec3, device=device)
     cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
@@ -87,7 +93,7 @@ def test_pinned_rows_keep_their_start_value(device):
 
 
 @pytest.mark.parametrize("unroll", [1, 3])
-def test_coupling_pairs_enter_every_product(device, unroll):
+def test_coupling_pairs_enter_every_product(device, unroll, single_block):
     """Contacts as a matrix-free term: the solve equals the dense solve of A + sum J^T C J."""
     a, A, _, rng = _system(device, seed=3)
     n = A.shape[0] // 3
@@ -126,7 +132,9 @@ def test_coupling_pairs_enter_every_product(device, unroll):
         pad(np.array(C), wp.mat33),
     )
     b = rng.normal(size=(n, 3))
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll)
+    cg = CGSolver(
+        a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll, single_block=single_block
+    )
     cg.configure(500, 1e-6)
     x0 = rng.normal(size=(n, 3))  # a nonzero start: the coupling enters the initial residual too
     x = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=device)
@@ -138,9 +146,9 @@ def test_coupling_pairs_enter_every_product(device, unroll):
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
 
 
-def test_configure_rejects_out_of_range(device):
+def test_configure_rejects_out_of_range(device, single_block):
     a, _, _, _ = _system(device)
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 10, device)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 10, device, single_block=single_block)
     with pytest.raises(ValueError):
         cg.configure(11, 1e-3)
     with pytest.raises(ValueError):
