@@ -94,8 +94,8 @@ def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[O
     return objects
 
 
-def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2) -> dict:
-    """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures."""
+def build(scene, objects, device, cache_dir: Path) -> Simulation:
+    """The simulation of ``objects`` with ``scene``'s solver settings."""
     prepared = {}
     builder = ModelBuilder()
     for obj in objects:
@@ -106,8 +106,40 @@ def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int
             )
         add_prepared_body(builder, obj, prepared[key])
     model = builder.finalize(device)
-    solver = solver_of(scene, model)
-    sim = Simulation(model, solver, scene.substeps, scene.dt)
+    return Simulation(model, solver_of(scene, model), scene.substeps, scene.dt)
+
+
+def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> dict:
+    """How far the bench settings end from a converged run of the same scene (tet vertices, m).
+
+    Converged: 4x the substeps and CG to a relative residual of 1e-6. Both run ``frames`` frames from the
+    same start; a settled pile that ends where the converged one does was not bought with accuracy.
+    """
+    converged = dataclasses.replace(
+        scene,
+        substeps=4 * scene.substeps,
+        solver=dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=1e-6, cg_iterations=1000),
+    )
+    ends = []
+    for settings in (scene, converged):
+        sim = build(settings, objects, device, cache_dir)
+        for _ in range(frames):
+            sim.advance()
+        ends.append(sim.states[0].x.numpy())
+    gap = np.linalg.norm(ends[0] - ends[1], axis=1)
+    return {
+        "frames": frames,
+        "converged_substeps": converged.substeps,
+        "converged_cg_tolerance": 1e-6,
+        "max_m": float(gap.max()),
+        "rms_m": float(np.sqrt(np.mean(gap**2))),
+    }
+
+
+def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2) -> dict:
+    """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures."""
+    sim = build(scene, objects, device, cache_dir)
+    model, solver = sim.model, sim.solver
 
     def frame(timer=None):
         sim.advance(timer)
@@ -299,6 +331,11 @@ def main(argv=None) -> int:
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
     parser.add_argument(
+        "--deviation",
+        default="1,4",
+        help="comma list of pile sizes whose settled state is compared with a converged run ('' for none)",
+    )
+    parser.add_argument(
         "--paper-substeps",
         default="",
         help="comma list: also run each paper scene at these substeps per frame (the speed/accuracy trade)",
@@ -338,6 +375,8 @@ def main(argv=None) -> int:
     for kind, n, objs, scene in work:
         t0 = time.perf_counter()
         run = time_scene(scene, objs, device, args.cache_dir, frames)
+        if kind == "pile" and str(n) in args.deviation.split(","):
+            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         print(

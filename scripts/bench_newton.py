@@ -98,11 +98,14 @@ def build_model(objects, meshes, device, settings: dict):
     return model
 
 
-def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict, warmup: int = 2) -> dict:
-    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle and NaN check."""
+def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
+    """The Newton model of a pile and a function advancing it one frame (a replayed CUDA graph on GPUs).
+
+    Returns (model, frame, state): ``state[0]`` holds the current particles after each frame. The first
+    frame is run here (it captures the graph, or compiles the kernels without one).
+    """
     import newton
 
-    t_build = time.perf_counter()
     meshes = placed_meshes(objects, cache_dir)
     model = build_model(objects, meshes, device, settings)
     expected_tets = sum(len(t) for _, t in meshes)
@@ -131,8 +134,6 @@ def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: di
             solver.step(state[0], state[1], control, contacts, dt)
             state[0], state[1] = state[1], state[0]
 
-    build_s = time.perf_counter() - t_build
-    t0 = time.perf_counter()
     graph = None
     if device.is_cuda and settings["graph"]:
         if substeps % 2:  # the captured swaps must bring the states back to where they began
@@ -143,6 +144,13 @@ def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: di
     frame = (lambda: wp.capture_launch(graph)) if graph is not None else simulate
     frame()  # with no graph: the first frame compiles and loads the kernels
     wp.synchronize_device(device)
+    return model, frame, state, graph is not None
+
+
+def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict, warmup: int = 2) -> dict:
+    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle and NaN check."""
+    t0 = time.perf_counter()
+    model, frame, state, graph = pile_stepper(objects, device, cache_dir, settings)
     first_frame_s = time.perf_counter() - t0
     for _ in range(warmup - 1):
         frame()
@@ -159,17 +167,35 @@ def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: di
         "fps": 1000.0 / ms,
         "frames_timed": frames,
         "warmup_frames": warmup,
-        "substeps": substeps,
+        "substeps": settings["substeps"],
         "iterations": settings["iterations"],
-        "cuda_graph": graph is not None,
+        "cuda_graph": graph,
         "bodies": len(objects),
         "tets": int(model.tet_count),
         "particles": int(model.particle_count),
         "surface_triangles": int(model.tri_count),
         "lowest_point_m": float(np.nanmin(q[:, 1])) if finite else float("nan"),
         "nan": not finite,
-        "build_s": build_s,
-        "first_frame_s": first_frame_s,
+        "build_and_first_frame_s": first_frame_s,
+    }
+
+
+def settle_deviation(objects, device, cache_dir: Path | None, frames: int, settings: dict) -> dict:
+    """How far the bench settings end from a converged run (4x substeps, 4x iterations) after ``frames`` frames."""
+    converged = {**settings, "substeps": 4 * settings["substeps"], "iterations": 4 * settings["iterations"]}
+    ends = []
+    for s in (settings, converged):
+        _, frame, state, _ = pile_stepper(objects, device, cache_dir, s)
+        for _ in range(frames - 1):  # pile_stepper ran the first
+            frame()
+        ends.append(state[0].particle_q.numpy())
+    gap = np.linalg.norm(ends[0] - ends[1], axis=1)
+    return {
+        "frames": frames,
+        "converged_substeps": converged["substeps"],
+        "converged_iterations": converged["iterations"],
+        "max_m": float(gap.max()),
+        "rms_m": float(np.sqrt(np.mean(gap**2))),
     }
 
 
@@ -195,6 +221,9 @@ def main(argv=None) -> int:
     parser.add_argument("--k-damp-per-mu", type=float, default=0.005, help="s: k_damp = this * mu (Pa s)")
     parser.add_argument("--tile-solve", choices=("auto", "on", "off"), default="auto", help="auto: on on CUDA")
     parser.add_argument("--no-graph", action="store_true", help="launch kernels instead of a CUDA graph")
+    parser.add_argument(
+        "--deviation", default="1,4", help="comma list of pile sizes compared with a converged run ('' for none)"
+    )
     args = parser.parse_args(argv)
 
     import newton
@@ -235,6 +264,8 @@ def main(argv=None) -> int:
     for n, objs in work:
         t0 = time.perf_counter()
         run = time_pile(objs, device, args.cache_dir, frames, settings, warmup=args.warmup)
+        if str(n) in args.deviation.split(","):
+            run["settle_deviation"] = settle_deviation(objs, device, args.cache_dir, frames, settings)
         run.update(kind="pile", n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         low = run["lowest_point_m"]

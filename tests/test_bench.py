@@ -32,5 +32,9 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         assert {"elastic", "solve", "map"} <= set(run["phase_ms"])
         assert run["lowest_dense_point_m"] > -0.05  # they fell onto the ground and stayed above it
     assert "collision" in runs[1]["phase_ms"] and "collision" not in runs[0]["phase_ms"]
+    deviation = runs[0]["settle_deviation"]  # one bunny against its converged run: close, not identical
+    assert deviation["converged_substeps"] == 4 * runs[0]["substeps"]
+    assert 0.0 < deviation["rms_m"] <= deviation["max_m"] < 0.05
     cg = result["cg_at_scale"]
     assert cg["cg_iteration_us"] > 0 and cg["stream_bandwidth_GBps"] > 0 and cg["ratio_to_spmv_floor"] > 0
+    assert cg["stored_blocks"] < cg["nnz_blocks"] and set(cg["cg_iteration_us_by_chunk"]) == {"1", "2", "4", "8", "64"}
