@@ -149,7 +149,8 @@ def cg_apply(
 
     ``values`` holds the upper triangle: a block (row, c) with c > row adds A u_c to the row and A^T u_row to
     row c. u is zero on pinned rows, so they add nothing; what lands in w on them is ignored by
-    ``cg_update``. With ``gate`` set, skipped (adding nothing) when iteration k will not run.
+    ``cg_update``. Threads past the chunks apply the coupling pairs. With ``gate`` set, skipped (adding
+    nothing) when iteration k will not run.
     """
     i = wp.tid()
     k = iteration[0] + step
@@ -161,18 +162,11 @@ def cg_apply(
         n_chunks = chunk_row.shape[0]
         if i < n_chunks:
             dot = chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
-        else:
-            dot = pair_product(
-                i - n_chunks,
-                pair_count,
-                pair_verts_a,
-                pair_weights_a,
-                pair_verts_b,
-                pair_weights_b,
-                pair_matrix,
-                u,
-                w_out,
-            )
+        else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
+            for c in range(i - n_chunks, wp.min(pair_count[0], pair_matrix.shape[0]), n_threads - n_chunks):
+                dot += pair_product(
+                    c, pair_count, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
+                )
     block_sum(dot, delta_out, k)
 
 

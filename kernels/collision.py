@@ -146,28 +146,52 @@ def tet_bounds(
 
 
 @wp.kernel
-def detect_contacts(
-    # inputs: geometry
-    bvh: wp.uint64,
+def body_bounds(
+    body_vertex_start: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+    threads: int,
+    lowers_out: wp.array(dtype=wp.vec3),
+    uppers_out: wp.array(dtype=wp.vec3),
+):
+    """Per body (one block of ``threads`` threads each): the bounding box of its tet vertices."""
+    body, lane = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for i in range(body_vertex_start[body] + lane, body_vertex_start[body + 1], threads):
+        lo = wp.min(lo, x[i])
+        hi = wp.max(hi, x[i])
+    lo_x = wp.tile_min(wp.tile(lo[0]))
+    lo_y = wp.tile_min(wp.tile(lo[1]))
+    lo_z = wp.tile_min(wp.tile(lo[2]))
+    hi_x = wp.tile_max(wp.tile(hi[0]))
+    hi_y = wp.tile_max(wp.tile(hi[1]))
+    hi_z = wp.tile_max(wp.tile(hi[2]))
+    if lane == 0:
+        lowers_out[body] = wp.vec3(wp.tile_extract(lo_x, 0), wp.tile_extract(lo_y, 0), wp.tile_extract(lo_z, 0))
+        uppers_out[body] = wp.vec3(wp.tile_extract(hi_x, 0), wp.tile_extract(hi_y, 0), wp.tile_extract(hi_z, 0))
+
+
+@wp.func
+def point_in_body(
+    p: int,
+    q: wp.vec3,
+    body: int,
+    same: bool,
+    tet_bvh: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
-    tet_body: wp.array(dtype=wp.int32),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
-    points: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
-    point_body: wp.array(dtype=wp.int32),
     point_anchor: wp.array(dtype=wp.vec3i),
-    body_self: wp.array(dtype=wp.int32),
     row_start: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
     capacity: int,
-    # outputs
     count_out: wp.array(dtype=wp.int32),
     contact_point_out: wp.array(dtype=wp.int32),
     contact_tet_out: wp.array(dtype=wp.int32),
@@ -175,25 +199,11 @@ def detect_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
-):
-    """Per collision point: the tets whose boxes hold it (BVH query), barycentric inside test, one contact.
-
-    The first tet (in BVH order) that holds the point and gives it a positive depth answers it: a contact
-    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
-    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
-    ``capacity`` are dropped (the host sees the overflow as count > capacity).
-    """
-    p = wp.tid()
-    q = points[p]
-    body_p = point_body[p]
-    self_ok = body_self[body_p] != 0
-    query = wp.bvh_query_aabb(bvh, q, q)
+) -> bool:
+    """Point p (at q) against the tets of one body; records the first contact and returns True, else False."""
+    query = wp.bvh_query_aabb(tet_bvh, q, q, wp.bvh_get_group_root(tet_bvh, body))
     e = int(0)
     while wp.bvh_query_next(query, e):
-        body = tet_body[e]
-        same = body == body_p
-        if same and not self_ok:
-            continue
         t = tets[e]
         b = tet_inverse[e] * (q - x[t[0]])
         b0 = 1.0 - b[0] - b[1] - b[2]
@@ -244,7 +254,92 @@ def detect_contacts(
             contact_bary_out[slot] = w
             contact_normal_out[slot] = wp.normalize(g)
             contact_depth_out[slot] = d
-        break
+        return True
+    return False
+
+
+@wp.kernel
+def detect_contacts(
+    # inputs: geometry
+    body_bvh: wp.uint64,
+    tet_bvh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    tets: wp.array(dtype=wp.vec4i),
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    points: wp.array(dtype=wp.vec3),
+    point_velocity: wp.array(dtype=wp.vec3),
+    point_body: wp.array(dtype=wp.int32),
+    point_anchor: wp.array(dtype=wp.vec3i),
+    body_self: wp.array(dtype=wp.int32),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    capacity: int,
+    # outputs
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+):
+    """Per collision point: the tets whose boxes hold it (BVH query), barycentric inside test, one contact.
+
+    Two levels: the bodies whose boxes hold the point (``body_bvh``; its own body only if it collides
+    with itself), then that body's subtree of ``tet_bvh`` (grouped by body), so the many points far from
+    every other body cost one small query. The first tet that holds the point and gives it a positive
+    depth answers it: a contact
+    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
+    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
+    ``capacity`` are dropped (the host sees the overflow as count > capacity).
+    """
+    p = wp.tid()
+    q = points[p]
+    body_p = point_body[p]
+    self_ok = body_self[body_p] != 0
+    bodies = wp.bvh_query_aabb(body_bvh, q, q)
+    body = int(0)
+    found = bool(False)
+    while wp.bvh_query_next(bodies, body):
+        if found:
+            break
+        same = body == body_p
+        if same and not self_ok:
+            continue
+        found = point_in_body(
+            p,
+            q,
+            body,
+            same,
+            tet_bvh,
+            x,
+            v,
+            dt,
+            tets,
+            tet_inverse,
+            tet_face_start,
+            tet_faces,
+            point_velocity,
+            point_anchor,
+            row_start,
+            cols,
+            depth,
+            grad,
+            capacity,
+            count_out,
+            contact_point_out,
+            contact_tet_out,
+            contact_bary_out,
+            contact_normal_out,
+            contact_depth_out,
+            stats_out,
+        )
 
 
 @wp.func

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from warpfem import cg as cg_module
 from warpfem.cg import CGSolver, Coupling
 from warpfem.model import block_pattern
 from warpfem.shapes import box_tet_mesh
@@ -93,8 +94,9 @@ def test_pinned_rows_keep_their_start_value(device, single_block):
 
 
 @pytest.mark.parametrize("unroll", [1, 3])
-def test_coupling_pairs_enter_every_product(device, unroll, single_block):
+def test_coupling_pairs_enter_every_product(device, unroll, single_block, monkeypatch):
     """Contacts as a matrix-free term: the solve equals the dense solve of A + sum J^T C J."""
+    monkeypatch.setattr(cg_module, "PAIR_THREADS", 2)  # fewer pair threads than pairs: each strides
     a, A, _, rng = _system(device, seed=3)
     n = A.shape[0] // 3
     pairs, capacity = 5, 8

@@ -21,6 +21,9 @@ BLOCK = 256
 CHUNK = {"cuda": 4, "cpu": 64}
 """Nonzero blocks per thread of the matrix product, per device kind (the CPU runs one thread at a time)."""
 
+PAIR_THREADS = 2048
+"""Threads of the product that apply the coupling pairs (each strides over the live ones)."""
+
 SOLVE_BLOCK = 256
 """Threads of the one-block solve (CUDA): the module's default block size, which its kernels are compiled for."""
 
@@ -126,7 +129,8 @@ class CGSolver:
             )
         self._pairs = [coupling.count, coupling.verts_a, coupling.weights_a, coupling.verts_b, coupling.weights_b]
         self._pairs.append(coupling.matrix)
-        threads = len(rows) + coupling.matrix.shape[0]
+        # one thread per chunk, then up to PAIR_THREADS threads striding over the live pairs
+        threads = len(rows) + min(coupling.matrix.shape[0], PAIR_THREADS)
         self._apply_threads = threads
         self._apply_dim = max(BLOCK, -(-threads // BLOCK) * BLOCK)
         self.r = wp.zeros(n, dtype=wp.vec3, device=self.device)

@@ -41,6 +41,9 @@ class CollisionSettings:
 
 DEFAULT_COLLISION = CollisionSettings()
 
+BODY_BLOCK = 256
+"""Threads per body of the body-box reduction (CUDA)."""
+
 
 @dataclass(frozen=True)
 class CollisionPoints:
@@ -146,8 +149,15 @@ class Collider:
         self.lowers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         self.uppers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
-        self._bound(model.rest_x)
-        self.bvh = wp.Bvh(self.lowers, self.uppers)
+        starts = np.array([b.vertex_start for b in model.bodies] + [model.vertex_count], dtype=np.int32)
+        self.body_vertex_start = wp.array(starts, dtype=wp.int32, device=dev)
+        self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        self._bound(model.rest_x, refit=False)  # the boxes the BVHs are built from
+        # median splits: a balanced tree. Warp's BVH queries keep a fixed 32-entry traversal stack with no
+        # overflow check, and the GPU's default LBVH can grow deeper than that (it crashed scene B on an H100).
+        self.tet_bvh = wp.Bvh(self.lowers, self.uppers, constructor="median", groups=model.tet_body)
+        self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -176,7 +186,6 @@ class Collider:
             device=dev,
         )
         self._bound(x)
-        self.bvh.refit()
         self._rotate_gradients(rotation)
         self._detect(
             x,
@@ -222,8 +231,8 @@ class Collider:
             device=dev,
         )
 
-    def _bound(self, x: wp.array) -> None:
-        """The tets' bounding boxes (the BVH's leaves) and inverse edge matrices at positions ``x``."""
+    def _bound(self, x: wp.array, refit: bool = True) -> None:
+        """At positions ``x``: the tets' and the bodies' boxes, the BVHs refitted to them, tet inverses."""
         m = self.model
         wp.launch(
             K.tet_bounds,
@@ -232,6 +241,18 @@ class Collider:
             outputs=[self.lowers, self.uppers, self.tet_inverse],
             device=m.device,
         )
+        threads = BODY_BLOCK if m.device.is_cuda else 1
+        wp.launch_tiled(
+            K.body_bounds,
+            dim=[len(m.bodies)],
+            inputs=[self.body_vertex_start, x, threads],
+            outputs=[self.body_lowers, self.body_uppers],
+            block_dim=threads,
+            device=m.device,
+        )
+        if refit:
+            self.tet_bvh.refit()
+            self.body_bvh.refit()
 
     def _rotate_gradients(self, rotation: wp.array) -> None:
         """grad = normalize(sum over incident tets of R_t g0), per tet vertex."""
@@ -265,13 +286,13 @@ class Collider:
             K.detect_contacts,
             dim=points.shape[0],
             inputs=[
-                self.bvh.id,
+                self.body_bvh.id,
+                self.tet_bvh.id,
                 x,
                 v,
                 dt,
                 m.tets,
                 self.tet_inverse,
-                m.tet_body,
                 m.tet_face_start,
                 m.tet_faces,
                 points,
@@ -306,7 +327,6 @@ class Collider:
         dev = m.device
         self._rotate_gradients(rotation)
         self._bound(x)
-        self.bvh.refit()
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
         deepest = wp.zeros(1, dtype=float, device=dev)
         self._detect(
