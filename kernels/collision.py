@@ -172,12 +172,11 @@ def body_bounds(
 
 
 @wp.func
-def point_in_body(
+def point_in_tet(
     p: int,
     q: wp.vec3,
-    body: int,
+    e: int,
     same: bool,
-    tet_bvh: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
@@ -200,62 +199,58 @@ def point_in_body(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ) -> bool:
-    """Point p (at q) against the tets of one body; records the first contact and returns True, else False."""
-    query = wp.bvh_query_aabb(tet_bvh, q, q, wp.bvh_get_group_root(tet_bvh, body))
-    e = int(0)
-    while wp.bvh_query_next(query, e):
-        t = tets[e]
-        b = tet_inverse[e] * (q - x[t[0]])
-        b0 = 1.0 - b[0] - b[1] - b[2]
-        if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0:
-            continue
-        if same:
-            if near_tet(row_start, cols, point_anchor[p], t):
-                continue
-        w = wp.vec4(b0, b[0], b[1], b[2])
-        d = float(0.0)
-        g = wp.vec3()
-        f0 = tet_face_start[e]
-        f1 = tet_face_start[e + 1]
-        if f1 > f0:
-            # near the surface: below the surface face the point came in through (the one it was outside of a
-            # step ago, relative to the tet), else below the nearest one; along that face's outward normal
-            u = point_velocity[p] - (w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]])
-            step = dt * u
-            d = float(1.0e30)
-            entered = float(-1.0e30)
-            nearest = float(1.0e30)
-            g_near = wp.vec3()
-            for f in range(f0, f1):
-                dn = face_plane_depth(x, tet_faces[f], q)
-                n_f = wp.vec3(dn[1], dn[2], dn[3])
-                before = dn[0] - wp.dot(n_f, step)  # depth below this face one step ago
-                if before <= 0.0 and before > entered:
-                    entered = before
-                    d = dn[0]
-                    g = n_f
-                if dn[0] < nearest:
-                    nearest = dn[0]
-                    g_near = n_f
-            if entered == -1.0e30:
-                d = nearest
-                g = g_near
-        else:
-            # deep inside: the paper's interpolated distance field and rotated gradients
-            d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-            g = w[0] * grad[t[0]] + w[1] * grad[t[1]] + w[2] * grad[t[2]] + w[3] * grad[t[3]]
-        if d <= 0.0 or wp.length(g) == 0.0:
-            continue
-        wp.atomic_max(stats_out, 0, d)
-        slot = wp.atomic_add(count_out, 0, 1)
-        if slot < capacity:
-            contact_point_out[slot] = p
-            contact_tet_out[slot] = e
-            contact_bary_out[slot] = w
-            contact_normal_out[slot] = wp.normalize(g)
-            contact_depth_out[slot] = d
-        return True
-    return False
+    """Point p (at q) against tet e: if inside with a positive depth, records the contact and returns True."""
+    t = tets[e]
+    b = tet_inverse[e] * (q - x[t[0]])
+    b0 = 1.0 - b[0] - b[1] - b[2]
+    if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0:
+        return False
+    if same:
+        if near_tet(row_start, cols, point_anchor[p], t):
+            return False
+    w = wp.vec4(b0, b[0], b[1], b[2])
+    d = float(0.0)
+    g = wp.vec3()
+    f0 = tet_face_start[e]
+    f1 = tet_face_start[e + 1]
+    if f1 > f0:
+        # near the surface: below the surface face the point came in through (the one it was outside of a
+        # step ago, relative to the tet), else below the nearest one; along that face's outward normal
+        u = point_velocity[p] - (w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]])
+        step = dt * u
+        d = float(1.0e30)
+        entered = float(-1.0e30)
+        nearest = float(1.0e30)
+        g_near = wp.vec3()
+        for f in range(f0, f1):
+            dn = face_plane_depth(x, tet_faces[f], q)
+            n_f = wp.vec3(dn[1], dn[2], dn[3])
+            before = dn[0] - wp.dot(n_f, step)  # depth below this face one step ago
+            if before <= 0.0 and before > entered:
+                entered = before
+                d = dn[0]
+                g = n_f
+            if dn[0] < nearest:
+                nearest = dn[0]
+                g_near = n_f
+        if entered == -1.0e30:
+            d = nearest
+            g = g_near
+    else:
+        # deep inside: the paper's interpolated distance field and rotated gradients
+        d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
+        g = w[0] * grad[t[0]] + w[1] * grad[t[1]] + w[2] * grad[t[2]] + w[3] * grad[t[3]]
+    if d <= 0.0 or wp.length(g) == 0.0:
+        return False
+    wp.atomic_max(stats_out, 0, d)
+    slot = wp.atomic_add(count_out, 0, 1)
+    if slot < capacity:
+        contact_point_out[slot] = p
+        contact_tet_out[slot] = e
+        contact_bary_out[slot] = w
+        contact_normal_out[slot] = wp.normalize(g)
+        contact_depth_out[slot] = d
+    return True
 
 
 @wp.kernel
@@ -268,6 +263,7 @@ def detect_contacts(
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
+    tet_body: wp.array(dtype=wp.int32),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     points: wp.array(dtype=wp.vec3),
@@ -291,10 +287,10 @@ def detect_contacts(
 ):
     """Per collision point: the tets whose boxes hold it (BVH query), barycentric inside test, one contact.
 
-    Two levels: the bodies whose boxes hold the point (``body_bvh``; its own body only if it collides
-    with itself), then that body's subtree of ``tet_bvh`` (grouped by body), so the many points far from
-    every other body cost one small query. The first tet that holds the point and gives it a positive
-    depth answers it: a contact
+    Two levels: only a point inside the box of a body it may collide with (another body, or its own if
+    that collides with itself: ``body_bvh``) queries ``tet_bvh``, so the many points far from every other
+    body cost one small query. The first tet that holds the point and gives it a positive depth answers
+    it: a contact
     with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
     (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
     ``capacity`` are dropped (the host sees the overflow as count > capacity).
@@ -303,21 +299,25 @@ def detect_contacts(
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
+    near = bool(False)  # inside the box of a body it may collide with
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
-    found = bool(False)
     while wp.bvh_query_next(bodies, body):
-        if found:
-            break
-        same = body == body_p
+        if body != body_p or self_ok:
+            near = True
+    if not near:
+        return
+    query = wp.bvh_query_aabb(tet_bvh, q, q)
+    e = int(0)
+    while wp.bvh_query_next(query, e):
+        same = tet_body[e] == body_p
         if same and not self_ok:
             continue
-        found = point_in_body(
+        if point_in_tet(
             p,
             q,
-            body,
+            e,
             same,
-            tet_bvh,
             x,
             v,
             dt,
@@ -339,7 +339,8 @@ def detect_contacts(
             contact_normal_out,
             contact_depth_out,
             stats_out,
-        )
+        ):
+            break
 
 
 @wp.func

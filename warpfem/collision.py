@@ -154,9 +154,8 @@ class Collider:
         self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self._bound(model.rest_x, refit=False)  # the boxes the BVHs are built from
-        # median splits: a balanced tree. Warp's BVH queries keep a fixed 32-entry traversal stack with no
-        # overflow check, and the GPU's default LBVH can grow deeper than that (it crashed scene B on an H100).
-        self.tet_bvh = wp.Bvh(self.lowers, self.uppers, constructor="median", groups=model.tet_body)
+        # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
+        self.tet_bvh = wp.Bvh(self.lowers, self.uppers, constructor="median")
         self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.set_response(settings.stiffness, settings.friction)
 
@@ -293,6 +292,7 @@ class Collider:
                 dt,
                 m.tets,
                 self.tet_inverse,
+                m.tet_body,
                 m.tet_face_start,
                 m.tet_faces,
                 points,
