@@ -261,6 +261,9 @@ def main(argv=None) -> int:
         work = [(n, pile_objects(n, armadillo, 500)) for n in map(int, args.piles.split(","))]
         frames = args.frames
 
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    path = args.out / f"bench-newton-{device.alias.replace(':', '')}-{stamp}.json"
     for n, objs in work:
         t0 = time.perf_counter()
         run = time_pile(objs, device, args.cache_dir, frames, settings, warmup=args.warmup)
@@ -275,11 +278,11 @@ def main(argv=None) -> int:
             f"{'  NaN!' if run['nan'] else ''}",
             flush=True,
         )
-
-    args.out.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    path = args.out / f"bench-newton-{device.alias.replace(':', '')}-{stamp}.json"
-    path.write_text(json.dumps(results, indent=1))
+        # after every pile, so a crash in a later one (Newton's VBD has hit illegal memory accesses on large
+        # piles) keeps the figures measured so far
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(results, indent=1))
+        tmp.replace(path)
     print(f"wrote {path}")
     return 0
 
