@@ -21,9 +21,19 @@ def main() -> int:
         print("no bench-full-cuda*.json under scripts/results", file=sys.stderr)
         return 1
     path, data = ours
-    peer = newest("bench-newton-cuda*.json")
-    newton = {r["n"]: r for r in peer[1]["runs"]} if peer else {}
     env = data["environment"]
+    # the peer: every Newton JSON of the same day and device, the newest run of each pile size winning (a
+    # Newton crash on a large pile ends its process: the sizes after it come from a separate run)
+    peers = []
+    for candidate in sorted(RESULTS.glob("bench-newton-cuda*.json"), reverse=True):
+        cenv = json.loads(candidate.read_text())["environment"]
+        if cenv["device"] == env["device"] and cenv["date"][:10] == env["date"][:10]:
+            peers.append((candidate, json.loads(candidate.read_text())))
+    newton: dict[int, dict] = {}
+    for _, peer_data in peers:
+        for r in peer_data["runs"]:
+            newton.setdefault(r["n"], r)
+    peer = peers[0] if peers else None
     lines = [
         "# Benchmarks",
         "",
@@ -35,9 +45,11 @@ def main() -> int:
     ]
     if peer:
         penv = peer[1]["environment"]
+        names = ", ".join(f"`{p.name}`" for p, _ in peers)
         lines.append(
-            f"- peer: `{peer[0].name}` — Newton `SolverVBD`, {penv['device']}, same session and tet meshes, "
-            "10 substeps x 10 iterations per frame, self-contact on"
+            f"- peer: {names} — Newton {penv.get('newton', '')} `SolverVBD`, {penv['device']}, same day and tet "
+            "meshes, 10 substeps x 10 iterations per frame, self-contact on; pile sizes missing here crashed "
+            "in Newton (an illegal memory access; logs beside the JSON)"
         )
     lines += [
         "",
@@ -47,9 +59,10 @@ def main() -> int:
         "inside another body's tet mesh at the end; lowest point: ours the lowest dense vertex (the dense surface",
         "extends past the coarse one that touches the ground), Newton's its lowest tet vertex (ground at 0).",
         "",
-        "| scene | bodies | tets | dense triangles | ms/frame | fps | elastic | collision | solve | map | CG it/step"
-        " | dense penetration | lowest point | Newton ms/frame | Newton lowest | speed-up |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | substeps | bodies | tets | dense triangles | ms/frame | fps | elastic | collision | solve | map"
+        " | CG it/step | contacts max/step | dense penetration | lowest point | Newton ms/frame | Newton lowest"
+        " | speed-up |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in data["runs"]:
         p = r["phase_ms"]
@@ -62,11 +75,33 @@ def main() -> int:
             else "| |"
         )
         lines.append(
-            f"| {name} | {r['bodies']} | {r['tets']:,} | {r['dense_triangles']:,} | {r['ms_per_frame']:.2f} | "
+            f"| {name} | {r['substeps']} | {r['bodies']} | {r['tets']:,} | {r['dense_triangles']:,} | "
+            f"{r['ms_per_frame']:.2f} | "
             f"{r['fps']:.0f} | {p.get('elastic', 0):.2f} | {p.get('collision', 0):.2f} | {p.get('solve', 0):.2f} | "
-            f"{p.get('map', 0):.2f} | {r['cg_iterations_per_step']:.0f} | {1e3 * r['dense_penetration_m']:.0f} mm | "
+            f"{p.get('map', 0):.2f} | {r['cg_iterations_per_step']:.0f} | {r['contacts_max_per_step']:,} | "
+            f"{1e3 * r['dense_penetration_m']:.0f} mm | "
             f"{1e3 * r['lowest_dense_point_m']:+.0f} mm | {peer_cols} |"
         )
+    deviations = [
+        (r["n"], r["settle_deviation"], newton.get(r["n"], {}).get("settle_deviation"))
+        for r in data["runs"]
+        if r["kind"] == "pile" and "settle_deviation" in r
+    ]
+    if deviations:
+        lines += [
+            "",
+            "## Settled pile against a converged run",
+            "",
+            "Tet vertex positions after the timed scene's frame count, bench settings against a converged run of the",
+            "same pile (ours: 4x substeps, CG to 1e-6; Newton: 4x substeps, 4x iterations). A dropped armadillo",
+            "bounces and topples, so this measures how chaotic the drop is as much as the solver's accuracy.",
+            "",
+            "| pile | ours max / rms | Newton max / rms |",
+            "| --- | --- | --- |",
+        ]
+        for n, ours_dev, peer_dev in deviations:
+            theirs = f"{peer_dev['max_m']:.3f} / {peer_dev['rms_m']:.3f} m" if peer_dev else "not measured"
+            lines.append(f"| {n} | {ours_dev['max_m']:.3f} / {ours_dev['rms_m']:.3f} m | {theirs} |")
     cg = data.get("cg_at_scale")
     if cg:
         lines += [
@@ -80,6 +115,13 @@ def main() -> int:
             f"a streaming copy reached in the same run: **{cg['ratio_to_spmv_floor']:.1f}x** the floor "
             "(an iteration also streams the update vectors).",
         ]
+        if "stored_blocks" in cg:
+            by_chunk = ", ".join(f"{k}: {v:.0f} µs" for k, v in cg["cg_iteration_us_by_chunk"].items())
+            lines += [
+                f"We store the upper triangle ({cg['stored_blocks']:,} blocks; its own product floor "
+                f"{cg['stored_spmv_floor_us']:.0f} µs). Iteration time by blocks per thread of the product: "
+                f"{by_chunk} (64: in effect a thread per row).",
+            ]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines) + "\n")
     print("wrote BENCHMARKS.md")
     return 0

@@ -3,9 +3,10 @@
 The estimate adds up the arrays :class:`warpfem.model.Model`, :class:`warpfem.solver.Solver` (with its CG
 workspace and collider) and :class:`warpfem.simulate.Simulation` allocate, from the preprocessed bodies'
 sizes: per tet vertex (rest and initial state, two states, masses, forces, preconditioner, CG vectors),
-per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block and its
-column; blocks are counted exactly from the tets' edges), per dense vertex (embedding and mapped position),
-and for collisions per collision point, per contact slot and the fixed 128^3 hash grid.
+per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block of the
+stored upper triangle and its column; blocks are counted exactly from the tets' edges), per dense vertex
+(embedding and mapped position), and for collisions per collision point, per contact slot and per tet (its
+box, inverse edge matrix and BVH nodes).
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
 16 matrix slots, rotation."""
 
-BLOCK_BYTES = 40
-"""Device bytes per 3x3 matrix block: the float block and its int32 column."""
+BLOCK_BYTES = 42
+"""Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
 
 DENSE_BYTES = 32
 """Device bytes per dense vertex: embedding tet and barycentric weights, mapped position."""
@@ -40,17 +41,20 @@ DENSE_BYTES = 32
 POINT_BYTES = 40
 """Model bytes per collision point: tet, weights, anchors, body, mass (allocated even without collisions)."""
 
-COLLIDER_POINT_BYTES = 48
-"""Collider bytes per collision point: position, velocity, claim, stiffness, hash grid sort keys."""
+COLLIDER_POINT_BYTES = 28
+"""Collider bytes per collision point: position, velocity, stiffness."""
+
+COLLIDER_TET_BYTES = 60
+"""Collider bytes per tet: bounding box and inverse edge matrix (the arrays the BVH is refitted from)."""
+
+BVH_TET_BYTES = 64
+"""Bytes per tet of the tet BVH's nodes (about two 32-byte nodes per leaf; held by Warp, not a wp.array)."""
 
 TET_FACE_BYTES = 12
 """Model bytes per (tet, nearby surface face) pair: the face's vertex indices (the contact depth rule)."""
 
-CONTACT_BYTES = 76
-"""Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block."""
-
-GRID_BYTES = 2 * 4 * 128**3
-"""The collider's hash grid: cell start and end, int32, 128^3 cells."""
+CONTACT_BYTES = 140
+"""Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block, the pair's vertices and weights."""
 
 CONTACTS_PER_POINT = 2.0
 """Contact slots per collision point (the collider's default capacity)."""
@@ -86,14 +90,14 @@ def format_bytes(size: int | float) -> str:
 
 
 def matrix_blocks(tets: np.ndarray) -> int:
-    """Blocks of the 3x3-block stiffness matrix of a tet mesh: one per vertex plus two per unique edge."""
+    """Stored blocks of the 3x3-block stiffness matrix of a tet mesh (its upper triangle): one per vertex and edge."""
     tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
     if len(tets) == 0:
         return 0
     pairs = tets[:, [0, 0, 0, 1, 1, 2]], tets[:, [1, 2, 3, 2, 3, 3]]
     lo, hi = np.minimum(*pairs).ravel(), np.maximum(*pairs).ravel()
     edges = np.unique(lo * (int(tets.max()) + 1) + hi).size
-    return int(np.unique(tets).size) + 2 * edges
+    return int(np.unique(tets).size) + edges
 
 
 def estimate(
@@ -109,7 +113,7 @@ def estimate(
         tets: Each body's (q, 4) tet array (local vertex indices).
         dense_vertices: Each body's dense vertex count.
         collision_points: Each body's collision point count (:func:`warpfem.collision.surface_points`).
-        collision: Whether the solver has a collider (contacts, hash grid): collisions are on and there are
+        collision: Whether the solver has a collider (contacts, BVHs): collisions are on and there are
             several bodies or one colliding with itself.
         tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
             (:func:`warpfem.model.tet_surface_faces`).
@@ -130,7 +134,8 @@ def estimate(
     parts["collision"] = POINT_BYTES * points
     if collision:
         contacts = max(64, int(CONTACTS_PER_POINT * points))
-        parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + GRID_BYTES
+        per_tet = COLLIDER_TET_BYTES + BVH_TET_BYTES
+        parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + per_tet * q
     return Estimate(parts)
 
 

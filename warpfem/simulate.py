@@ -350,9 +350,9 @@ def run_scene(
 class Contacts:
     """Body-body contact statistics gathered once per frame.
 
-    Warns once if the contact buffer overflows, and once if a body moves more than half a tet (the hash grid
-    cell, the median tet size) in one step: contacts are then tested too coarsely in time and thin parts may
-    pass through each other (tunnelling); more substeps fix it.
+    Warns once if the contact buffer overflows, and once if a body moves more than half a tet (the median tet
+    size) in one step: contacts are then tested too coarsely in time and thin parts may pass through each
+    other (tunnelling); more substeps fix it.
     """
 
     def __init__(self) -> None:
