@@ -109,6 +109,25 @@ def build(scene, objects, device, cache_dir: Path) -> Simulation:
     return Simulation(model, solver_of(scene, model), scene.substeps, scene.dt)
 
 
+def output_ms(sim: Simulation, frames: int = 30) -> float:
+    """Milliseconds per frame to write the dense meshes (file output, outside the frame time).
+
+    Copy to the host, a USD time sample per body, and the .usdc file written at the end (amortised over
+    ``frames`` frames), in a temporary folder.
+    """
+    import tempfile
+
+    from warpfem.usd_out import UsdWriter
+
+    bodies = [(b.name, b.dense_faces) for b in sim.model.bodies]
+    with tempfile.TemporaryDirectory() as folder:
+        t0 = time.perf_counter()
+        with UsdWriter(Path(folder) / "bench.usdc", bodies, fps=60.0, save_every=None) as writer:
+            for frame in range(frames):
+                writer.add_frame(frame, sim.dense_points())
+        return 1000.0 * (time.perf_counter() - t0) / frames
+
+
 def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> dict:
     """How far the bench settings end from a converged run of the same scene (tet vertices, m).
 
@@ -172,7 +191,7 @@ def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int
     return {
         "ms_per_frame": ms,
         "fps": 1000.0 / ms,
-        "phase_ms": {**phase_ms, "map": map_ms},
+        "phase_ms": {**phase_ms, "map": map_ms, "output": output_ms(sim)},
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "substeps": scene.substeps,

@@ -60,9 +60,10 @@ def main() -> int:
         "extends past the coarse one that touches the ground), Newton's its lowest tet vertex (ground at 0).",
         "",
         "| scene | substeps | bodies | tets | dense triangles | ms/frame | fps | elastic | collision | solve | map"
-        " | CG it/step | contacts max/step | dense penetration | lowest point | Newton ms/frame | Newton lowest"
-        " | speed-up |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        " | output | CG it/step | contacts max/step | dense penetration | lowest point | Newton ms/frame"
+        " | Newton lowest | speed-up |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
+        "| --- |",
     ]
     for r in data["runs"]:
         p = r["phase_ms"]
@@ -74,12 +75,12 @@ def main() -> int:
             if peer_run
             else "| |"
         )
+        output = f"{p['output']:.1f}" if "output" in p else ""
         lines.append(
             f"| {name} | {r['substeps']} | {r['bodies']} | {r['tets']:,} | {r['dense_triangles']:,} | "
-            f"{r['ms_per_frame']:.2f} | "
-            f"{r['fps']:.0f} | {p.get('elastic', 0):.2f} | {p.get('collision', 0):.2f} | {p.get('solve', 0):.2f} | "
-            f"{p.get('map', 0):.2f} | {r['cg_iterations_per_step']:.0f} | {r['contacts_max_per_step']:,} | "
-            f"{1e3 * r['dense_penetration_m']:.0f} mm | "
+            f"{r['ms_per_frame']:.2f} | {r['fps']:.0f} | {p.get('elastic', 0):.2f} | {p.get('collision', 0):.2f} | "
+            f"{p.get('solve', 0):.2f} | {p.get('map', 0):.2f} | {output} | {r['cg_iterations_per_step']:.0f} | "
+            f"{r['contacts_max_per_step']:,} | {1e3 * r['dense_penetration_m']:.0f} mm | "
             f"{1e3 * r['lowest_dense_point_m']:+.0f} mm | {peer_cols} |"
         )
     deviations = [

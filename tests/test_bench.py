@@ -29,7 +29,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
     assert runs[1]["tets"] == 2 * runs[0]["tets"] and runs[1]["dense_triangles"] == 2 * runs[0]["dense_triangles"]
     for run in runs:
         assert run["ms_per_frame"] > 0 and run["cg_iterations_per_step"] > 0
-        assert {"elastic", "solve", "map"} <= set(run["phase_ms"])
+        assert {"elastic", "solve", "map", "output"} <= set(run["phase_ms"]) and run["phase_ms"]["output"] > 0
         assert run["lowest_dense_point_m"] > -0.05  # they fell onto the ground and stayed above it
     assert "collision" in runs[1]["phase_ms"] and "collision" not in runs[0]["phase_ms"]
     deviation = runs[0]["settle_deviation"]  # one bunny against its converged run: close, not identical
