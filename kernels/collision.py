@@ -18,6 +18,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 """
 
 import warp as wp
+from warpfem.kernels.embedding import interpolate
 from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
 
@@ -107,8 +108,8 @@ def collision_points(
     i = wp.tid()
     t = tets[point_tet[i]]
     w = point_bary[i]
-    points_out[i] = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
-    u = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
+    points_out[i] = interpolate(x, t, w)
+    u = interpolate(v, t, w)
     point_velocity_out[i] = u
     speed = wp.length(u)
     body = point_body[i]
@@ -216,7 +217,7 @@ def point_in_tet(
     if f1 > f0:
         # near the surface: below the surface face the point came in through (the one it was outside of a
         # step ago, relative to the tet), else below the nearest one; along that face's outward normal
-        u = point_velocity[p] - (w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]])
+        u = point_velocity[p] - interpolate(v, t, w)
         step = dt * u
         d = float(1.0e30)
         entered = float(-1.0e30)
@@ -239,7 +240,7 @@ def point_in_tet(
     else:
         # deep inside: the paper's interpolated distance field and rotated gradients
         d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-        g = w[0] * grad[t[0]] + w[1] * grad[t[1]] + w[2] * grad[t[2]] + w[3] * grad[t[3]]
+        g = interpolate(grad, t, w)
     if d <= 0.0 or wp.length(g) == 0.0:
         return False
     wp.atomic_max(stats_out, 0, d)

@@ -52,6 +52,12 @@ def locate_points(
             tet_out[i] = -1
 
 
+@wp.func
+def interpolate(field: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.vec4) -> wp.vec3:
+    """sum_k w[k] * field[tet[k]]: a per-vertex field at a point with barycentric weights w in the tet."""
+    return w[0] * field[tet[0]] + w[1] * field[tet[1]] + w[2] * field[tet[2]] + w[3] * field[tet[3]]
+
+
 @wp.kernel
 def map_dense(
     tets: wp.array(dtype=wp.vec4i),
@@ -62,8 +68,4 @@ def map_dense(
 ):
     """Dense point i = sum_k bary[i][k] * positions[tets[dense_tet[i]][k]] (extrapolates outside the tet)."""
     i = wp.tid()
-    tet = tets[dense_tet[i]]
-    w = dense_bary[i]
-    dense_out[i] = (
-        w[0] * positions[tet[0]] + w[1] * positions[tet[1]] + w[2] * positions[tet[2]] + w[3] * positions[tet[3]]
-    )
+    dense_out[i] = interpolate(positions, tets[dense_tet[i]], dense_bary[i])
