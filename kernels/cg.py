@@ -96,9 +96,14 @@ def chunk_product(
 
 
 @wp.func
+def live_pairs(pair_count: wp.array(dtype=wp.int32), pair_matrix: wp.array(dtype=wp.mat33)) -> int:
+    """The coupling pairs in use: the count, capped at the buffer's capacity."""
+    return wp.min(pair_count[0], pair_matrix.shape[0])
+
+
+@wp.func
 def pair_product(
     c: int,
-    pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
     pair_weights_a: wp.array(dtype=wp.vec4),
     pair_verts_b: wp.array(dtype=wp.vec4i),
@@ -107,9 +112,7 @@ def pair_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w += coupling pair c's share of A u if the pair is live; returns its u.w."""
-    if c >= wp.min(pair_count[0], pair_matrix.shape[0]):
-        return 0.0
+    """w += coupling pair c's share of A u (c below ``live_pairs``); returns its u.w."""
     return embedded_product(
         pair_verts_a[c], pair_weights_a[c], pair_verts_b[c], pair_weights_b[c], pair_matrix[c], u, w_out
     )
@@ -163,9 +166,9 @@ def cg_apply(
         if i < n_chunks:
             dot = chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
         else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
-            for c in range(i - n_chunks, wp.min(pair_count[0], pair_matrix.shape[0]), n_threads - n_chunks):
+            for c in range(i - n_chunks, live_pairs(pair_count, pair_matrix), n_threads - n_chunks):
                 dot += pair_product(
-                    c, pair_count, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
+                    c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
                 )
     block_sum(dot, delta_out, k)
 
@@ -283,19 +286,22 @@ def cg_init(
 
 
 @wp.func
-def step_sizes(k: int, gamma: wp.array(dtype=float), delta: wp.array(dtype=float), alpha: wp.array(dtype=float)):
-    """(alpha_k, beta_k) of Chronopoulos-Gear PCG; alpha_k = 0 on breakdown (a non-positive curvature)."""
+def step_sizes(k: int, gamma: float, gamma_prev: float, delta: float, alpha_prev: float):
+    """(alpha_k, beta_k) of Chronopoulos-Gear PCG from gamma_k, gamma_{k-1}, delta_k and alpha_{k-1}.
+
+    alpha_k = 0 on breakdown (a non-positive curvature).
+    """
     beta = float(0.0)
-    denom = delta[k]
+    denom = delta
     if k > 0:
-        beta = gamma[k] / gamma[k - 1]
-        if alpha[k - 1] > 0.0:
-            denom = denom - beta * gamma[k] / alpha[k - 1]
+        beta = gamma / gamma_prev
+        if alpha_prev > 0.0:
+            denom = denom - beta * gamma / alpha_prev
         else:
             denom = 0.0
     a = float(0.0)
     if denom > 0.0:
-        a = gamma[k] / denom
+        a = gamma / denom
     return a, beta
 
 
@@ -333,7 +339,12 @@ def cg_update(
     k = iteration[0] + step
     ru = float(0.0)
     if is_active(k, gamma, bz, tolerance[0], max_iterations[0]):
-        a, beta = step_sizes(k, gamma, delta, alpha_out)
+        gamma_prev = float(0.0)
+        alpha_prev = float(0.0)
+        if k > 0:
+            gamma_prev = gamma[k - 1]
+            alpha_prev = alpha_out[k - 1]
+        a, beta = step_sizes(k, gamma[k], gamma_prev, delta[k], alpha_prev)
         if i == 0:
             alpha_out[k] = a
             done_out[0] = wp.where(a > 0.0, k + 1, k)
@@ -420,10 +431,8 @@ def block_product(
     dot = float(0.0)
     for i in range(lane, chunk_row.shape[0], threads):
         dot += chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
-    for c in range(lane, pair_matrix.shape[0], threads):
-        dot += pair_product(
-            c, pair_count, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
-        )
+    for c in range(lane, live_pairs(pair_count, pair_matrix), threads):
+        dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
     return block_total(dot)
 
 
@@ -516,14 +525,9 @@ def cg_solve_block(
             u_out,
             w_out,
         )
-        beta = float(0.0)
-        denom = delta
-        if k > 0:
-            beta = gamma / gamma_prev
-            denom = delta - beta * gamma / a_prev
-        if denom <= 0.0:
+        a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
+        if a <= 0.0:
             break
-        a = gamma / denom
         ru = float(0.0)
         for i in range(lane, n, threads):
             ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)

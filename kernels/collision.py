@@ -306,6 +306,7 @@ def detect_contacts(
     while wp.bvh_query_next(bodies, body):
         if body != body_p or self_ok:
             near = True
+            break
     if not near:
         return
     query = wp.bvh_query_aabb(tet_bvh, q, q)

@@ -100,7 +100,6 @@ class CGSolver:
     ) -> None:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
-        self.coupling = coupling
         self.unroll = int(unroll)
         n = free.shape[0]
         if single_block is None:
