@@ -94,6 +94,23 @@ def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[O
     return objects
 
 
+def int_list(text: str) -> list[int]:
+    """An argparse type: comma-separated positive integers ('' for none)."""
+    try:
+        values = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = [0]
+    if any(v <= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got '{text}'")
+    return values
+
+
+def end_gap(a: np.ndarray, b: np.ndarray) -> dict:
+    """Largest and root-mean-square distance (m) between two runs' final positions, point by point."""
+    gap = np.linalg.norm(a - b, axis=1)
+    return {"max_m": float(gap.max()), "rms_m": float(np.sqrt(np.mean(gap**2)))}
+
+
 def build(scene, objects, device, cache_dir: Path) -> Simulation:
     """The simulation of ``objects`` with ``scene``'s solver settings."""
     prepared = {}
@@ -145,13 +162,11 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> di
         for _ in range(frames):
             sim.advance()
         ends.append(sim.states[0].x.numpy())
-    gap = np.linalg.norm(ends[0] - ends[1], axis=1)
     return {
         "frames": frames,
         "converged_substeps": converged.substeps,
         "converged_cg_tolerance": 1e-6,
-        "max_m": float(gap.max()),
-        "rms_m": float(np.sqrt(np.mean(gap**2))),
+        **end_gap(*ends),
     }
 
 
@@ -347,16 +362,18 @@ def main(argv=None) -> int:
     parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
     parser.add_argument("--frames", type=int, default=120)
-    parser.add_argument("--piles", default=",".join(map(str, PILES)))
+    parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
     parser.add_argument(
         "--deviation",
+        type=int_list,
         default="1,4",
         help="comma list of pile sizes whose settled state is compared with a converged run ('' for none)",
     )
     parser.add_argument(
         "--paper-substeps",
+        type=int_list,
         default="",
         help="comma list: also run each paper scene at these substeps per frame (the speed/accuracy trade)",
     )
@@ -364,6 +381,8 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
     skip = set(filter(None, args.skip.split(",")))
+    if skip - {"paper", "piles", "cg"}:
+        parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
     scene_defaults = load_scene(ROOT / "scenes" / "default.toml")
     results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
 
@@ -377,12 +396,12 @@ def main(argv=None) -> int:
             for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
                 scene = load_scene_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
                 work.append((name, len(scene.objects), scene.objects, scene))
-                for k in map(int, filter(None, args.paper_substeps.split(","))):
+                for k in args.paper_substeps:
                     if k != scene.substeps:
                         variant = dataclasses.replace(scene, substeps=k)
                         work.append((name, len(scene.objects), scene.objects, variant))
         if "piles" not in skip:
-            for n in map(int, args.piles.split(",")):
+            for n in args.piles:
                 work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))
         frames, cg_cells = args.frames, (60, 60, 52)
 
@@ -395,7 +414,7 @@ def main(argv=None) -> int:
     for kind, n, objs, scene in work:
         t0 = time.perf_counter()
         run = time_scene(scene, objs, device, args.cache_dir, frames)
-        if kind == "pile" and str(n) in args.deviation.split(","):
+        if kind == "pile" and n in args.deviation:
             run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)

@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from bench import PILES, environment, pile_objects  # noqa: E402
+from bench import PILES, end_gap, environment, int_list, pile_objects  # noqa: E402
 
 from warpfem.preprocess import prepare  # noqa: E402
 from warpfem.simulate import euler_rotation  # noqa: E402
@@ -101,8 +101,9 @@ def build_model(objects, meshes, device, settings: dict):
 def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
     """The Newton model of a pile and a function advancing it one frame (a replayed CUDA graph on GPUs).
 
-    Returns (model, frame, state): ``state[0]`` holds the current particles after each frame. The first
-    frame is run here (it captures the graph, or compiles the kernels without one).
+    Returns (model, frame, state, graph): ``state[0]`` holds the current particles after each frame, graph
+    says whether frames replay a CUDA graph. The first frame is run here (it captures the graph, or compiles
+    the kernels without one).
     """
     import newton
 
@@ -189,13 +190,11 @@ def settle_deviation(objects, device, cache_dir: Path | None, frames: int, setti
         for _ in range(frames - 1):  # pile_stepper ran the first
             frame()
         ends.append(state[0].particle_q.numpy())
-    gap = np.linalg.norm(ends[0] - ends[1], axis=1)
     return {
         "frames": frames,
         "converged_substeps": converged["substeps"],
         "converged_iterations": converged["iterations"],
-        "max_m": float(gap.max()),
-        "rms_m": float(np.sqrt(np.mean(gap**2))),
+        **end_gap(*ends),
     }
 
 
@@ -208,7 +207,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--warmup", type=int, default=2)
-    parser.add_argument("--piles", default=",".join(map(str, PILES)))
+    parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--no-self-contact", action="store_true")
@@ -222,7 +221,10 @@ def main(argv=None) -> int:
     parser.add_argument("--tile-solve", choices=("auto", "on", "off"), default="auto", help="auto: on on CUDA")
     parser.add_argument("--no-graph", action="store_true", help="launch kernels instead of a CUDA graph")
     parser.add_argument(
-        "--deviation", default="1,4", help="comma list of pile sizes compared with a converged run ('' for none)"
+        "--deviation",
+        type=int_list,
+        default="1,4",
+        help="comma list of pile sizes compared with a converged run ('' for none)",
     )
     args = parser.parse_args(argv)
 
@@ -258,7 +260,7 @@ def main(argv=None) -> int:
         frames = 3
     else:
         armadillo = str((args.assets / "armadillo.off").resolve())
-        work = [(n, pile_objects(n, armadillo, 500)) for n in map(int, args.piles.split(","))]
+        work = [(n, pile_objects(n, armadillo, 500)) for n in args.piles]
         frames = args.frames
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -267,7 +269,7 @@ def main(argv=None) -> int:
     for n, objs in work:
         t0 = time.perf_counter()
         run = time_pile(objs, device, args.cache_dir, frames, settings, warmup=args.warmup)
-        if str(n) in args.deviation.split(","):
+        if n in args.deviation:
             run["settle_deviation"] = settle_deviation(objs, device, args.cache_dir, frames, settings)
         run.update(kind="pile", n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)

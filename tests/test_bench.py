@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -38,3 +40,22 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
     cg = result["cg_at_scale"]
     assert cg["cg_iteration_us"] > 0 and cg["stream_bandwidth_GBps"] > 0 and cg["ratio_to_spmv_floor"] > 0
     assert cg["stored_blocks"] < cg["nnz_blocks"] and set(cg["cg_iteration_us_by_chunk"]) == {"1", "2", "4", "8", "64"}
+
+
+@pytest.mark.parametrize(
+    "script, args, named",
+    [
+        ("bench.py", ["--piles", "4,x"], "--piles"),
+        ("bench.py", ["--paper-substeps", "0"], "--paper-substeps"),
+        ("bench.py", ["--deviation", "-1"], "--deviation"),
+        ("bench.py", ["--skip", "pile"], "--skip"),
+        ("bench_newton.py", ["--piles", "1.5"], "--piles"),
+    ],
+)
+def test_bad_arguments_are_one_line_errors_and_write_nothing(tmp_path, script, args, named):
+    cmd = [sys.executable, str(ROOT / "scripts" / script), "--quick", "--out", str(tmp_path / "out"), *args]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    errors = [line for line in done.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and named in errors[0] and "Traceback" not in done.stderr
+    assert not (tmp_path / "out").exists()
