@@ -13,6 +13,11 @@ reduced per block (a tile sum, then one atomic add per block). All per-iteration
 arrays indexed by the device-side iteration counter plus the unrolled step, so the loop needs no host
 synchronisation and can be captured with ``wp.capture_while``; an iteration past convergence or past the
 cap changes nothing. Rows with ``free == 0`` (pinned vertices) are held at their initial value.
+
+``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
+grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at kernel boundaries, so an
+iteration costs two barriers rather than two launches. Small systems are latency bound: this is the
+default on CUDA. On the CPU the same kernel runs as a single thread.
 """
 
 import warp as wp
@@ -289,16 +294,19 @@ def cg_init(
 def step_sizes(k: int, gamma: float, gamma_prev: float, delta: float, alpha_prev: float):
     """(alpha_k, beta_k) of Chronopoulos-Gear PCG from gamma_k, gamma_{k-1}, delta_k and alpha_{k-1}.
 
-    alpha_k = 0 on breakdown (a non-positive curvature).
+    Where rounding drives the recurrence's curvature p.A p = delta - beta gamma / alpha_{k-1} to zero or
+    below (float32 on an ill-conditioned system), the iteration restarts along the preconditioned residual
+    (beta = 0, curvature u.A u = delta) instead of stopping short. alpha_k = 0 only when that is not positive
+    either (A not positive definite).
     """
     beta = float(0.0)
     denom = delta
-    if k > 0:
+    if k > 0 and alpha_prev > 0.0:
         beta = gamma / gamma_prev
-        if alpha_prev > 0.0:
-            denom = denom - beta * gamma / alpha_prev
-        else:
-            denom = 0.0
+        denom = delta - beta * gamma / alpha_prev
+        if denom <= 1.0e-6 * delta:  # restart
+            beta = 0.0
+            denom = delta
     a = float(0.0)
     if denom > 0.0:
         a = gamma / denom
@@ -399,17 +407,73 @@ def cg_finish(
     residual_max_out[0] = wp.max(residual_max_out[0], res)
 
 
-@wp.func
-def block_total(value: float) -> float:
-    """The sum of ``value`` over the block's threads, returned to every thread.
+GRID_SYNC = r"""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+if (threadIdx.x == 0) {
+    __threadfence();
+    atomicAdd(barrier.data, 1);
+    volatile int* arrived = barrier.data;
+    int spins = 0;
+    while (*arrived < target) {
+        if (++spins > (1 << 24)) {
+            atomicExch(stalled.data, 1);
+            break;
+        }
+    }
+    __threadfence();
+}
+__syncthreads();
+#endif
+"""
 
-    Also a barrier: writes before it, atomics included, are visible to the whole block after it.
+LOAD_COHERENT = r"""
+#if defined(__CUDA_ARCH__)
+return *((volatile float*)values.data + index);
+#else
+return values.data[index];
+#endif
+"""
+
+
+@wp.func_native(GRID_SYNC)
+def grid_sync(barrier: wp.array(dtype=wp.int32), target: int, stalled: wp.array(dtype=wp.int32)):
+    """Grid-wide barrier of a persistent launch: returns once ``barrier[0]`` reaches ``target``.
+
+    Every block's thread 0 fences, arrives (one atomic add) and spins; the counter only grows, so the n-th
+    barrier of a launch of B blocks waits for n B arrivals. All blocks must be resident at once (the host
+    launches at most one block per SM). A barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets
+    its block go on rather than hang the device. A no-op on the CPU, where a launch is one thread.
     """
-    return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
+    ...
+
+
+@wp.func_native(LOAD_COHERENT)
+def load_coherent(values: wp.array(dtype=float), index: int) -> float:
+    """``values[index]`` read from the device's shared cache (not a stale per-SM copy), after a barrier."""
+    ...
 
 
 @wp.func
-def block_product(
+def grid_total(
+    value: float,
+    totals: wp.array(dtype=float),
+    slot: int,
+    barrier: wp.array(dtype=wp.int32),
+    target: int,
+    stalled_out: wp.array(dtype=wp.int32),
+) -> float:
+    """The sum of ``value`` over every thread of the launch, returned to all (``totals[slot]`` zeroed before).
+
+    One atomic per block, then the grid barrier ``target``: also orders every write before it.
+    """
+    block_sum(value, totals, slot)
+    grid_sync(barrier, target, stalled_out)
+    return load_coherent(totals, slot)
+
+
+@wp.func
+def partial_product(
     lane: int,
     threads: int,
     chunk_row: wp.array(dtype=wp.int32),
@@ -427,19 +491,38 @@ def block_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w += A u (w zeroed before) by the block's threads; returns u.w to every thread."""
+    """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads)."""
     dot = float(0.0)
     for i in range(lane, chunk_row.shape[0], threads):
         dot += chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
     for c in range(lane, live_pairs(pair_count, pair_matrix), threads):
         dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
-    return block_total(dot)
+    return dot
 
 
 @wp.kernel
-def cg_solve_block(
-    # inputs: matrix
+def cg_solve_reset(
+    n: int,
+    w_out: wp.array(dtype=wp.vec3),
+    totals_out: wp.array(dtype=float),
+    barrier_out: wp.array(dtype=wp.int32),
+):
+    """Zero w (n rows), the reduction slots and the barrier counter of a persistent solve."""
+    i = wp.tid()
+    if i < n:
+        w_out[i] = wp.vec3()
+    if i < totals_out.shape[0]:
+        totals_out[i] = 0.0
+    if i == 0:
+        barrier_out[0] = 0
+
+
+@wp.kernel
+def cg_solve(
+    # inputs: launch shape
     threads: int,
+    blocks: int,
+    # inputs: matrix
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
     chunk_size: int,
@@ -458,6 +541,9 @@ def cg_solve_block(
     b: wp.array(dtype=wp.vec3),
     tolerance: wp.array(dtype=float),
     max_iterations: wp.array(dtype=wp.int32),
+    # synchronisation (zeroed by cg_solve_reset, as is w)
+    barrier: wp.array(dtype=wp.int32),
+    totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
@@ -467,18 +553,18 @@ def cg_solve_block(
     w_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
     residual_max_out: wp.array(dtype=float),
+    stalled_out: wp.array(dtype=wp.int32),
 ):
-    """The whole solve in one launch of one block (``threads`` threads; one on the CPU), for small systems.
+    """The whole solve in one persistent launch of ``blocks`` resident blocks (``threads`` threads in all).
 
-    The same iteration as ``cg_update`` + ``cg_apply``, with the block's reductions as the barriers between
-    phases: no launch per iteration, no device-side loop node. Counts the solve like ``cg_finish``.
+    The same iteration as ``cg_update`` + ``cg_apply``, with grid barriers between the phases (two per
+    iteration, each also reducing a dot into its own slot of ``totals``): no launch and no device-side loop
+    node per iteration. On the CPU the launch is one thread and the barriers vanish. Counts the solve like
+    ``cg_finish``.
     """
     lane = wp.tid()
     n = free.shape[0]
-    for i in range(lane, n, threads):
-        w_out[i] = wp.vec3()
-    block_total(0.0)
-    block_product(
+    partial_product(
         lane,
         threads,
         chunk_row,
@@ -496,18 +582,20 @@ def cg_solve_block(
         x_out,
         w_out,
     )
+    grid_sync(barrier, blocks, stalled_out)
     dots = wp.vec2()
     for i in range(lane, n, threads):
         dots += init_row(i, diag_inv, free, b, w_out, r_out, u_out, p_out, s_out)
-    gamma = block_total(dots[0])
-    bz = block_total(dots[1])
+    block_sum(dots[1], totals, 1)
+    gamma = grid_total(dots[0], totals, 0, barrier, 2 * blocks, stalled_out)
+    bz = load_coherent(totals, 1)
     tol2 = tolerance[0] * tolerance[0]
     max_k = max_iterations[0]
     k = int(0)
     gamma_prev = float(0.0)
     a_prev = float(0.0)
     while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
-        delta = block_product(
+        part = partial_product(
             lane,
             threads,
             chunk_row,
@@ -525,6 +613,7 @@ def cg_solve_block(
             u_out,
             w_out,
         )
+        delta = grid_total(part, totals, 2 + 2 * k, barrier, (3 + 2 * k) * blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:
             break
@@ -533,7 +622,7 @@ def cg_solve_block(
             ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
         gamma_prev = gamma
         a_prev = a
-        gamma = block_total(ru)
+        gamma = grid_total(ru, totals, 3 + 2 * k, barrier, (4 + 2 * k) * blocks, stalled_out)
         k += 1
     if lane == 0:
         counts_out[0] = counts_out[0] + 1

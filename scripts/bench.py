@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -31,6 +32,7 @@ import warp as wp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from warpfem.cg import MODES as CG_MODES  # noqa: E402
 from warpfem.embedding import map_dense  # noqa: E402
 from warpfem.model import ModelBuilder  # noqa: E402
 from warpfem.preprocess import prepare  # noqa: E402
@@ -111,8 +113,8 @@ def end_gap(a: np.ndarray, b: np.ndarray) -> dict:
     return {"max_m": float(gap.max()), "rms_m": float(np.sqrt(np.mean(gap**2)))}
 
 
-def build(scene, objects, device, cache_dir: Path) -> Simulation:
-    """The simulation of ``objects`` with ``scene``'s solver settings."""
+def build(scene, objects, device, cache_dir: Path, cg_path: str | None = None) -> Simulation:
+    """The simulation of ``objects`` with ``scene``'s solver settings (``cg_path``: see ``Solver``)."""
     prepared = {}
     builder = ModelBuilder()
     for obj in objects:
@@ -123,7 +125,7 @@ def build(scene, objects, device, cache_dir: Path) -> Simulation:
             )
         add_prepared_body(builder, obj, prepared[key])
     model = builder.finalize(device)
-    return Simulation(model, solver_of(scene, model), scene.substeps, scene.dt)
+    return Simulation(model, solver_of(scene, model, cg_path), scene.substeps, scene.dt)
 
 
 def output_ms(sim: Simulation, frames: int = 30) -> float:
@@ -145,7 +147,7 @@ def output_ms(sim: Simulation, frames: int = 30) -> float:
         return 1000.0 * (time.perf_counter() - t0) / frames
 
 
-def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> dict:
+def settle_deviation(scene, objects, device, cache_dir: Path, frames: int, cg_path: str | None = None) -> dict:
     """How far the bench settings end from a converged run of the same scene (tet vertices, m).
 
     Converged: 4x the substeps and CG to a relative residual of 1e-6. Both run ``frames`` frames from the
@@ -158,7 +160,7 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> di
     )
     ends = []
     for settings in (scene, converged):
-        sim = build(settings, objects, device, cache_dir)
+        sim = build(settings, objects, device, cache_dir, cg_path)
         for _ in range(frames):
             sim.advance()
         ends.append(sim.states[0].x.numpy())
@@ -170,9 +172,11 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int) -> di
     }
 
 
-def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2) -> dict:
+def time_scene(
+    scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2, cg_path: str | None = None
+) -> dict:
     """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures."""
-    sim = build(scene, objects, device, cache_dir)
+    sim = build(scene, objects, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
 
     def frame(timer=None):
@@ -210,6 +214,8 @@ def time_scene(scene, objects, device, cache_dir: Path, frames: int, warmup: int
         "phase_ms": {**phase_ms, "map": map_ms, "output": output_ms(sim)},
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
+        "cg_path": solver.cg.mode,
+        "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
         "bodies": len(model.bodies),
         "tets": model.tet_count,
@@ -275,8 +281,9 @@ def cg_at_scale(
 ) -> dict:
     """Time of one fixed-count CG iteration on a box of ~1M tets, and the streaming bandwidth in the same run.
 
-    The iteration is timed for each ``chunks`` entry (nonzero blocks per thread of the product; 64 is in
-    effect a thread per row); ``cg_iteration_us`` is the device's default.
+    The per-iteration-launch path is timed for each ``chunks`` entry (nonzero blocks per thread of the
+    product; 64 is in effect a thread per row), the persistent grid path at the device's default chunk;
+    ``cg_iteration_us`` is the faster of the two.
     """
     from warpfem import cg as cg_module
     from warpfem.shapes import box_tet_mesh
@@ -292,10 +299,10 @@ def cg_at_scale(
     kind = "cuda" if device.is_cuda else "cpu"
     default = cg_module.CHUNK[kind]
 
-    def iteration_us(chunk: int) -> float:
+    def iteration_us(chunk: int, path: str = "launches") -> float:
         cg_module.CHUNK[kind] = chunk
         try:
-            cg = cg_module.CGSolver(model.row_start, model.cols, model.free, iterations, device)
+            cg = cg_module.CGSolver(model.row_start, model.cols, model.free, iterations, device, mode=path)
         finally:
             cg_module.CHUNK[kind] = default
         x = wp.zeros_like(s1.v)
@@ -318,8 +325,10 @@ def cg_at_scale(
         wp.synchronize_device(device)
         return 1e6 * (time.perf_counter() - t0) / (reps * iterations)
 
-    by_chunk = {str(c): iteration_us(c) for c in chunks}
-    per_iteration_us = by_chunk.get(str(default)) or iteration_us(default)
+    by_chunk = {str(c): iteration_us(c) for c in chunks}  # the per-iteration launches
+    by_path = {"launches": by_chunk.get(str(default)) or iteration_us(default), "grid": iteration_us(default, "grid")}
+    path = min(by_path, key=by_path.get)
+    per_iteration_us = by_path[path]
 
     nnz = model.nnz_blocks  # stored: the upper triangle
     n = model.vertex_count
@@ -344,6 +353,8 @@ def cg_at_scale(
         "nnz_blocks": full,
         "stored_blocks": nnz,
         "cg_iteration_us": per_iteration_us,
+        "cg_path": path,
+        "cg_iteration_us_by_path": by_path,
         "cg_iteration_us_by_chunk": by_chunk,
         "chunk": default,
         "spmv_bytes": spmv_bytes,
@@ -366,6 +377,11 @@ def main(argv=None) -> int:
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
     parser.add_argument(
+        "--cg-paths",
+        default="grid",
+        help="comma list of CG paths to time every scene with: grid (one persistent launch), launches",
+    )
+    parser.add_argument(
         "--deviation",
         type=int_list,
         default="1,4",
@@ -381,6 +397,9 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
     skip = set(filter(None, args.skip.split(",")))
+    cg_paths = [p for p in args.cg_paths.split(",") if p]
+    if not cg_paths or set(cg_paths) - set(CG_MODES):
+        parser.error(f"--cg-paths: expected a comma list of {', '.join(CG_MODES)}, got '{args.cg_paths}'")
     if skip - {"paper", "piles", "cg"}:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
     scene_defaults = load_scene(ROOT / "scenes" / "default.toml")
@@ -411,15 +430,16 @@ def main(argv=None) -> int:
                 prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
         return 0
 
-    for kind, n, objs, scene in work:
+    for (kind, n, objs, scene), cg_path in itertools.product(work, cg_paths):
         t0 = time.perf_counter()
-        run = time_scene(scene, objs, device, args.cache_dir, frames)
-        if kind == "pile" and n in args.deviation:
-            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames)
+        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=cg_path)
+        if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
+            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames, cg_path)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         print(
-            f"{kind:28s} N={n:5d} sub={run['substeps']} tets={run['tets']:8d} dense tris={run['dense_triangles']:10d} "
+            f"{kind:28s} N={n:5d} {cg_path:8s} sub={run['substeps']} tets={run['tets']:8d} "
+            f"dense tris={run['dense_triangles']:10d} "
             f"{run['ms_per_frame']:9.2f} ms/frame  CG it/step {run['cg_iterations_per_step']:6.1f}  "
             f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
             flush=True,

@@ -10,9 +10,13 @@ from warpfem.model import block_pattern
 from warpfem.shapes import box_tet_mesh
 
 
-@pytest.fixture(params=[True, False], ids=["one-block", "per-iteration-launches"])
-def single_block(request):
-    """Both CG paths: the whole solve in one launch, and two launches per iteration."""
+@pytest.fixture(
+    params=[dict(mode="grid"), dict(mode="grid", grid_blocks=4), dict(mode="launches")],
+    ids=["grid", "grid-4-blocks", "per-iteration-launches"],
+)
+def path(request):
+    """Both CG paths: the whole solve in one persistent launch (on CUDA also forced onto 4 blocks, so that
+    even these tiny systems meet at real grid barriers), and two launches per iteration."""
     return request.param
 
 
@@ -45,11 +49,11 @@ def _system(device, seed=0, pinned=()):
     return arrays, A, free, rng
 
 
-def test_cg_solves_spd_system_to_tolerance(device, single_block):
+def test_cg_solves_spd_system_to_tolerance(device, path):
     a, A, _, rng = _system(device)
     n = A.shape[0] // 3
     b = rng.normal(size=(n, 3))
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, single_block=single_block)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, **path)
     cg.configure(500, 1e-6)
     x = wp.zeros(n, dtype=wp.vec3, device=device)
     cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
@@ -61,11 +65,11 @@ def test_cg_solves_spd_system_to_tolerance(device, single_block):
     assert np.linalg.norm(A @ x.numpy().ravel() - b.ravel()) < 1e-4 * np.linalg.norm(b)
 
 
-def test_fixed_iteration_count_is_exact(device, single_block):
+def test_fixed_iteration_count_is_exact(device, path):
     a, A, _, rng = _system(device, seed=1)
     n = A.shape[0] // 3
     b = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 50, device, single_block=single_block)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 50, device, **path)
     residuals = []
     for iters in (3, 7):
         cg.configure(iters, 0.0)
@@ -76,13 +80,13 @@ def test_fixed_iteration_count_is_exact(device, single_block):
     assert residuals[1] < residuals[0]
 
 
-def test_pinned_rows_keep_their_start_value(device, single_block):
+def test_pinned_rows_keep_their_start_value(device, path):
     pinned = (0, 5, 11)
     a, A, free, rng = _system(device, seed=2, pinned=pinned)
     n = A.shape[0] // 3
     b = rng.normal(size=(n, 3))
     b[list(pinned)] = 0.0
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, single_block=single_block)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, **path)
     cg.configure(500, 1e-7)
     x = wp.zeros(n, dtype=wp.vec3, device=device)
     cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
@@ -94,7 +98,7 @@ def test_pinned_rows_keep_their_start_value(device, single_block):
 
 
 @pytest.mark.parametrize("unroll", [1, 3])
-def test_coupling_pairs_enter_every_product(device, unroll, single_block, monkeypatch):
+def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
     """Contacts as a matrix-free term: the solve equals the dense solve of A + sum J^T C J."""
     monkeypatch.setattr(cg_module, "PAIR_THREADS", 2)  # fewer pair threads than pairs: each strides
     a, A, _, rng = _system(device, seed=3)
@@ -134,9 +138,7 @@ def test_coupling_pairs_enter_every_product(device, unroll, single_block, monkey
         pad(np.array(C), wp.mat33),
     )
     b = rng.normal(size=(n, 3))
-    cg = CGSolver(
-        a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll, single_block=single_block
-    )
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll, **path)
     cg.configure(500, 1e-6)
     x0 = rng.normal(size=(n, 3))  # a nonzero start: the coupling enters the initial residual too
     x = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=device)
@@ -148,9 +150,9 @@ def test_coupling_pairs_enter_every_product(device, unroll, single_block, monkey
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
 
 
-def test_configure_rejects_out_of_range(device, single_block):
+def test_configure_rejects_out_of_range(device, path):
     a, _, _, _ = _system(device)
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 10, device, single_block=single_block)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 10, device, **path)
     with pytest.raises(ValueError):
         cg.configure(11, 1e-3)
     with pytest.raises(ValueError):

@@ -189,13 +189,13 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     single = ModelBuilder()
     single.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
     model = single.finalize(device)
-    for single_block in (True, False):
+    for mode in ("grid", "launches"):
         solver = Solver(model, cg_iterations=10, cg_tolerance=0.0)
-        solver.cg = CGSolver(model.row_start, model.cols, model.free, 10, device, single_block=single_block)
+        solver.cg = CGSolver(model.row_start, model.cols, model.free, 10, device, mode=mode)
         names = _count_launches(monkeypatch, solver, model)
         assert not collision_kernels & set(names)
-        if single_block:  # the whole solve is one launch
-            assert names.count("cg_solve_block") == 1 and len(names) <= 1 + 8
+        if mode == "grid":  # the whole solve is one launch after one reset
+            assert names.count("cg_solve") == 1 and names.count("cg_solve_reset") == 1 and len(names) <= 2 + 8
         else:
             # a fixed count of 10 CG iterations: 2 launches each (one product, one update), the loop checked
             # every 4 iterations (3 checks for 10), plus the fixed stages

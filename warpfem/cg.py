@@ -24,8 +24,8 @@ CHUNK = {"cuda": 4, "cpu": 64}
 PAIR_THREADS = 2048
 """Threads of the product that apply the coupling pairs (each strides over the live ones)."""
 
-SOLVE_BLOCK = 256
-"""Threads of the one-block solve (CUDA): the module's default block size, which its kernels are compiled for."""
+MODES = ("grid", "launches")
+"""How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
 
 @dataclass(frozen=True)
@@ -79,12 +79,11 @@ class CGSolver:
         coupling: A matrix-free term of A applied with every product, or None.
         unroll: Iterations per convergence check of the device-side loop (each check is a graph node and a
             launch; iterations past convergence inside a check do nothing).
-        single_block: Run the whole solve as one launch of one block (no launch per iteration), or two
-            launches per iteration over the whole device. None: one block on the CPU (where a block is one
-            thread: the loop runs in the kernel, not from Python), per-iteration launches on CUDA. Measured
-            on an H100 (scene A of the paper at one step per frame, 3,648 tets): one block of 256 threads
-            7.9 ms per frame, per-iteration launches 1.6 ms; one SM cannot match the whole device even at
-            1,500 rows.
+        mode: "grid": the whole solve as one persistent launch of at most one block per SM, the blocks meeting
+            at grid-wide barriers (one thread on the CPU, where the loop then runs inside the kernel, not from
+            Python); "launches": two launches per iteration under ``wp.capture_while``. None: "grid".
+        grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
+            at most one per SM (the barriers need every block resident).
     """
 
     def __init__(
@@ -96,15 +95,16 @@ class CGSolver:
         device,
         coupling: Coupling | None = None,
         unroll: int = 4,
-        single_block: bool | None = None,
+        mode: str | None = None,
+        grid_blocks: int | None = None,
     ) -> None:
         self.device = wp.get_device(device)
         self.row_start, self.cols, self.free = row_start, cols, free
         self.unroll = int(unroll)
         n = free.shape[0]
-        if single_block is None:
-            single_block = not self.device.is_cuda
-        self.single_block = bool(single_block)
+        self.mode = mode or "grid"
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
@@ -150,6 +150,14 @@ class CGSolver:
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
+        self.barrier = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.totals = wp.zeros(2 + 2 * self.capacity, dtype=float, device=self.device)
+        self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
+        if self.device.is_cuda:
+            wanted = grid_blocks or -(-max(n, len(rows), 1) // BLOCK)
+            self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
+        else:
+            self.grid_blocks = 1
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
 
@@ -203,19 +211,39 @@ class CGSolver:
         n = self.free.shape[0]
         dev = self.device
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
-        if self.single_block:
-            threads = SOLVE_BLOCK if dev.is_cuda else 1
+        if self.mode == "grid":
+            threads = self.grid_blocks * BLOCK if dev.is_cuda else 1
             matrix = [self.chunk_row, self.chunk_start, self.chunk, self.row_start, self.cols, values]
-            solve = wp.launch(
-                K.cg_solve_block,
-                dim=threads,
-                block_dim=threads,
-                inputs=[threads, *matrix, *self._pairs, diag_inv, self.free, b, self.tolerance, self.max_iterations],
-                outputs=[*vectors, self.counts, self.residual_max],
+            reset = wp.launch(
+                K.cg_solve_reset,
+                dim=max(n, self.totals.shape[0]),
+                inputs=[n],
+                outputs=[self.w, self.totals, self.barrier],
                 device=dev,
                 record_cmd=True,
             )
-            return [solve], [], []
+            solve = wp.launch(
+                K.cg_solve,
+                dim=threads,
+                block_dim=BLOCK if dev.is_cuda else 1,
+                inputs=[
+                    threads,
+                    self.grid_blocks,
+                    *matrix,
+                    *self._pairs,
+                    diag_inv,
+                    self.free,
+                    b,
+                    self.tolerance,
+                    self.max_iterations,
+                    self.barrier,
+                    self.totals,
+                ],
+                outputs=[*vectors, self.counts, self.residual_max, self.stalled],
+                device=dev,
+                record_cmd=True,
+            )
+            return [reset, solve], [], []
         limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
         before = [
             wp.launch(
@@ -299,7 +327,17 @@ class CGSolver:
             launch.launch()
 
     def read_stats(self) -> CGStats:
-        """Return and reset the statistics of the solves so far (one host synchronisation)."""
+        """Return and reset the statistics of the solves so far (one host synchronisation).
+
+        Raises:
+            RuntimeError: A grid barrier of the "grid" mode timed out (its blocks were not all resident), so
+                the solves since the last call are not to be trusted.
+        """
+        if int(self.stalled.numpy()[0]):
+            self.stalled.zero_()
+            raise RuntimeError(
+                f"CG grid barrier timed out ({self.grid_blocks} blocks not all resident): use mode='launches'"
+            )
         solves, iterations = (int(c) for c in self.counts.numpy())
         stats = CGStats(solves, iterations, float(self.residual_max.numpy()[0]))
         self.counts.zero_()

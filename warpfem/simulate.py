@@ -141,8 +141,8 @@ def obstacles_of(scene: SceneConfig) -> list[Sphere | Box]:
     ]
 
 
-def solver_of(scene: SceneConfig, model: Model) -> Solver:
-    """The solver a scene asks for."""
+def solver_of(scene: SceneConfig, model: Model, cg_path: str | None = None) -> Solver:
+    """The solver a scene asks for (``cg_path``: see :class:`Solver`)."""
     c = scene.collision
     return Solver(
         model,
@@ -152,6 +152,7 @@ def solver_of(scene: SceneConfig, model: Model) -> Solver:
         cg_iterations=scene.solver.cg_iterations,
         cg_tolerance=scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
         collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
+        cg_path=cg_path,
     )
 
 

@@ -58,6 +58,8 @@ class Solver:
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
             touch (one body without self-collision) gets no collision stage at all.
+        cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve, the
+            default) or "launches" (two launches per iteration).
     """
 
     def __init__(
@@ -69,6 +71,7 @@ class Solver:
         cg_iterations: int = 100,
         cg_tolerance: float = 1.0e-4,
         collision: CollisionSettings | None = DEFAULT_COLLISION,
+        cg_path: str | None = None,
     ) -> None:
         self.model = model
         dev = model.device
@@ -83,7 +86,7 @@ class Solver:
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         coupling = self.collider.coupling if self.collider is not None else None
-        self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev, coupling=coupling)
+        self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev, coupling=coupling, mode=cg_path)
         self.cg.configure(cg_iterations, cg_tolerance)
         self.set_gravity(gravity)
 
