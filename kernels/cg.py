@@ -83,19 +83,28 @@ def chunk_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w += chunk i's share of A u (its blocks and the transposes of the off-diagonal ones); returns its u.w."""
+    """w += chunk i's share of A u (its blocks and the transposes of the off-diagonal ones); returns its u.w.
+
+    Two passes over the chunk: the gathers first (loads only, so they need not wait on one another), then
+    the scattered transposes (the blocks again, now from the cache). One pass with the atomics in the loop
+    made every load wait for the atomics before it.
+    """
     row = chunk_row[i]
     u_row = u[row]
     acc = wp.vec3()
     own = wp.vec3()
-    for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
+    start = chunk_start[i]
+    end = wp.min(start + chunk_size, row_start[row + 1])
+    for j in range(start, end):
         c = cols[j]
-        A = values[j]
         if c != row:
-            acc += A * u[c]
-            wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+            acc += values[j] * u[c]
         else:
-            own = A * u_row
+            own = values[j] * u_row
+    for j in range(start, end):
+        c = cols[j]
+        if c != row:
+            wp.atomic_add(w_out, c, wp.transpose(values[j]) * u_row)
     wp.atomic_add(w_out, row, acc + own)
     return wp.dot(u_row, 2.0 * acc + own)
 

@@ -20,6 +20,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -32,7 +33,6 @@ import warp as wp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from warpfem.cg import MODES as CG_MODES  # noqa: E402
 from warpfem.embedding import map_dense  # noqa: E402
 from warpfem.model import ModelBuilder  # noqa: E402
 from warpfem.preprocess import prepare  # noqa: E402
@@ -378,8 +378,9 @@ def main(argv=None) -> int:
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
     parser.add_argument(
         "--cg-paths",
-        default="grid",
-        help="comma list of CG paths to time every scene with: grid (one persistent launch), launches",
+        default="auto",
+        help="comma list of CG paths to time every scene with: grid (one persistent launch; grid:B on B "
+        "blocks), launches (two per iteration), auto (by size, the default)",
     )
     parser.add_argument(
         "--deviation",
@@ -398,8 +399,8 @@ def main(argv=None) -> int:
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
     skip = set(filter(None, args.skip.split(",")))
     cg_paths = [p for p in args.cg_paths.split(",") if p]
-    if not cg_paths or set(cg_paths) - set(CG_MODES):
-        parser.error(f"--cg-paths: expected a comma list of {', '.join(CG_MODES)}, got '{args.cg_paths}'")
+    if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
+        parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     if skip - {"paper", "piles", "cg"}:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
     scene_defaults = load_scene(ROOT / "scenes" / "default.toml")
@@ -432,9 +433,10 @@ def main(argv=None) -> int:
 
     for (kind, n, objs, scene), cg_path in itertools.product(work, cg_paths):
         t0 = time.perf_counter()
-        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=cg_path)
+        path = None if cg_path == "auto" else cg_path
+        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=path)
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
-            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames, cg_path)
+            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames, path)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         print(

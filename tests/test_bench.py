@@ -40,6 +40,8 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
     cg = result["cg_at_scale"]
     assert cg["cg_iteration_us"] > 0 and cg["stream_bandwidth_GBps"] > 0 and cg["ratio_to_spmv_floor"] > 0
     assert cg["stored_blocks"] < cg["nnz_blocks"] and set(cg["cg_iteration_us_by_chunk"]) == {"1", "2", "4", "8", "64"}
+    assert set(cg["cg_iteration_us_by_path"]) == {"grid", "launches"}
+    assert cg["cg_iteration_us"] == min(cg["cg_iteration_us_by_path"].values())
 
 
 @pytest.mark.parametrize(
@@ -49,6 +51,8 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--paper-substeps", "0"], "--paper-substeps"),
         ("bench.py", ["--deviation", "-1"], "--deviation"),
         ("bench.py", ["--skip", "pile"], "--skip"),
+        ("bench.py", ["--cg-paths", "grid:0"], "--cg-paths"),
+        ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
         ("bench_newton.py", ["--piles", "1.5"], "--piles"),
     ],
 )

@@ -27,6 +27,12 @@ PAIR_THREADS = 2048
 MODES = ("grid", "launches")
 """How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
+GRID_MAX_ROWS = 65536
+"""Rows up to which the default path on CUDA is "grid" (a few blocks at grid barriers beat two launches per
+iteration on small, latency-bound systems); above, "launches" (the whole device per phase). Measured on an
+H100 (scripts/results/bench-full-cuda0-20261122T174827Z.json): grid 10-14 us per iteration on the paper
+scenes (1.4-3.6 k rows) against 12-17 us, launches 72 us against grid 109 us at 197 k rows."""
+
 
 @dataclass(frozen=True)
 class Coupling:
@@ -81,7 +87,8 @@ class CGSolver:
             launch; iterations past convergence inside a check do nothing).
         mode: "grid": the whole solve as one persistent launch of at most one block per SM, the blocks meeting
             at grid-wide barriers (one thread on the CPU, where the loop then runs inside the kernel, not from
-            Python); "launches": two launches per iteration under ``wp.capture_while``. None: "grid".
+            Python); "launches": two launches per iteration under ``wp.capture_while``. None: "grid" on the
+            CPU and on CUDA up to :data:`GRID_MAX_ROWS` rows, else "launches".
         grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
             at most one per SM (the barriers need every block resident).
     """
@@ -102,7 +109,7 @@ class CGSolver:
         self.row_start, self.cols, self.free = row_start, cols, free
         self.unroll = int(unroll)
         n = free.shape[0]
-        self.mode = mode or "grid"
+        self.mode = mode or ("grid" if not self.device.is_cuda or n <= GRID_MAX_ROWS else "launches")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions

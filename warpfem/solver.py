@@ -58,8 +58,9 @@ class Solver:
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
             touch (one body without self-collision) gets no collision stage at all.
-        cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve, the
-            default) or "launches" (two launches per iteration).
+        cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve) or
+            "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: by size (see
+            :class:`warpfem.cg.CGSolver`).
     """
 
     def __init__(
