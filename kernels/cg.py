@@ -85,26 +85,22 @@ def chunk_product(
 ) -> float:
     """w += chunk i's share of A u (its blocks and the transposes of the off-diagonal ones); returns its u.w.
 
-    Two passes over the chunk: the gathers first (loads only, so they need not wait on one another), then
-    the scattered transposes (the blocks again, now from the cache). One pass with the atomics in the loop
-    made every load wait for the atomics before it.
+    One pass, each block read once: gathering a chunk's blocks first and scattering their transposes in a
+    second pass cost 84 against 72 us per iteration at 1.1 M tets on an H100 (the second pass reads the
+    blocks again) and gained nothing on the paper scenes.
     """
     row = chunk_row[i]
     u_row = u[row]
     acc = wp.vec3()
     own = wp.vec3()
-    start = chunk_start[i]
-    end = wp.min(start + chunk_size, row_start[row + 1])
-    for j in range(start, end):
+    for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
         c = cols[j]
+        A = values[j]
         if c != row:
-            acc += values[j] * u[c]
+            acc += A * u[c]
+            wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
         else:
-            own = values[j] * u_row
-    for j in range(start, end):
-        c = cols[j]
-        if c != row:
-            wp.atomic_add(w_out, c, wp.transpose(values[j]) * u_row)
+            own = A * u_row
     wp.atomic_add(w_out, row, acc + own)
     return wp.dot(u_row, 2.0 * acc + own)
 

@@ -151,3 +151,13 @@ def test_cube_rests_on_a_static_obstacle(device, shape):
     assert clearance.min() > -0.02 * 0.2  # not inside it
     assert clearance.min() < 0.002  # resting on it, not floating
     assert x[:, 1].min() > 0.3  # held up (without it the cube falls 1.2 m in this time)
+
+
+def test_cg_path_reaches_the_solver(device):
+    """``cg_path`` picks CG's path and, as "grid:B", its block count (one thread on the CPU)."""
+    model, _ = _cube(device, y0=0.5, damping_stiffness=0.01)
+    grid = Solver(model, cg_path="grid:3").cg
+    assert grid.mode == "grid" and grid.grid_blocks == (3 if wp.get_device(device).is_cuda else 1)
+    assert Solver(model, cg_path="launches").cg.mode == "launches"
+    with pytest.raises(ValueError, match="mode"):
+        Solver(model, cg_path="fast")

@@ -27,11 +27,13 @@ PAIR_THREADS = 2048
 MODES = ("grid", "launches")
 """How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
-GRID_MAX_ROWS = 65536
+GRID_MAX_ROWS = 16384
 """Rows up to which the default path on CUDA is "grid" (a few blocks at grid barriers beat two launches per
 iteration on small, latency-bound systems); above, "launches" (the whole device per phase). Measured on an
-H100 (scripts/results/bench-full-cuda0-20261122T174827Z.json): grid 10-14 us per iteration on the paper
-scenes (1.4-3.6 k rows) against 12-17 us, launches 72 us against grid 109 us at 197 k rows."""
+H100 (scripts/results/bench-full-cuda0-20261122T175724Z.json, piles of armadillos, ~190 rows each): grid
+1.98/2.58/3.00 ms per frame at 1/4/16 bodies against 2.71/3.19/3.58, even at 64 (12 k rows: 6.70 against
+6.65), launches ahead at 256 (49 k rows: 12.27 against 14.71) and at 197 k rows (72 against 109 us per
+iteration)."""
 
 
 @dataclass(frozen=True)

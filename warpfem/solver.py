@@ -87,7 +87,17 @@ class Solver:
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         coupling = self.collider.coupling if self.collider is not None else None
-        self.cg = CGSolver(model.row_start, model.cols, model.free, cg_iterations, dev, coupling=coupling, mode=cg_path)
+        mode, _, blocks = (cg_path or "").partition(":")
+        self.cg = CGSolver(
+            model.row_start,
+            model.cols,
+            model.free,
+            cg_iterations,
+            dev,
+            coupling=coupling,
+            mode=mode or None,
+            grid_blocks=int(blocks) if blocks else None,
+        )
         self.cg.configure(cg_iterations, cg_tolerance)
         self.set_gravity(gravity)
 
