@@ -432,6 +432,18 @@ __syncthreads();
 #endif
 """
 
+WARP_SUM_ADD = r"""
+#if defined(__CUDA_ARCH__)
+float v = value;
+for (int offset = 16; offset > 0; offset >>= 1)
+    v += __shfl_down_sync(0xffffffffu, v, offset);
+if ((threadIdx.x & 31) == 0)
+    atomicAdd(totals.data + slot, v);
+#else
+totals.data[slot] += value;
+#endif
+"""
+
 LOAD_COHERENT = r"""
 #if defined(__CUDA_ARCH__)
 return *((volatile float*)values.data + index);
@@ -453,6 +465,16 @@ def grid_sync(barrier: wp.array(dtype=wp.int32), target: int, stalled: wp.array(
     ...
 
 
+@wp.func_native(WARP_SUM_ADD)
+def warp_sum_add(value: float, totals: wp.array(dtype=float), slot: int):
+    """Add ``value`` of every thread into ``totals[slot]``, one atomic per warp of 32.
+
+    A register shuffle sum per warp (no shared memory, no block barrier). Every thread of the warp must
+    reach it.
+    """
+    ...
+
+
 @wp.func_native(LOAD_COHERENT)
 def load_coherent(values: wp.array(dtype=float), index: int) -> float:
     """``values[index]`` read from the device's shared cache (not a stale per-SM copy), after a barrier."""
@@ -470,9 +492,9 @@ def grid_total(
 ) -> float:
     """The sum of ``value`` over every thread of the launch, returned to all (``totals[slot]`` zeroed before).
 
-    One atomic per block, then the grid barrier ``target``: also orders every write before it.
+    One atomic per warp, then the grid barrier ``target``: also orders every write before it.
     """
-    block_sum(value, totals, slot)
+    warp_sum_add(value, totals, slot)
     grid_sync(barrier, target, stalled_out)
     return load_coherent(totals, slot)
 
@@ -591,7 +613,7 @@ def cg_solve(
     dots = wp.vec2()
     for i in range(lane, n, threads):
         dots += init_row(i, diag_inv, free, b, w_out, r_out, u_out, p_out, s_out)
-    block_sum(dots[1], totals, 1)
+    warp_sum_add(dots[1], totals, 1)
     gamma = grid_total(dots[0], totals, 0, barrier, 2 * blocks, stalled_out)
     bz = load_coherent(totals, 1)
     tol2 = tolerance[0] * tolerance[0]
