@@ -415,7 +415,7 @@ def cg_finish(
 GRID_SYNC = r"""
 #if defined(__CUDA_ARCH__)
 __syncthreads();
-if (threadIdx.x == 0) {
+if (gridDim.x > 1 && threadIdx.x == 0) {
     __threadfence();
     atomicAdd(barrier.data, 1);
     volatile int* arrived = barrier.data;
@@ -459,8 +459,9 @@ def grid_sync(barrier: wp.array(dtype=wp.int32), target: int, stalled: wp.array(
 
     Every block's thread 0 fences, arrives (one atomic add) and spins; the counter only grows, so the n-th
     barrier of a launch of B blocks waits for n B arrivals. All blocks must be resident at once (the host
-    launches at most one block per SM). A barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets
-    its block go on rather than hang the device. A no-op on the CPU, where a launch is one thread.
+    launches at most one block per SM); a launch of one block needs only the block barrier. A barrier that
+    waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather than hang the device. A no-op
+    on the CPU, where a launch is one thread.
     """
     ...
 
