@@ -161,3 +161,8 @@ def test_cg_path_reaches_the_solver(device):
     assert Solver(model, cg_path="launches").cg.mode == "launches"
     with pytest.raises(ValueError, match="mode"):
         Solver(model, cg_path="fast")
+    for bad in ("grid:x", "launches:3"):  # a block count only for grid, and only digits
+        with pytest.raises(ValueError, match="cg_path"):
+            Solver(model, cg_path=bad)
+    with pytest.raises(ValueError, match="grid_blocks"):
+        Solver(model, cg_path="grid:0")

@@ -114,6 +114,8 @@ class CGSolver:
         self.mode = mode or ("grid" if not self.device.is_cuda or n <= GRID_MAX_ROWS else "launches")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if grid_blocks is not None and grid_blocks < 1:
+            raise ValueError(f"grid_blocks must be at least 1, got {grid_blocks}")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
@@ -163,7 +165,7 @@ class CGSolver:
         self.totals = wp.zeros(2 + 2 * self.capacity, dtype=float, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.device.is_cuda:
-            wanted = grid_blocks or -(-max(n, len(rows), 1) // BLOCK)
+            wanted = grid_blocks if grid_blocks is not None else -(-max(n, len(rows), 1) // BLOCK)
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
         else:
             self.grid_blocks = 1

@@ -88,6 +88,8 @@ class Solver:
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         coupling = self.collider.coupling if self.collider is not None else None
         mode, _, blocks = (cg_path or "").partition(":")
+        if blocks and (mode != "grid" or not blocks.isdigit()):
+            raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
         self.cg = CGSolver(
             model.row_start,
             model.cols,
