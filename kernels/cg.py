@@ -55,20 +55,52 @@ def embedded_product(
     """w += (J^T C J less its diagonal blocks) u for one pair; returns this pair's share of u.w.
 
     ``J u = sum_k weights_a[k] u[verts_a[k]] - weights_b[k] u[verts_b[k]]`` is the pair's relative value.
+    The eight values of u are loaded once, before any atomic add: a load after an atomic add to a buffer
+    that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop made a chain
+    of eight dependent round trips to memory.
     """
+    Ua = wp.matrix_from_rows(u[verts_a[0]], u[verts_a[1]], u[verts_a[2]], u[verts_a[3]])
+    Ub = wp.matrix_from_rows(u[verts_b[0]], u[verts_b[1]], u[verts_b[2]], u[verts_b[3]])
     s = wp.vec3()
     for k in range(4):
-        s += weights_a[k] * u[verts_a[k]] - weights_b[k] * u[verts_b[k]]
+        s += weights_a[k] * Ua[k] - weights_b[k] * Ub[k]
     dot = float(0.0)
     for k in range(4):
-        va = verts_a[k]
-        vb = verts_b[k]
-        da = weights_a[k] * (C * (s - weights_a[k] * u[va]))
-        db = -weights_b[k] * (C * (s + weights_b[k] * u[vb]))
-        wp.atomic_add(w_out, va, da)
-        wp.atomic_add(w_out, vb, db)
-        dot += wp.dot(u[va], da) + wp.dot(u[vb], db)
+        da = weights_a[k] * (C * (s - weights_a[k] * Ua[k]))
+        db = -weights_b[k] * (C * (s + weights_b[k] * Ub[k]))
+        wp.atomic_add(w_out, verts_a[k], da)
+        wp.atomic_add(w_out, verts_b[k], db)
+        dot += wp.dot(Ua[k], da) + wp.dot(Ub[k], db)
     return dot
+
+
+GROUP = 4
+"""Nonzero blocks of a chunk whose loads are issued together, ahead of their atomic adds."""
+
+
+@wp.func
+def block_at(j: int, end: int, cols: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.mat33)):
+    """Column and block of nonzero j of a chunk ending at ``end``; past the end, column -1 and a zero block."""
+    k = wp.min(j, end - 1)
+    valid = j < end
+    return wp.where(valid, cols[k], -1), wp.where(valid, values[k], wp.mat33())
+
+
+@wp.func
+def add_block(
+    row: int,
+    c: int,
+    A: wp.mat33,
+    u_c: wp.vec3,
+    u_row: wp.vec3,
+    acc: wp.vec3,
+    w_out: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """One off-diagonal block (c > row; c = -1: none) of a chunk: returns acc + A u_c, adds A^T u_row to w[c]."""
+    if c < 0 or c == row:
+        return acc
+    wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+    return acc + A * u_c
 
 
 @wp.func
@@ -76,8 +108,7 @@ def chunk_product(
     i: int,
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
-    chunk_size: int,
-    row_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     u: wp.array(dtype=wp.vec3),
@@ -87,20 +118,33 @@ def chunk_product(
 
     One pass, each block read once: gathering a chunk's blocks first and scattering their transposes in a
     second pass cost 84 against 72 us per iteration at 1.1 M tets on an H100 (the second pass reads the
-    blocks again) and gained nothing on the paper scenes.
+    blocks again) and gained nothing on the paper scenes. The loads of each group of :data:`GROUP` blocks
+    (columns, blocks, then u at the columns) are issued before their atomic adds, so a chunk costs about
+    three round trips to memory instead of two per block (a load after an atomic add to a buffer that may
+    alias ``u`` waits for it in program order). The diagonal block, if the chunk holds it, is the row's
+    first: the pattern is sorted and upper triangular.
     """
     row = chunk_row[i]
+    first = chunk_start[i]
+    end = chunk_end[i]
     u_row = u[row]
     acc = wp.vec3()
     own = wp.vec3()
-    for j in range(chunk_start[i], wp.min(chunk_start[i] + chunk_size, row_start[row + 1])):
-        c = cols[j]
-        A = values[j]
-        if c != row:
-            acc += A * u[c]
-            wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
-        else:
-            own = A * u_row
+    if cols[first] == row:
+        own = values[first] * u_row
+    for g in range(first, end, GROUP):
+        c0, A0 = block_at(g, end, cols, values)
+        c1, A1 = block_at(g + 1, end, cols, values)
+        c2, A2 = block_at(g + 2, end, cols, values)
+        c3, A3 = block_at(g + 3, end, cols, values)
+        u0 = u[wp.max(c0, 0)]
+        u1 = u[wp.max(c1, 0)]
+        u2 = u[wp.max(c2, 0)]
+        u3 = u[wp.max(c3, 0)]
+        acc = add_block(row, c0, A0, u0, u_row, acc, w_out)
+        acc = add_block(row, c1, A1, u1, u_row, acc, w_out)
+        acc = add_block(row, c2, A2, u2, u_row, acc, w_out)
+        acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
     wp.atomic_add(w_out, row, acc + own)
     return wp.dot(u_row, 2.0 * acc + own)
 
@@ -134,8 +178,7 @@ def cg_apply(
     n_threads: int,
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
-    chunk_size: int,
-    row_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     # inputs: coupling pairs (threads past the chunks)
@@ -174,7 +217,7 @@ def cg_apply(
     if i < n_threads and run:
         n_chunks = chunk_row.shape[0]
         if i < n_chunks:
-            dot = chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
+            dot = chunk_product(i, chunk_row, chunk_start, chunk_end, cols, values, u, w_out)
         else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
             for c in range(i - n_chunks, live_pairs(pair_count, pair_matrix), n_threads - n_chunks):
                 dot += pair_product(
@@ -506,8 +549,7 @@ def partial_product(
     threads: int,
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
-    chunk_size: int,
-    row_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     pair_count: wp.array(dtype=wp.int32),
@@ -519,11 +561,17 @@ def partial_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads)."""
+    """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
+
+    The pairs start at the lane after the last chunk's (wrapping around), so they go to idle threads first
+    rather than lengthening the chains of the threads that hold chunks.
+    """
     dot = float(0.0)
-    for i in range(lane, chunk_row.shape[0], threads):
-        dot += chunk_product(i, chunk_row, chunk_start, chunk_size, row_start, cols, values, u, w_out)
-    for c in range(lane, live_pairs(pair_count, pair_matrix), threads):
+    n_chunks = chunk_row.shape[0]
+    for i in range(lane, n_chunks, threads):
+        dot += chunk_product(i, chunk_row, chunk_start, chunk_end, cols, values, u, w_out)
+    first_pair = ((lane - n_chunks) % threads + threads) % threads
+    for c in range(first_pair, live_pairs(pair_count, pair_matrix), threads):
         dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
     return dot
 
@@ -553,8 +601,7 @@ def cg_solve(
     # inputs: matrix
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
-    chunk_size: int,
-    row_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     pair_count: wp.array(dtype=wp.int32),
@@ -597,8 +644,7 @@ def cg_solve(
         threads,
         chunk_row,
         chunk_start,
-        chunk_size,
-        row_start,
+        chunk_end,
         cols,
         values,
         pair_count,
@@ -628,8 +674,7 @@ def cg_solve(
             threads,
             chunk_row,
             chunk_start,
-            chunk_size,
-            row_start,
+            chunk_end,
             cols,
             values,
             pair_count,

@@ -92,7 +92,8 @@ class CGSolver:
             Python); "launches": two launches per iteration under ``wp.capture_while``. None: "grid" on the
             CPU and on CUDA up to :data:`GRID_MAX_ROWS` rows, else "launches".
         grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
-            at most one per SM (the barriers need every block resident).
+            plus one for the coupling pairs if any, at most one per SM (the barriers need every block
+            resident).
     """
 
     def __init__(
@@ -125,8 +126,10 @@ class CGSolver:
         first = np.repeat(starts[:-1], sizes) + self.chunk * (
             np.arange(len(rows)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
         )
+        last = np.minimum(first + self.chunk, np.repeat(starts[1:], sizes))
         self.chunk_row = wp.array(rows, dtype=wp.int32, device=self.device)
         self.chunk_start = wp.array(first.astype(np.int32), dtype=wp.int32, device=self.device)
+        self.chunk_end = wp.array(last.astype(np.int32), dtype=wp.int32, device=self.device)
         if coupling is None:
             zero = dict(shape=0, device=self.device)
             coupling = Coupling(
@@ -165,7 +168,9 @@ class CGSolver:
         self.totals = wp.zeros(2 + 2 * self.capacity, dtype=float, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.device.is_cuda:
-            wanted = grid_blocks if grid_blocks is not None else -(-max(n, len(rows), 1) // BLOCK)
+            # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
+            pair_block = 1 if coupling.matrix.shape[0] > 0 else 0
+            wanted = grid_blocks if grid_blocks is not None else -(-max(n, len(rows), 1) // BLOCK) + pair_block
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
         else:
             self.grid_blocks = 1
@@ -194,8 +199,7 @@ class CGSolver:
                 self._apply_threads,
                 self.chunk_row,
                 self.chunk_start,
-                self.chunk,
-                self.row_start,
+                self.chunk_end,
                 self.cols,
                 values,
                 *self._pairs,
@@ -224,7 +228,7 @@ class CGSolver:
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
         if self.mode == "grid":
             threads = self.grid_blocks * BLOCK if dev.is_cuda else 1
-            matrix = [self.chunk_row, self.chunk_start, self.chunk, self.row_start, self.cols, values]
+            matrix = [self.chunk_row, self.chunk_start, self.chunk_end, self.cols, values]
             reset = wp.launch(
                 K.cg_solve_reset,
                 dim=max(n, self.totals.shape[0]),

@@ -32,7 +32,7 @@ TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
 16 matrix slots, rotation."""
 
-BLOCK_BYTES = 42
+BLOCK_BYTES = 43
 """Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
 
 DENSE_BYTES = 32
