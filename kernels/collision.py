@@ -117,59 +117,86 @@ def collision_points(
         wp.atomic_max(speed_max_out, body, speed)
 
 
-@wp.kernel
-def tet_bounds(
-    tets: wp.array(dtype=wp.vec4i),
-    x: wp.array(dtype=wp.vec3),
-    lowers_out: wp.array(dtype=wp.vec3),
-    uppers_out: wp.array(dtype=wp.vec3),
-    inverse_out: wp.array(dtype=wp.mat33),
-):
-    """Per tet: its bounding box (for the BVH refit) and the inverse of its edge matrix.
+BLOCK_SYNC = r"""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+"""
 
-    A degenerate (flat) tet gets an empty box (lower above upper), so no query returns it.
+
+@wp.func_native(BLOCK_SYNC)
+def block_sync():
+    """Barrier of the threads of a block; their global writes before it are visible to all after it.
+
+    Every thread of the block must reach it. A no-op on the CPU, where a block is one thread.
     """
-    e = wp.tid()
-    t = tets[e]
-    x0 = x[t[0]]
-    x1 = x[t[1]]
-    x2 = x[t[2]]
-    x3 = x[t[3]]
-    A = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0)
-    if wp.abs(wp.determinant(A)) < 1.0e-20:
-        lowers_out[e] = wp.vec3(1.0e30)
-        uppers_out[e] = wp.vec3(-1.0e30)
-        inverse_out[e] = wp.mat33()
-    else:
-        lowers_out[e] = wp.min(wp.min(x0, x1), wp.min(x2, x3))
-        uppers_out[e] = wp.max(wp.max(x0, x1), wp.max(x2, x3))
-        inverse_out[e] = wp.inverse(A)
+    ...
 
 
-@wp.kernel
-def body_bounds(
-    body_vertex_start: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.vec3),
-    threads: int,
-    lowers_out: wp.array(dtype=wp.vec3),
-    uppers_out: wp.array(dtype=wp.vec3),
-):
-    """Per body (one block of ``threads`` threads each): the bounding box of its tet vertices."""
-    body, lane = wp.tid()
+@wp.func
+def leaf_box(leaf: wp.vec4i, tets: wp.array(dtype=wp.vec4i), x: wp.array(dtype=wp.vec3)):
+    """Bounding box of a leaf's tets (-1: none); empty (lower above upper) for a leaf without tets."""
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
-    for i in range(body_vertex_start[body] + lane, body_vertex_start[body + 1], threads):
-        lo = wp.min(lo, x[i])
-        hi = wp.max(hi, x[i])
-    lo_x = wp.tile_min(wp.tile(lo[0]))
-    lo_y = wp.tile_min(wp.tile(lo[1]))
-    lo_z = wp.tile_min(wp.tile(lo[2]))
-    hi_x = wp.tile_max(wp.tile(hi[0]))
-    hi_y = wp.tile_max(wp.tile(hi[1]))
-    hi_z = wp.tile_max(wp.tile(hi[2]))
+    for k in range(4):
+        if leaf[k] >= 0:
+            t = tets[leaf[k]]
+            for c in range(4):
+                lo = wp.min(lo, x[t[c]])
+                hi = wp.max(hi, x[t[c]])
+    return lo, hi
+
+
+@wp.kernel
+def refit_trees(
+    # inputs
+    tets: wp.array(dtype=wp.vec4i),
+    x: wp.array(dtype=wp.vec3),
+    body_tet_start: wp.array(dtype=wp.int32),
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    threads: int,
+    # outputs
+    inverse_out: wp.array(dtype=wp.mat33),
+    node_lower_out: wp.array(dtype=wp.vec3),
+    node_upper_out: wp.array(dtype=wp.vec3),
+    body_lower_out: wp.array(dtype=wp.vec3),
+    body_upper_out: wp.array(dtype=wp.vec3),
+):
+    """Per body (one block of ``threads`` threads): its tets' inverse edge matrices and its tree's boxes.
+
+    The tree of body b is complete, in heap order (node k has children 2k+1 and 2k+2) from
+    ``node_start[b]``, its L = ``leaf_start[b+1] - leaf_start[b]`` leaves last; the leaves are boxed from
+    their tets' corners, then each level from the one below it, with a block barrier between levels. The
+    root's box is the body's. A degenerate (flat) tet gets a zero inverse, which the inside test refuses.
+    """
+    body, lane = wp.tid()
+    for e in range(body_tet_start[body] + lane, body_tet_start[body + 1], threads):
+        t = tets[e]
+        x0 = x[t[0]]
+        A = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+        inverse_out[e] = wp.where(wp.abs(wp.determinant(A)) < 1.0e-20, wp.mat33(), wp.inverse(A))
+    ns = node_start[body]
+    ls = leaf_start[body]
+    first_leaf = leaf_start[body + 1] - ls - 1
+    for j in range(lane, first_leaf + 1, threads):
+        lo, hi = leaf_box(leaf_tets[ls + j], tets, x)
+        node_lower_out[ns + first_leaf + j] = lo
+        node_upper_out[ns + first_leaf + j] = hi
+    block_sync()
+    end = first_leaf
+    while end > 0:
+        begin = (end - 1) // 2
+        for k in range(begin + lane, end, threads):
+            a = ns + 2 * k + 1
+            node_lower_out[ns + k] = wp.min(node_lower_out[a], node_lower_out[a + 1])
+            node_upper_out[ns + k] = wp.max(node_upper_out[a], node_upper_out[a + 1])
+        block_sync()
+        end = begin
     if lane == 0:
-        lowers_out[body] = wp.vec3(wp.tile_extract(lo_x, 0), wp.tile_extract(lo_y, 0), wp.tile_extract(lo_z, 0))
-        uppers_out[body] = wp.vec3(wp.tile_extract(hi_x, 0), wp.tile_extract(hi_y, 0), wp.tile_extract(hi_z, 0))
+        body_lower_out[body] = node_lower_out[ns]
+        body_upper_out[body] = node_upper_out[ns]
 
 
 @wp.func
@@ -202,9 +229,10 @@ def point_in_tet(
 ) -> bool:
     """Point p (at q) against tet e: if inside with a positive depth, records the contact and returns True."""
     t = tets[e]
-    b = tet_inverse[e] * (q - x[t[0]])
+    inverse = tet_inverse[e]
+    b = inverse * (q - x[t[0]])
     b0 = 1.0 - b[0] - b[1] - b[2]
-    if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0:
+    if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0 or wp.determinant(inverse) == 0.0:
         return False
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
@@ -254,17 +282,26 @@ def point_in_tet(
     return True
 
 
+@wp.func
+def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
+    """Whether point q lies in the box [lo, hi]."""
+    return q[0] >= lo[0] and q[1] >= lo[1] and q[2] >= lo[2] and q[0] <= hi[0] and q[1] <= hi[1] and q[2] <= hi[2]
+
+
 @wp.kernel
 def detect_contacts(
     # inputs: geometry
     body_bvh: wp.uint64,
-    tet_bvh: wp.uint64,
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    node_lower: wp.array(dtype=wp.vec3),
+    node_upper: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
-    tet_body: wp.array(dtype=wp.int32),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     points: wp.array(dtype=wp.vec3),
@@ -286,63 +323,80 @@ def detect_contacts(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ):
-    """Per collision point: the tets whose boxes hold it (BVH query), barycentric inside test, one contact.
+    """Per collision point: the bodies whose boxes hold it, then each such body's tet tree, one contact.
 
-    Two levels: only a point inside the box of a body it may collide with (another body, or its own if
-    that collides with itself: ``body_bvh``) queries ``tet_bvh``, so the many points far from every other
-    body cost one small query. The first tet that holds the point and gives it a positive depth answers
-    it: a contact
-    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
-    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
+    Two levels: the body BVH gives the bodies the point may collide with (another body, or its own if that
+    collides with itself), and only their trees are walked (see ``refit_trees``), so a point never walks
+    its own body's tets, which it lies among, unless the body collides with itself. The walk is stackless
+    (heap order: descend to the left child of a box that holds the point, else go to the next sibling up
+    the tree). The first tet that holds the point and gives it a positive depth answers it: a contact with
+    the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth (m).
+    ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
     ``capacity`` are dropped (the host sees the overflow as count > capacity).
     """
     p = wp.tid()
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    near = bool(False)  # inside the box of a body it may collide with
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
-    while wp.bvh_query_next(bodies, body):
-        if body != body_p or self_ok:
-            near = True
-            break
-    if not near:
-        return
-    query = wp.bvh_query_aabb(tet_bvh, q, q)
-    e = int(0)
-    while wp.bvh_query_next(query, e):
-        same = tet_body[e] == body_p
+    found = bool(False)
+    while not found and wp.bvh_query_next(bodies, body):
+        same = body == body_p
         if same and not self_ok:
             continue
-        if point_in_tet(
-            p,
-            q,
-            e,
-            same,
-            x,
-            v,
-            dt,
-            tets,
-            tet_inverse,
-            tet_face_start,
-            tet_faces,
-            point_velocity,
-            point_anchor,
-            row_start,
-            cols,
-            depth,
-            grad,
-            capacity,
-            count_out,
-            contact_point_out,
-            contact_tet_out,
-            contact_bary_out,
-            contact_normal_out,
-            contact_depth_out,
-            stats_out,
-        ):
-            break
+        ns = node_start[body]
+        ls = leaf_start[body]
+        first_leaf = leaf_start[body + 1] - ls - 1
+        node = int(0)
+        walking = bool(True)
+        while walking:
+            descend = bool(False)
+            if overlaps(q, node_lower[ns + node], node_upper[ns + node]):
+                if node < first_leaf:
+                    descend = True
+                else:
+                    leaf = leaf_tets[ls + node - first_leaf]
+                    for k in range(4):
+                        if not found and leaf[k] >= 0:
+                            found = point_in_tet(
+                                p,
+                                q,
+                                leaf[k],
+                                same,
+                                x,
+                                v,
+                                dt,
+                                tets,
+                                tet_inverse,
+                                tet_face_start,
+                                tet_faces,
+                                point_velocity,
+                                point_anchor,
+                                row_start,
+                                cols,
+                                depth,
+                                grad,
+                                capacity,
+                                count_out,
+                                contact_point_out,
+                                contact_tet_out,
+                                contact_bary_out,
+                                contact_normal_out,
+                                contact_depth_out,
+                                stats_out,
+                            )
+            if found:
+                walking = False
+            elif descend:
+                node = 2 * node + 1
+            else:
+                while node > 0 and node % 2 == 0:  # a right child: up to the parent
+                    node = (node - 1) // 2
+                if node == 0:
+                    walking = False
+                else:
+                    node += 1  # a left child: on to its sibling
 
 
 @wp.func

@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 
 from warpfem.cg import CGSolver
-from warpfem.collision import CollisionSettings
+from warpfem.collision import CollisionSettings, tet_trees
 from warpfem.distance import distance_field
 from warpfem.model import ModelBuilder
 from warpfem.shapes import box_tet_mesh
@@ -157,18 +157,23 @@ def test_a_body_at_rest_has_no_self_contacts(device):
 def _count_launches(monkeypatch, solver, model):
     """Kernel names launched by one step: direct launches plus replays of recorded ones (CG's)."""
     names = []
-    real, replay = wp.launch, wp.Launch.launch
+    real, real_tiled, replay = wp.launch, wp.launch_tiled, wp.Launch.launch
 
     def counting(kernel, *args, **kwargs):
         if not kwargs.get("record_cmd"):
             names.append(kernel.key)
         return real(kernel, *args, **kwargs)
 
+    def counting_tiled(kernel, *args, **kwargs):
+        names.append(kernel.key)
+        return real_tiled(kernel, *args, **kwargs)
+
     def counting_replay(self, *args, **kwargs):
         names.append(self.kernel.key)
         return replay(self, *args, **kwargs)
 
     monkeypatch.setattr(wp, "launch", counting)
+    monkeypatch.setattr(wp, "launch_tiled", counting_tiled)
     monkeypatch.setattr(wp.Launch, "launch", counting_replay)
     s0, s1 = model.state(), model.state()
     solver.step(s0, s1, 1 / 240)
@@ -183,7 +188,7 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
         "detect_contacts",
         "contact_forces",
         "collision_points",
-        "tet_bounds",
+        "refit_trees",
         "accumulate_gradients",
     }
     single = ModelBuilder()
@@ -245,3 +250,86 @@ def test_collision_penalty_across_orders_of_magnitude_stays_stable(device, stiff
     assert peak[0] < 1.05 * drop
     xb = s.x.numpy()[model.bodies[1].vertex_start :]
     assert xb[:, 1].mean() > 0.2  # still on top of a, not through it (a soft penalty lets it sink and tilt)
+
+
+def _rotation(deg_x, deg_y):
+    ax, ay = np.radians(deg_x), np.radians(deg_y)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    return ry @ rx
+
+
+def test_tet_trees_hold_every_tet_once_in_balanced_leaves():
+    rng = np.random.default_rng(3)
+    sizes = [1, 5, 37, 200]
+    tets, ranges, x = [], [], rng.random((400, 3))
+    for n in sizes:
+        ranges.append((sum(len(t) for t in tets), n))
+        tets.append(rng.integers(0, 400, size=(n, 4)))
+    trees = tet_trees(np.concatenate(tets), x, ranges)
+    for b, (first, n) in enumerate(ranges):
+        leaves = trees.leaf_tets[trees.leaf_start[b] : trees.leaf_start[b + 1]]
+        count = len(leaves)
+        assert count & (count - 1) == 0 and count < max(2, 2 * -(-n // 4))  # a power of two, no spare level
+        assert trees.node_start[b + 1] - trees.node_start[b] == 2 * count - 1
+        held = leaves[leaves >= 0]
+        assert sorted(held) == list(range(first, first + n))  # every tet of the body, once
+        assert (leaves >= 0).sum(axis=1).min() >= min(n, 1)  # no empty leaf: splits are even
+
+
+def test_detection_finds_exactly_the_points_inside_other_bodies(device):
+    """Against a NumPy barycentric test of every collision point against every tet it may collide with.
+
+    Two convex boxes, rotated and interpenetrating, and a third body colliding with itself: two boxes of
+    one mesh crossing each other (their points lie in each other's tets, far from their one-rings), which
+    also crosses the others. Every box is convex, so a point inside one of its tets is below all its faces
+    (a positive depth, which a contact needs).
+    """
+
+    def box(offset, rx, ry):
+        verts, tets = _box((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), (3, 4, 3))
+        return verts @ _rotation(rx, ry).T + np.asarray(offset), tets
+
+    b = ModelBuilder()
+    for k, (offset, rx, ry) in enumerate([((0.0, 0.0, 0.0), 0, 0), ((0.15, 0.12, 0.05), 30, 40)]):
+        b.add_body(f"b{k}", *box(offset, rx, ry), 1e5, 0.3, 1000.0, collision_spacing=0.04)
+    (va, ta), (vb, tb) = box((-0.1, 0.2, 0.1), 10, 70), box((-0.05, 0.3, 0.0), 45, 0)
+    verts, tets = np.concatenate([va, vb]), np.concatenate([ta, tb + len(va)])
+    b.add_body("crossed", verts, tets, 1e5, 0.3, 1000.0, collision_spacing=0.04, self_collision=True)
+    model = b.finalize(device)
+    x = model.rest_x.numpy()
+    solver = Solver(model, ground=None)
+    xs = wp.array(x, dtype=wp.vec3, device=device)
+    v = wp.zeros_like(xs)
+    rotation = wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device)
+    c = solver.collider
+    c.respond(xs, v, rotation, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix))
+    n = int(c.count.numpy()[0])
+    assert 0 < n <= c.capacity
+    found = set(c.contact_point.numpy()[:n].tolist())
+
+    points = c.points.numpy()
+    point_body = model.point_body.numpy()
+    anchors = model.point_anchor.numpy()
+    tets = model.tets.numpy()
+    tet_body = model.tet_body.numpy()
+    A = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    bary = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - x[tets[:, 0]][None])
+    inside = (bary >= 0).all(axis=2) & (bary.sum(axis=2) <= 1)  # (points, tets)
+    row_start, cols = model.row_start.numpy(), model.cols.numpy()
+    neighbours = [set(cols[row_start[i] : row_start[i + 1]]) for i in range(len(row_start) - 1)]
+
+    def near(anchor, tet):  # the self-collision rule: an anchor in a corner's one-ring
+        return any(a >= 0 and any(max(a, c) in neighbours[min(a, c)] for c in tet) for a in anchor)
+
+    expected = set()
+    self_body = model.body_self.numpy()
+    for p in np.flatnonzero(inside.any(axis=1)):
+        for e in np.flatnonzero(inside[p]):
+            other = tet_body[e] != point_body[p]
+            if other or (self_body[point_body[p]] and not near(anchors[p], tets[e])):
+                expected.add(int(p))
+                break
+    assert found == expected
+    contact_tets, contact_points = c.contact_tet.numpy()[:n], c.contact_point.numpy()[:n]
+    assert np.any((tet_body[contact_tets] == 2) & (point_body[contact_points] == 2))  # self contacts were tested

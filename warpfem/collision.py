@@ -1,9 +1,12 @@
 """Host side of collisions: collision points (built once) and the per-step detection and response.
 
-Detection: every step a ``wp.Bvh`` over the tets' bounding boxes is refitted, and each collision point
-queries it for the tets whose boxes hold it, then applies the barycentric inside test (one thread per
-point: the paper's vertex-in-tet test of Teschner et al. 2003 with a BVH in place of the spatial hash; a
-thread per tet walking hash cells measured 0.9-2.3 ms per step on the paper's scenes on an H100). Response
+Detection: every step each body's tree of tet boxes (:func:`tet_trees`, built once) is refitted, and each
+collision point walks the trees of the bodies whose boxes hold it (a ``wp.Bvh`` over the body boxes) for
+the tets whose boxes hold it, then applies the barycentric inside test (one thread per point: the
+paper's vertex-in-tet test of Teschner et al. 2003 with bounding volumes in place of the spatial hash; a
+thread per tet walking hash cells measured 0.9-2.3 ms per step on the paper's scenes on an H100). One
+tree per body, rather than one ``wp.Bvh`` over every tet, spares a point the walk through its own body's
+tets, which it always lies among. Response
 (Kondo & Kanai, step 7): a penalty force from the tet's distance field, implicit (see
 :mod:`warpfem.kernels.collision`). Self-collision rule: a point is tested against tets of its own body only
 if none of its anchor vertices (the vertex itself, or the three corners of the surface triangle a sample
@@ -42,7 +45,63 @@ class CollisionSettings:
 DEFAULT_COLLISION = CollisionSettings()
 
 BODY_BLOCK = 256
-"""Threads per body of the body-box reduction (CUDA)."""
+"""Threads per body of the tree refit (CUDA)."""
+
+LEAF_TETS = 4
+"""Tets per leaf of a body's tree."""
+
+
+@dataclass(frozen=True)
+class TetTrees:
+    """Per body, a complete binary tree over its tets in heap order (node k has children 2k+1 and 2k+2).
+
+    Body b's nodes are ``node_start[b]`` to ``node_start[b+1]``, its L_b = ``leaf_start[b+1] -
+    leaf_start[b]`` leaves (a power of two) last among them; leaf j holds the tets ``leaf_tets[leaf_start[b]
+    + j]`` (-1: none). The boxes are refitted on the device each step.
+
+    Attributes:
+        node_start: (bodies + 1,) int32 node offsets.
+        leaf_start: (bodies + 1,) int32 leaf offsets.
+        leaf_tets: (leaves, 4) int32 global tet indices, -1 for none.
+    """
+
+    node_start: np.ndarray
+    leaf_start: np.ndarray
+    leaf_tets: np.ndarray
+
+
+def tet_trees(tets: np.ndarray, x: np.ndarray, tet_ranges: list[tuple[int, int]]) -> TetTrees:
+    """Balanced trees of each body's tets, split at the median centroid along the widest axis, level by level.
+
+    Args:
+        tets: (q, 4) tets of every body (global vertex indices).
+        x: (p, 3) rest positions (m).
+        tet_ranges: Per body, (first tet, tet count).
+    """
+    centroid = x[tets].mean(axis=1)
+    node_start, leaf_start, leaves = [0], [0], []
+    for first, count in tet_ranges:
+        depth = int(np.ceil(np.log2(max(1, -(-count // LEAF_TETS)))))
+        order = np.arange(first, first + count)
+        bounds = np.array([0, count])
+        for _ in range(depth):  # every segment holds at least LEAF_TETS tets until the last split
+            sizes = np.diff(bounds)
+            seg = np.repeat(np.arange(len(sizes)), sizes)
+            c = centroid[order]
+            widest = np.argmax(np.maximum.reduceat(c, bounds[:-1]) - np.minimum.reduceat(c, bounds[:-1]), axis=1)
+            order = order[np.lexsort((c[np.arange(count), widest[seg]], seg))]
+            bounds = np.sort(np.concatenate([bounds, bounds[:-1] + (sizes + 1) // 2]))
+        sizes = np.diff(bounds)
+        slot = np.arange(LEAF_TETS)
+        index = np.minimum(bounds[:-1, None] + slot[None, :], count - 1)
+        leaves.append(np.where(slot[None, :] < sizes[:, None], order[index], -1))
+        leaf_start.append(leaf_start[-1] + len(sizes))
+        node_start.append(node_start[-1] + 2 * len(sizes) - 1)
+    return TetTrees(
+        node_start=np.array(node_start, dtype=np.int32),
+        leaf_start=np.array(leaf_start, dtype=np.int32),
+        leaf_tets=np.concatenate(leaves).astype(np.int32),
+    )
 
 
 @dataclass(frozen=True)
@@ -146,16 +205,20 @@ class Collider:
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
-        self.lowers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
-        self.uppers = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
-        starts = np.array([b.vertex_start for b in model.bodies] + [model.vertex_count], dtype=np.int32)
-        self.body_vertex_start = wp.array(starts, dtype=wp.int32, device=dev)
+        tet_ranges = [(b.tet_start, b.tet_count) for b in model.bodies]
+        trees = tet_trees(model.tets.numpy(), model.rest_x.numpy(), tet_ranges)
+        starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
+        self.body_tet_start = wp.array(starts, dtype=wp.int32, device=dev)
+        self.node_start = wp.array(trees.node_start, dtype=wp.int32, device=dev)
+        self.leaf_start = wp.array(trees.leaf_start, dtype=wp.int32, device=dev)
+        self.leaf_tets = wp.array(trees.leaf_tets, dtype=wp.vec4i, device=dev)
+        self.node_lower = wp.zeros(int(trees.node_start[-1]), dtype=wp.vec3, device=dev)
+        self.node_upper = wp.zeros_like(self.node_lower)
         self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
-        self._bound(model.rest_x, refit=False)  # the boxes the BVHs are built from
+        self._bound(model.rest_x, refit=False)  # the body boxes the BVH is built from
         # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
-        self.tet_bvh = wp.Bvh(self.lowers, self.uppers, constructor="median")
         self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.set_response(settings.stiffness, settings.friction)
 
@@ -231,26 +294,18 @@ class Collider:
         )
 
     def _bound(self, x: wp.array, refit: bool = True) -> None:
-        """At positions ``x``: the tets' and the bodies' boxes, the BVHs refitted to them, tet inverses."""
+        """At positions ``x``: tet inverses, each body's tree of tet boxes and its box, the body BVH refitted."""
         m = self.model
-        wp.launch(
-            K.tet_bounds,
-            dim=m.tet_count,
-            inputs=[m.tets, x],
-            outputs=[self.lowers, self.uppers, self.tet_inverse],
-            device=m.device,
-        )
         threads = BODY_BLOCK if m.device.is_cuda else 1
         wp.launch_tiled(
-            K.body_bounds,
+            K.refit_trees,
             dim=[len(m.bodies)],
-            inputs=[self.body_vertex_start, x, threads],
-            outputs=[self.body_lowers, self.body_uppers],
+            inputs=[m.tets, x, self.body_tet_start, self.node_start, self.leaf_start, self.leaf_tets, threads],
+            outputs=[self.tet_inverse, self.node_lower, self.node_upper, self.body_lowers, self.body_uppers],
             block_dim=threads,
             device=m.device,
         )
         if refit:
-            self.tet_bvh.refit()
             self.body_bvh.refit()
 
     def _rotate_gradients(self, rotation: wp.array) -> None:
@@ -286,13 +341,16 @@ class Collider:
             dim=points.shape[0],
             inputs=[
                 self.body_bvh.id,
-                self.tet_bvh.id,
+                self.node_start,
+                self.leaf_start,
+                self.leaf_tets,
+                self.node_lower,
+                self.node_upper,
                 x,
                 v,
                 dt,
                 m.tets,
                 self.tet_inverse,
-                m.tet_body,
                 m.tet_face_start,
                 m.tet_faces,
                 points,

@@ -6,7 +6,7 @@ sizes: per tet vertex (rest and initial state, two states, masses, forces, preco
 per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block of the
 stored upper triangle and its column; blocks are counted exactly from the tets' edges), per dense vertex
 (embedding and mapped position), and for collisions per collision point, per contact slot and per tet (its
-box, inverse edge matrix and BVH nodes).
+inverse edge matrix and tree nodes).
 """
 
 from __future__ import annotations
@@ -44,11 +44,12 @@ POINT_BYTES = 40
 COLLIDER_POINT_BYTES = 28
 """Collider bytes per collision point: position, velocity, stiffness."""
 
-COLLIDER_TET_BYTES = 60
-"""Collider bytes per tet: bounding box and inverse edge matrix (the arrays the BVH is refitted from)."""
+COLLIDER_TET_BYTES = 36
+"""Collider bytes per tet: inverse edge matrix."""
 
-BVH_TET_BYTES = 64
-"""Bytes per tet of the tet BVH's nodes (about two 32-byte nodes per leaf; held by Warp, not a wp.array)."""
+TREE_TET_BYTES = 32
+"""Bytes per tet of the bodies' tet trees at most: under one 24-byte node box and half a 16-byte leaf (a
+power of two of leaves of up to four tets)."""
 
 TET_FACE_BYTES = 12
 """Model bytes per (tet, nearby surface face) pair: the face's vertex indices (the contact depth rule)."""
@@ -134,7 +135,7 @@ def estimate(
     parts["collision"] = POINT_BYTES * points
     if collision:
         contacts = max(64, int(CONTACTS_PER_POINT * points))
-        per_tet = COLLIDER_TET_BYTES + BVH_TET_BYTES
+        per_tet = COLLIDER_TET_BYTES + TREE_TET_BYTES
         parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + per_tet * q
     return Estimate(parts)
 
