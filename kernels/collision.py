@@ -434,6 +434,7 @@ def contact_forces(
     contact_matrix_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
+    totals_out: wp.array(dtype=wp.int32),
 ):
     """Penalty force a d g on the point's tet corners (by its weights), the reaction on the contact tet's.
 
@@ -441,9 +442,13 @@ def contact_forces(
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
     friction across it, with c = mu a d / max(|u_t|, eps) from the step's start velocity. C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
-    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix.
+    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
+    contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
     """
     i = wp.tid()
+    if i == 0:
+        totals_out[0] = totals_out[0] + count[0]
+        totals_out[1] = wp.max(totals_out[1], count[0])
     if i >= wp.min(count[0], contact_point.shape[0]):
         return
     p = contact_point[i]
@@ -469,14 +474,6 @@ def contact_forces(
         wp.atomic_add(force_out, tt[k], -w_t[k] * f)
         wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
         wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
-
-
-@wp.kernel
-def count_contacts(count: wp.array(dtype=wp.int32), totals_out: wp.array(dtype=wp.int32)):
-    """Single thread: totals[0] += contacts this step; totals[1] = max(totals[1], contacts this step)."""
-    n = count[0]
-    totals_out[0] = totals_out[0] + n
-    totals_out[1] = wp.max(totals_out[1], n)
 
 
 @wp.kernel

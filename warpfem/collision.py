@@ -261,7 +261,6 @@ class Collider:
             self.capacity,
             self.depth_max,
         )
-        wp.launch(K.count_contacts, dim=1, inputs=[self.count], outputs=[self.contacts_total], device=dev)
         wp.launch(
             K.contact_forces,
             dim=self.capacity,
@@ -289,6 +288,7 @@ class Collider:
                 self.contact_matrix,
                 force_out,
                 matrix_out,
+                self.contacts_total,
             ],
             device=dev,
         )
