@@ -16,8 +16,9 @@ cap changes nothing. Rows with ``free == 0`` (pinned vertices) are held at their
 
 ``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
 grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at kernel boundaries, so an
-iteration costs two barriers rather than two launches. Small systems are latency bound: this is the
-default on CUDA for them (``warpfem.cg.GRID_MAX_ROWS``). On the CPU the same kernel runs as a single thread.
+iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
+on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
+On the CPU the same kernel runs as a single thread.
 """
 
 import warp as wp

@@ -159,12 +159,10 @@ def test_configure_rejects_out_of_range(device, path):
         cg.configure(5, 1.5)
 
 
-def test_default_path_by_size(device, monkeypatch):
-    """One persistent launch for small systems (and always on the CPU), launches per iteration past the limit."""
+def test_default_path_is_one_persistent_launch(device):
+    """The grid path unless told otherwise (measured ahead at every size, see ``DEFAULT_MODE``)."""
     a, _, _, _ = _system(device)
     assert CGSolver(a["row_start"], a["cols"], a["free"], 10, device).mode == "grid"
-    monkeypatch.setattr(cg_module, "GRID_MAX_ROWS", 8)  # the test system has 27 rows
-    big = CGSolver(a["row_start"], a["cols"], a["free"], 10, device).mode
-    assert big == ("launches" if wp.get_device(device).is_cuda else "grid")
+    assert CGSolver(a["row_start"], a["cols"], a["free"], 10, device, mode="launches").mode == "launches"
     with pytest.raises(ValueError, match="mode"):
         CGSolver(a["row_start"], a["cols"], a["free"], 10, device, mode="fast")

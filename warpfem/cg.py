@@ -27,13 +27,13 @@ PAIR_THREADS = 2048
 MODES = ("grid", "launches")
 """How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
-GRID_MAX_ROWS = 16384
-"""Rows up to which the default path on CUDA is "grid" (a few blocks at grid barriers beat two launches per
-iteration on small, latency-bound systems); above, "launches" (the whole device per phase). Measured on an
-H100 (scripts/results/bench-full-cuda0-20261122T175724Z.json, piles of armadillos, ~190 rows each): grid
-1.98/2.58/3.00 ms per frame at 1/4/16 bodies against 2.71/3.19/3.58, even at 64 (12 k rows: 6.70 against
-6.65), launches ahead at 256 (49 k rows: 12.27 against 14.71) and at 197 k rows (72 against 109 us per
-iteration)."""
+DEFAULT_MODE = "grid"
+"""The path a solve takes unless told: "grid", on every device and size. Measured on an H100 in one
+session (scripts/results/bench-full-cuda0-20261122T185601Z.json and cg-paths-cuda0-20261122T190214Z.json,
+commit 259c167, since the grid barrier arrives with a release atomic and spins on acquire loads): grid
+9.96 against 11.28 ms per frame on 256 armadillos (65 k rows), 32.11 against 32.66 on 1024, and 70.6
+against 75.1 us per CG iteration at 1.1 M tets (197 k rows); on small systems (latency bound) grid was
+already ahead (1.98/2.58/3.00 against 2.71/3.19/3.58 ms per frame at 1/4/16 armadillos, 175724Z)."""
 
 
 @dataclass(frozen=True)
@@ -89,8 +89,8 @@ class CGSolver:
             launch; iterations past convergence inside a check do nothing).
         mode: "grid": the whole solve as one persistent launch of at most one block per SM, the blocks meeting
             at grid-wide barriers (one thread on the CPU, where the loop then runs inside the kernel, not from
-            Python); "launches": two launches per iteration under ``wp.capture_while``. None: "grid" on the
-            CPU and on CUDA up to :data:`GRID_MAX_ROWS` rows, else "launches".
+            Python); "launches": two launches per iteration under ``wp.capture_while``. None:
+            :data:`DEFAULT_MODE`.
         grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
             plus one for the coupling pairs if any, at most one per SM (the barriers need every block
             resident).
@@ -112,7 +112,7 @@ class CGSolver:
         self.row_start, self.cols, self.free = row_start, cols, free
         self.unroll = int(unroll)
         n = free.shape[0]
-        self.mode = mode or ("grid" if not self.device.is_cuda or n <= GRID_MAX_ROWS else "launches")
+        self.mode = mode or DEFAULT_MODE
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if grid_blocks is not None and grid_blocks < 1:
