@@ -109,7 +109,7 @@ class CGSolver:
         grid_blocks: int | None = None,
     ) -> None:
         self.device = wp.get_device(device)
-        self.row_start, self.cols, self.free = row_start, cols, free
+        self.cols, self.free = cols, free
         self.unroll = int(unroll)
         n = free.shape[0]
         self.mode = mode or DEFAULT_MODE
