@@ -67,12 +67,14 @@ def build_system(
     collider_center: wp.array(dtype=wp.vec3),
     collider_size: wp.array(dtype=wp.vec3),
     collider_response: wp.array(dtype=wp.vec2),
+    dv: wp.array(dtype=wp.vec3),
     dt: float,
     # outputs
     matrix_out: wp.array(dtype=wp.mat33),
     rhs_out: wp.array(dtype=wp.vec3),
     diag_inv_out: wp.array(dtype=wp.mat33),
     v_guess_out: wp.array(dtype=wp.vec3),
+    direction_out: wp.array(dtype=wp.vec3),
 ):
     """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
 
@@ -107,25 +109,31 @@ def build_system(
     if free[i] == 0:
         rhs_out[i] = wp.vec3()
         v_guess_out[i] = wp.vec3()
+        direction_out[i] = wp.vec3()
         diag_inv_out[i] = wp.mat33()
     else:
         rhs_out[i] = rhs
         v_guess_out[i] = vi
+        d = dv[i]
+        direction_out[i] = wp.where(wp.isfinite(d), d, wp.vec3())  # a blown-up step must not poison the next
         diag_inv_out[i] = wp.inverse(block)
 
 
 @wp.kernel
 def advance_positions(
     x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
     v_new: wp.array(dtype=wp.vec3),
     dt: float,
     x_out: wp.array(dtype=wp.vec3),
+    dv_out: wp.array(dtype=wp.vec3),
     bad_vertex_out: wp.array(dtype=wp.int32),
 ):
-    """x+ = x + dt v+; records the lowest vertex index whose position or velocity is not finite."""
+    """x+ = x + dt v+ and dv = v+ - v; records the lowest vertex index whose position or velocity is not finite."""
     i = wp.tid()
     vi = v_new[i]
     xi = x[i] + dt * vi
     x_out[i] = xi
+    dv_out[i] = vi - v[i]
     if not (wp.isfinite(xi) and wp.isfinite(vi)):
         wp.atomic_min(bad_vertex_out, 0, i)

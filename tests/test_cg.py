@@ -65,6 +65,39 @@ def test_cg_solves_spd_system_to_tolerance(device, path):
     assert np.linalg.norm(A @ x.numpy().ravel() - b.ravel()) < 1e-4 * np.linalg.norm(b)
 
 
+def test_start_moves_along_a_smooth_direction_only(device, path):
+    """The start x + theta d: theta minimises the A-norm error along d (d = the answer: converged at once),
+    clamped to [0, 1] (d = -answer: not moved); a direction stiffer than SMOOTH d.M d is not used."""
+    a, A, _, rng = _system(device, seed=3)
+    n = A.shape[0] // 3
+    b = rng.normal(size=(n, 3))
+    answer = np.linalg.solve(A, b.ravel()).reshape(n, 3)
+    vec = lambda v: wp.array(np.asarray(v, dtype=np.float32), dtype=wp.vec3, device=device)  # noqa: E731
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, **path)
+    cg.configure(500, 1e-5)
+    heavy = wp.array(np.full(n, 1e3, np.float32), device=device)  # d.A d well under 2 d.M d
+    light = wp.array(np.full(n, 1e-3, np.float32), device=device)  # d.A d far above it
+    runs = {}
+    for name, direction, mass in [
+        ("none", None, None),
+        ("answer", answer, heavy),
+        ("twice", 2.0 * answer, heavy),
+        ("backwards", -answer, heavy),
+        ("stiff", answer, light),
+    ]:
+        x = vec(np.zeros((n, 3)))
+        cg.solve(a["values"], a["diag_inv"], vec(b), x, None if direction is None else vec(direction), mass)
+        runs[name] = (cg.read_stats().iterations, x.numpy())
+    assert runs["none"][0] > 5
+    assert runs["answer"][0] == 0 and runs["twice"][0] == 0  # theta = 1 and 1/2: the start is the answer
+    np.testing.assert_allclose(runs["twice"][1], answer, atol=1e-3 * np.abs(answer).max())
+    for name in ("backwards", "stiff"):  # not moved: the same solve as without a direction
+        assert runs[name][0] == runs["none"][0]
+        np.testing.assert_allclose(runs[name][1], runs["none"][1], atol=1e-6 * np.abs(answer).max())
+    with pytest.raises(ValueError, match="mass"):
+        cg.solve(a["values"], a["diag_inv"], vec(b), vec(np.zeros((n, 3))), vec(answer))
+
+
 def test_fixed_iteration_count_is_exact(device, path):
     a, A, _, rng = _system(device, seed=1)
     n = A.shape[0] // 3

@@ -157,6 +157,9 @@ class CGSolver:
         self.alpha = wp.zeros_like(self.gamma)
         self.bz = wp.zeros(1, dtype=float, device=self.device)
         self.scratch = wp.zeros(1, dtype=float, device=self.device)
+        self.project = wp.zeros(3, dtype=float, device=self.device)  # d.(b - A x), d.A d, d.M d
+        self.no_direction = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.no_mass = wp.zeros(n, dtype=float, device=self.device)
         self.iteration = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.done = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.cond = wp.zeros(1, dtype=wp.int32, device=self.device)
@@ -165,7 +168,7 @@ class CGSolver:
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
         self.barrier = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.totals = wp.zeros(2 + 2 * self.capacity, dtype=float, device=self.device)
+        self.totals = wp.zeros(5 + 2 * self.capacity, dtype=float, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.device.is_cuda:
             # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
@@ -189,8 +192,8 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
-    def _apply(self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array):
-        """The launch of w += A u (w zeroed before), u.w into ``dot_out[iteration + step]``."""
+    def _apply(self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array, w_out=None):
+        """The launch of w += A u (``w_out``, default w, zeroed before), u.w into ``dot_out[iteration + step]``."""
         return wp.launch(
             K.cg_apply,
             dim=self._apply_dim,
@@ -212,12 +215,14 @@ class CGSolver:
                 self.tolerance,
                 self.max_iterations,
             ],
-            outputs=[self.w, dot_out],
+            outputs=[self.w if w_out is None else w_out, dot_out],
             device=self.device,
             record_cmd=True,
         )
 
-    def _plan(self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array) -> tuple[list, list, list]:
+    def _plan(
+        self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
+    ) -> tuple[list, list, list]:
         """The recorded launches of a solve: before the loop, one loop body (none: no loop), after it.
 
         Replaying recorded launches skips the argument packing of ``wp.launch`` (about 3x less host time per
@@ -233,7 +238,7 @@ class CGSolver:
                 K.cg_solve_reset,
                 dim=max(n, self.totals.shape[0]),
                 inputs=[n],
-                outputs=[self.w, self.totals, self.barrier],
+                outputs=[self.w, self.s, self.totals, self.barrier],
                 device=dev,
                 record_cmd=True,
             )
@@ -249,6 +254,8 @@ class CGSolver:
                     diag_inv,
                     self.free,
                     b,
+                    direction,
+                    mass,
                     self.tolerance,
                     self.max_iterations,
                     self.barrier,
@@ -265,17 +272,37 @@ class CGSolver:
                 K.cg_reset,
                 dim=max(self.padded, self.gamma.shape[0]),
                 inputs=[n],
-                outputs=[self.w, self.gamma, self.delta, self.bz, self.scratch, self.iteration, self.done],
+                outputs=[
+                    self.w,
+                    self.s,
+                    self.gamma,
+                    self.delta,
+                    self.bz,
+                    self.scratch,
+                    self.project,
+                    self.iteration,
+                    self.done,
+                ],
                 device=dev,
                 record_cmd=True,
             ),
             self._apply(values, x, 0, 0, self.scratch),
+            self._apply(values, direction, 0, 0, self.scratch, self.s),
+            wp.launch(
+                K.cg_project,
+                dim=self.padded,
+                block_dim=BLOCK,
+                inputs=[n, self.free, b, direction, mass, self.w, self.s],
+                outputs=[self.project],
+                device=dev,
+                record_cmd=True,
+            ),
             wp.launch(
                 K.cg_init,
                 dim=self.padded,
                 block_dim=BLOCK,
-                inputs=[n, diag_inv, self.free, b],
-                outputs=[self.w, self.r, self.u, self.p, self.s, self.gamma, self.bz],
+                inputs=[n, diag_inv, self.free, b, direction, self.project],
+                outputs=[x, self.w, self.r, self.u, self.p, self.s, self.gamma, self.bz],
                 device=dev,
                 record_cmd=True,
             ),
@@ -318,16 +345,32 @@ class CGSolver:
         ]
         return before, body, after
 
-    def solve(self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array) -> None:
-        """Solve ``A x = b`` starting from the ``x`` given; ``diag_inv`` holds the inverse diagonal blocks.
+    def solve(
+        self,
+        values: wp.array,
+        diag_inv: wp.array,
+        b: wp.array,
+        x: wp.array,
+        direction: wp.array | None = None,
+        mass: wp.array | None = None,
+    ) -> None:
+        """Solve ``A x = b``; ``diag_inv`` holds the inverse diagonal blocks.
 
-        A is the block matrix ``values`` on the solver's pattern plus the coupling term, if any.
+        A is the block matrix ``values`` on the solver's pattern plus the coupling term, if any. CG starts
+        from the ``x`` given, moved along ``direction`` (zero on pinned rows; None: not moved) by the step
+        that minimises the A-norm error along it, clamped to [0, 1], if the direction is smooth: d.A d at
+        most ``kernels.cg.SMOOTH`` times d.M d with M the diagonal of ``mass`` (per row, kg; needed with a
+        direction).
         """
-        key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr)
+        if direction is not None and mass is None:
+            raise ValueError("a start direction needs the rows' masses")
+        direction = self.no_direction if direction is None else direction
+        mass = self.no_mass if mass is None else mass
+        key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr, direction.ptr, mass.ptr)
         if key not in self._plans:
             if len(self._plans) >= 8:
                 self._plans.clear()
-            self._plans[key] = self._plan(values, diag_inv, b, x)
+            self._plans[key] = self._plan(values, diag_inv, b, x, direction, mass)
         before, body, after = self._plans[key]
         for launch in before:
             launch.launch()

@@ -96,11 +96,14 @@ def build_system(
     rhs_out: wp.array,
     diag_inv_out: wp.array,
     v_guess_out: wp.array,
+    direction_out: wp.array,
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
     ``matrix_out`` must already hold the elastic blocks; mass, damping and static-collider terms are added to
-    its diagonal. ``v_guess_out`` receives the CG start (the current velocity; zero on pinned vertices).
+    its diagonal. ``v_guess_out`` receives the CG start (the current velocity) and ``direction_out`` the direction
+    CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
+    pinned vertices and where not finite).
     """
     wp.launch(
         K.build_system,
@@ -118,19 +121,32 @@ def build_system(
             colliders.center,
             colliders.size,
             colliders.response,
+            state.dv,
             dt,
         ],
-        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out],
+        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out],
         device=model.device,
     )
 
 
-def advance_positions(model: Model, x: wp.array, v_new: wp.array, dt: float, x_out: wp.array, bad_vertex_out: wp.array):
-    """x_out = x + dt v_new; the lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min)."""
+def advance_positions(
+    model: Model,
+    x: wp.array,
+    v: wp.array,
+    v_new: wp.array,
+    dt: float,
+    x_out: wp.array,
+    dv_out: wp.array,
+    bad_vertex_out: wp.array,
+) -> None:
+    """x_out = x + dt v_new and dv_out = v_new - v (the next step's CG guess).
+
+    The lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min).
+    """
     wp.launch(
         K.advance_positions,
         dim=model.vertex_count,
-        inputs=[x, v_new, dt],
-        outputs=[x_out, bad_vertex_out],
+        inputs=[x, v, v_new, dt],
+        outputs=[x_out, dv_out, bad_vertex_out],
         device=model.device,
     )

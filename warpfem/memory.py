@@ -24,9 +24,10 @@ if TYPE_CHECKING:
     from warpfem.preprocess import PreparedBody
     from warpfem.scene import SceneConfig
 
-VERTEX_BYTES = 228
-"""Device bytes per tet vertex: rest/initial x and v, 2 states, mass, damping, pins, depth and gradient,
-CSR row and diagonal slot, force, rhs, inverse diagonal block, 5 CG vectors, collision gradient."""
+VERTEX_BYTES = 280
+"""Device bytes per tet vertex: rest/initial x and v, 2 states (x, v, dv), mass, damping, pins, depth and gradient,
+CSR row and diagonal slot, force, rhs, CG direction, inverse diagonal block, 5 CG vectors and zero ones,
+collision gradient."""
 
 TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,

@@ -48,15 +48,21 @@ class Body:
 
 @dataclass
 class State:
-    """Tet-vertex positions (m) and velocities (m/s) of every body, flat."""
+    """Tet-vertex positions (m) and velocities (m/s) of every body, flat.
+
+    ``dv`` is the velocity change (m/s) of the step that produced the state (zero initially): the next step's
+    CG starts from ``v + dv``, which a free fall or a steady push leaves already converged.
+    """
 
     x: wp.array
     v: wp.array
+    dv: wp.array
 
     def assign(self, other: State) -> None:
         """Copy ``other`` into this state (device copies, capturable)."""
         wp.copy(self.x, other.x)
         wp.copy(self.v, other.v)
+        wp.copy(self.dv, other.dv)
 
 
 @dataclass
@@ -117,7 +123,7 @@ class Model:
 
     def state(self) -> State:
         """A new state at the rest shape with the bodies' initial velocities."""
-        return State(x=wp.clone(self.rest_x), v=wp.clone(self.initial_v))
+        return State(x=wp.clone(self.rest_x), v=wp.clone(self.initial_v), dv=wp.zeros_like(self.initial_v))
 
     @property
     def has_collisions(self) -> bool:

@@ -79,6 +79,7 @@ class Solver:
         n = model.vertex_count
         self.force = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.direction = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.diag_inv = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev)
         self.rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
@@ -131,9 +132,12 @@ class Solver:
                 self.rhs,
                 self.diag_inv,
                 state_out.v,
+                self.direction,
             )
-            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
-            integrate.advance_positions(model, state_in.x, state_out.v, dt, state_out.x, self.bad_vertex)
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
+            integrate.advance_positions(
+                model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
+            )
 
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
