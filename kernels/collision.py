@@ -314,6 +314,7 @@ def detect_contacts(
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
     capacity: int,
+    lanes: int,
     # outputs
     count_out: wp.array(dtype=wp.int32),
     contact_point_out: wp.array(dtype=wp.int32),
@@ -323,28 +324,34 @@ def detect_contacts(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ):
-    """Per collision point: the bodies whose boxes hold it, then each such body's tet tree, one contact.
+    """Per collision point and body whose box holds it: that body's tet tree, at most one contact.
 
     Two levels: the body BVH gives the bodies the point may collide with (another body, or its own if that
     collides with itself), and only their trees are walked (see ``refit_trees``), so a point never walks
-    its own body's tets, which it lies among, unless the body collides with itself. The walk is stackless
-    (heap order: descend to the left child of a box that holds the point, else go to the next sibling up
-    the tree). The first tet that holds the point and gives it a positive depth answers it: a contact with
-    the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth (m).
-    ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
-    ``capacity`` are dropped (the host sees the overflow as count > capacity).
+    its own body's tets, which it lies among, unless the body collides with itself. ``lanes`` threads share
+    a point, each walking every ``lanes``-th of its bodies (a point in a pile lies in the boxes of up to
+    five others: one thread walking them all was the launch's long pole). The walk is stackless (heap
+    order: descend to the left child of a box that holds the point, else go to the next sibling up the
+    tree). In each body the first tet that holds the point and gives it a positive depth answers it: a
+    contact with the point, the tet, the point's barycentric weights in the tet, the unit direction and the
+    depth (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those
+    past ``capacity`` are dropped (the host sees the overflow as count > capacity).
     """
-    p = wp.tid()
+    t = wp.tid()
+    p = t // lanes
+    lane = t - p * lanes
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
-    found = bool(False)
-    while not found and wp.bvh_query_next(bodies, body):
+    candidate = int(-1)
+    while wp.bvh_query_next(bodies, body):
+        candidate += 1
         same = body == body_p
-        if same and not self_ok:
+        if candidate % lanes != lane or (same and not self_ok):
             continue
+        found = bool(False)
         ns = node_start[body]
         ls = leaf_start[body]
         first_leaf = leaf_start[body + 1] - ls - 1

@@ -279,7 +279,8 @@ def test_tet_trees_hold_every_tet_once_in_balanced_leaves():
         assert (leaves >= 0).sum(axis=1).min() >= min(n, 1)  # no empty leaf: splits are even
 
 
-def test_detection_finds_exactly_the_points_inside_other_bodies(device):
+@pytest.mark.parametrize("lanes", [1, 2, 4])
+def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes):
     """Against a NumPy barycentric test of every collision point against every tet it may collide with.
 
     Two convex boxes, rotated and interpenetrating, and a third body colliding with itself: two boxes of
@@ -305,10 +306,14 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device):
     v = wp.zeros_like(xs)
     rotation = wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device)
     c = solver.collider
+    c.lanes = lanes  # threads per point, each walking a share of the bodies whose boxes hold it
     c.respond(xs, v, rotation, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix))
     n = int(c.count.numpy()[0])
     assert 0 < n <= c.capacity
     found = set(c.contact_point.numpy()[:n].tolist())
+    contact_body = model.tet_body.numpy()[c.contact_tet.numpy()[:n]]
+    pairs = list(zip(c.contact_point.numpy()[:n].tolist(), contact_body.tolist(), strict=True))
+    assert len(pairs) == len(set(pairs))  # at most one contact per point and body
 
     points = c.points.numpy()
     point_body = model.point_body.numpy()
