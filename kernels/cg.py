@@ -5,11 +5,14 @@ The iteration is Chronopoulos and Gear's single-reduction form of PCG: each iter
 against four launches and two reductions of the textbook form. The scalars follow from the two dots:
 ``beta_k = gamma_k / gamma_{k-1}``, ``alpha_k = gamma_k / (delta_k - beta_k gamma_k / alpha_{k-1})``.
 
-``cg_apply`` runs one thread per chunk of at most a few nonzero blocks of a row (more threads and shorter
+``cg_apply`` runs one thread per chunk of at most a few blocks of a row (more threads and shorter
 dependent loops than a thread per row: small systems are latency bound, large ones read the blocks in
-nearly coalesced runs) and adds into a zeroed output with atomics; a coupling term (pairs of points
-embedded in the mesh, such as contacts) is applied by extra threads of the same launch. Dot products are
-reduced per block (a tile sum, then one atomic add per block). All per-iteration scalars live in device
+nearly coalesced runs). The matrix is stored as its upper triangle; the product either gathers (a row's
+entries are its stored blocks and the mirrors of those above it: one atomic add per chunk into its own row)
+or scatters (each stored block also adds its transpose into another row: an atomic per block, half the
+reads), see ``warpfem.cg.GATHER_MAX_ROWS``. A coupling term (pairs of points embedded in the mesh, such as
+contacts) is applied by extra threads of the same launch. Dot products are reduced per block (a tile sum,
+then one atomic add per block). All per-iteration scalars live in device
 arrays indexed by the device-side iteration counter plus the unrolled step, so the loop needs no host
 synchronisation and can be captured with ``wp.capture_while``; an iteration past convergence or past the
 cap changes nothing. Rows with ``free == 0`` (pinned vertices) are held at their initial value.
@@ -26,6 +29,7 @@ On the CPU the same kernel runs as a single thread.
 """
 
 import warp as wp
+from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
 
 
 @wp.func
@@ -80,36 +84,86 @@ def embedded_product(
 
 
 GROUP = 4
-"""Nonzero blocks of a chunk whose loads are issued together, ahead of their atomic adds."""
+"""Entries of a chunk whose loads are issued together."""
 
 
 @wp.func
-def block_at(j: int, end: int, cols: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.mat33)):
-    """Column and block of nonzero j of a chunk ending at ``end``; past the end, column -1 and a zero block."""
-    k = wp.min(j, end - 1)
-    valid = j < end
-    return wp.where(valid, cols[k], -1), wp.where(valid, values[k], wp.mat33())
+def entry_term(valid: bool, slot: int, A: wp.mat33, u_c: wp.vec3) -> wp.vec3:
+    """One entry's share of its row of A u: A u_c for a stored block (slot >= 0), A^T u_c for a mirrored one."""
+    if not valid:
+        return wp.vec3()
+    if slot >= 0:
+        return A * u_c
+    return wp.transpose(A) * u_c
+
+
+@wp.func
+def stored(slot: int) -> int:
+    """The stored block of an entry: ``slot`` itself, or ``-slot - 1`` for a mirrored entry."""
+    return wp.where(slot >= 0, slot, -slot - 1)
+
+
+@wp.func
+def chunk_gather(
+    i: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w[row] += chunk i's share of row ``row`` of A u, gathered: one atomic add; returns its share of u.w.
+
+    The product of systems up to ``warpfem.cg.GATHER_MAX_ROWS`` rows.
+
+    A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
+    stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
+    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows (the
+    scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
+    columns and slots, then blocks and u at the columns.
+    """
+    row = chunk_row[i]
+    first = chunk_start[i]
+    end = chunk_end[i]
+    u_row = u[row]
+    acc = wp.vec3()
+    for g in range(first, end, GROUP):
+        k0 = wp.min(g, end - 1)
+        k1 = wp.min(g + 1, end - 1)
+        k2 = wp.min(g + 2, end - 1)
+        k3 = wp.min(g + 3, end - 1)
+        c0, s0 = entry_col[k0], entry_slot[k0]
+        c1, s1 = entry_col[k1], entry_slot[k1]
+        c2, s2 = entry_col[k2], entry_slot[k2]
+        c3, s3 = entry_col[k3], entry_slot[k3]
+        A0, u0 = values[stored(s0)], u[c0]
+        A1, u1 = values[stored(s1)], u[c1]
+        A2, u2 = values[stored(s2)], u[c2]
+        A3, u3 = values[stored(s3)], u[c3]
+        acc += entry_term(True, s0, A0, u0)
+        acc += entry_term(g + 1 < end, s1, A1, u1)
+        acc += entry_term(g + 2 < end, s2, A2, u2)
+        acc += entry_term(g + 3 < end, s3, A3, u3)
+    wp.atomic_add(w_out, row, acc)
+    return wp.dot(u_row, acc)
 
 
 @wp.func
 def add_block(
-    row: int,
-    c: int,
-    A: wp.mat33,
-    u_c: wp.vec3,
-    u_row: wp.vec3,
-    acc: wp.vec3,
-    w_out: wp.array(dtype=wp.vec3),
+    row: int, c: int, A: wp.mat33, u_c: wp.vec3, u_row: wp.vec3, acc: wp.vec3, w_out: wp.array(dtype=wp.vec3)
 ) -> wp.vec3:
-    """One off-diagonal block (c > row; c = -1: none) of a chunk: returns acc + A u_c, adds A^T u_row to w[c]."""
-    if c < 0 or c == row:
-        return acc
+    """One stored block (row, c) of a scattering chunk: returns acc + A u_c; adds A^T u_row to w[c] if c > row."""
+    if c == row:
+        return acc + A * u_c
     wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
     return acc + A * u_c
 
 
 @wp.func
-def chunk_product(
+def chunk_scatter(
     i: int,
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
@@ -119,39 +173,61 @@ def chunk_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w += chunk i's share of A u (its blocks and the transposes of the off-diagonal ones); returns its u.w.
+    """w += chunk i's stored blocks times u and their transposes (scattered with atomics); returns its u.w.
 
-    One pass, each block read once: gathering a chunk's blocks first and scattering their transposes in a
-    second pass cost 84 against 72 us per iteration at 1.1 M tets on an H100 (the second pass reads the
-    blocks again) and gained nothing on the paper scenes. The loads of each group of :data:`GROUP` blocks
-    (columns, blocks, then u at the columns) are issued before their atomic adds, so a chunk costs about
-    three round trips to memory instead of two per block (a load after an atomic add to a buffer that may
-    alias ``u`` waits for it in program order). The diagonal block, if the chunk holds it, is the row's
-    first: the pattern is sorted and upper triangular.
+    The product of larger systems: each stored block is read once (half the traffic of the gather, which
+    reads each off-diagonal block twice), at the cost of an atomic add per block into another row: ahead
+    once the matrix outgrows the L2 cache (1.1 M tets: 72 against 98 us per iteration on an H100). A chunk
+    holds consecutive stored blocks of its row; loads go in groups of :data:`GROUP` ahead of the atomics (a
+    load after an atomic add to a buffer that may alias ``u`` waits for it in program order).
     """
     row = chunk_row[i]
     first = chunk_start[i]
     end = chunk_end[i]
     u_row = u[row]
     acc = wp.vec3()
-    own = wp.vec3()
-    if cols[first] == row:
-        own = values[first] * u_row
     for g in range(first, end, GROUP):
-        c0, A0 = block_at(g, end, cols, values)
-        c1, A1 = block_at(g + 1, end, cols, values)
-        c2, A2 = block_at(g + 2, end, cols, values)
-        c3, A3 = block_at(g + 3, end, cols, values)
-        u0 = u[wp.max(c0, 0)]
-        u1 = u[wp.max(c1, 0)]
-        u2 = u[wp.max(c2, 0)]
-        u3 = u[wp.max(c3, 0)]
+        k0 = wp.min(g, end - 1)
+        k1 = wp.min(g + 1, end - 1)
+        k2 = wp.min(g + 2, end - 1)
+        k3 = wp.min(g + 3, end - 1)
+        c0, c1, c2, c3 = cols[k0], cols[k1], cols[k2], cols[k3]
+        A0, A1, A2, A3 = values[k0], values[k1], values[k2], values[k3]
+        u0, u1, u2, u3 = u[c0], u[c1], u[c2], u[c3]
         acc = add_block(row, c0, A0, u0, u_row, acc, w_out)
-        acc = add_block(row, c1, A1, u1, u_row, acc, w_out)
-        acc = add_block(row, c2, A2, u2, u_row, acc, w_out)
-        acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
-    wp.atomic_add(w_out, row, acc + own)
-    return wp.dot(u_row, 2.0 * acc + own)
+        if g + 1 < end:
+            acc = add_block(row, c1, A1, u1, u_row, acc, w_out)
+        if g + 2 < end:
+            acc = add_block(row, c2, A2, u2, u_row, acc, w_out)
+        if g + 3 < end:
+            acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
+    wp.atomic_add(w_out, row, acc)
+    # u.(A u) over the stored triangle: 2 u_row.(A_rc u_c) off the diagonal, u_row.(A_rr u_row) on it
+    diagonal = wp.where(cols[first] == row, wp.dot(u_row, values[first] * u_row), 0.0)
+    return 2.0 * wp.dot(u_row, acc) - diagonal
+
+
+@wp.func
+def chunk_product(
+    i: int,
+    gather: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """Chunk i of the product, gathered or scattered.
+
+    ``gather`` != 0: the chunk holds entries (see ``chunk_gather``); else ``entry_col`` holds the stored
+    blocks' columns (see ``chunk_scatter``).
+    """
+    if gather != 0:
+        return chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
+    return chunk_scatter(i, chunk_row, chunk_start, chunk_end, entry_col, values, u, w_out)
 
 
 @wp.func
@@ -184,8 +260,10 @@ def cg_apply(
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
     chunk_end: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
+    gather: int,
     # inputs: coupling pairs (threads past the chunks)
     pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
@@ -208,9 +286,9 @@ def cg_apply(
 ):
     """w += A u (w zeroed before); u.w into delta[k] with k = iteration + step.
 
-    ``values`` holds the upper triangle: a block (row, c) with c > row adds A u_c to the row and A^T u_row to
-    row c. u is zero on pinned rows, so they add nothing; what lands in w on them is ignored by
-    ``cg_update``. Threads past the chunks apply the coupling pairs. With ``gate`` set, skipped (adding
+    ``values`` holds the upper triangle; each row gathers its stored blocks and the mirrors of the blocks
+    above it (see ``chunk_product``). u is zero on pinned rows, so they add nothing; what lands in w on them
+    is ignored by ``cg_update``. Threads past the chunks apply the coupling pairs. With ``gate`` set, skipped (adding
     nothing) when iteration k will not run.
     """
     i = wp.tid()
@@ -222,7 +300,7 @@ def cg_apply(
     if i < n_threads and run:
         n_chunks = chunk_row.shape[0]
         if i < n_chunks:
-            dot = chunk_product(i, chunk_row, chunk_start, chunk_end, cols, values, u, w_out)
+            dot = chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
         else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
             for c in range(i - n_chunks, live_pairs(pair_count, pair_matrix), n_threads - n_chunks):
                 dot += pair_product(
@@ -537,96 +615,6 @@ def cg_finish(
     residual_max_out[0] = wp.max(residual_max_out[0], res)
 
 
-GRID_SYNC = r"""
-#if defined(__CUDA_ARCH__)
-__syncthreads();
-if (gridDim.x > 1 && threadIdx.x == 0) {
-    int* counter = barrier.data;
-    int seen = 0;
-    int spins = 0;
-    asm volatile("red.release.gpu.global.add.s32 [%0], %1;" :: "l"(counter), "r"(1) : "memory");
-    do {
-        asm volatile("ld.acquire.gpu.global.s32 %0, [%1];" : "=r"(seen) : "l"(counter) : "memory");
-        if (++spins > (1 << 24)) {
-            atomicExch(stalled.data, 1);
-            break;
-        }
-    } while (seen < target);
-}
-__syncthreads();
-#endif
-"""
-
-WARP_SUM_ADD = r"""
-#if defined(__CUDA_ARCH__)
-float v = value;
-for (int offset = 16; offset > 0; offset >>= 1)
-    v += __shfl_down_sync(0xffffffffu, v, offset);
-if ((threadIdx.x & 31) == 0)
-    atomicAdd(totals.data + slot, v);
-#else
-totals.data[slot] += value;
-#endif
-"""
-
-LOAD_COHERENT = r"""
-#if defined(__CUDA_ARCH__)
-return *((volatile float*)values.data + index);
-#else
-return values.data[index];
-#endif
-"""
-
-
-@wp.func_native(GRID_SYNC)
-def grid_sync(barrier: wp.array(dtype=wp.int32), target: int, stalled: wp.array(dtype=wp.int32)):
-    """Grid-wide barrier of a persistent launch: returns once ``barrier[0]`` reaches ``target``.
-
-    Every block's thread 0 arrives (an atomic add with release semantics: the block's writes before the
-    block barrier are visible before it) and spins on loads with acquire semantics (what other blocks wrote
-    before arriving is visible after it), lighter than full fences around a relaxed atomic; the counter
-    only grows, so the n-th barrier of a launch of B blocks waits for n B arrivals. All blocks must be
-    resident at once (the host launches at most one block per SM); a launch of one block needs only the
-    block barrier. A barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather
-    than hang the device. A no-op on the CPU, where a launch is one thread.
-    """
-    ...
-
-
-@wp.func_native(WARP_SUM_ADD)
-def warp_sum_add(value: float, totals: wp.array(dtype=float), slot: int):
-    """Add ``value`` of every thread into ``totals[slot]``, one atomic per warp of 32.
-
-    A register shuffle sum per warp (no shared memory, no block barrier). Every thread of the warp must
-    reach it.
-    """
-    ...
-
-
-@wp.func_native(LOAD_COHERENT)
-def load_coherent(values: wp.array(dtype=float), index: int) -> float:
-    """``values[index]`` read from the device's shared cache (not a stale per-SM copy), after a barrier."""
-    ...
-
-
-@wp.func
-def grid_total(
-    value: float,
-    totals: wp.array(dtype=float),
-    slot: int,
-    barrier: wp.array(dtype=wp.int32),
-    target: int,
-    stalled_out: wp.array(dtype=wp.int32),
-) -> float:
-    """The sum of ``value`` over every thread of the launch, returned to all (``totals[slot]`` zeroed before).
-
-    One atomic per warp, then the grid barrier ``target``: also orders every write before it.
-    """
-    warp_sum_add(value, totals, slot)
-    grid_sync(barrier, target, stalled_out)
-    return load_coherent(totals, slot)
-
-
 @wp.func
 def partial_product(
     lane: int,
@@ -634,8 +622,10 @@ def partial_product(
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
     chunk_end: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
+    gather: int,
     pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
     pair_weights_a: wp.array(dtype=wp.vec4),
@@ -653,7 +643,7 @@ def partial_product(
     dot = float(0.0)
     n_chunks = chunk_row.shape[0]
     for i in range(lane, n_chunks, threads):
-        dot += chunk_product(i, chunk_row, chunk_start, chunk_end, cols, values, u, w_out)
+        dot += chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
     first_pair = ((lane - n_chunks) % threads + threads) % threads
     for c in range(first_pair, live_pairs(pair_count, pair_matrix), threads):
         dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
@@ -688,8 +678,10 @@ def cg_solve(
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
     chunk_end: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
+    gather: int,
     pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
     pair_weights_a: wp.array(dtype=wp.vec4),
@@ -734,8 +726,10 @@ def cg_solve(
         chunk_row,
         chunk_start,
         chunk_end,
-        cols,
+        entry_col,
+        entry_slot,
         values,
+        gather,
         pair_count,
         pair_verts_a,
         pair_weights_a,
@@ -751,8 +745,10 @@ def cg_solve(
         chunk_row,
         chunk_start,
         chunk_end,
-        cols,
+        entry_col,
+        entry_slot,
         values,
+        gather,
         pair_count,
         pair_verts_a,
         pair_weights_a,
@@ -788,8 +784,10 @@ def cg_solve(
             chunk_row,
             chunk_start,
             chunk_end,
-            cols,
+            entry_col,
+            entry_slot,
             values,
+            gather,
             pair_count,
             pair_verts_a,
             pair_weights_a,

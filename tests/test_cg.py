@@ -11,12 +11,19 @@ from warpfem.shapes import box_tet_mesh
 
 
 @pytest.fixture(
-    params=[dict(mode="grid"), dict(mode="grid", grid_blocks=4), dict(mode="launches")],
-    ids=["grid", "grid-4-blocks", "per-iteration-launches"],
+    params=[
+        dict(mode="grid"),
+        dict(mode="grid", grid_blocks=4),
+        dict(mode="launches"),
+        dict(mode="grid", grid_blocks=4, product="scatter"),
+        dict(mode="launches", product="scatter"),
+    ],
+    ids=["grid", "grid-4-blocks", "per-iteration-launches", "grid-scatter", "launches-scatter"],
 )
 def path(request):
     """Both CG paths: the whole solve in one persistent launch (on CUDA also forced onto 4 blocks, so that
-    even these tiny systems meet at real grid barriers), and two launches per iteration."""
+    even these tiny systems meet at real grid barriers), and two launches per iteration; each with the
+    product that gathers (the default at these sizes) and with the one that scatters."""
     return request.param
 
 
@@ -181,6 +188,16 @@ def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
     reference = np.linalg.solve(A_full, b.ravel())
     assert cg.read_stats().residual_max <= 1e-6
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
+
+
+def test_product_is_chosen_by_size_and_checked(device, monkeypatch):
+    a = _system(device)[0]
+    args = (a["row_start"], a["cols"], a["free"], 10, device)
+    assert CGSolver(*args).product == "gather"  # 27 rows
+    monkeypatch.setattr(cg_module, "GATHER_MAX_ROWS", 20)
+    assert CGSolver(*args).product == "scatter"
+    with pytest.raises(ValueError, match="product"):
+        CGSolver(*args, product="dense")
 
 
 def test_configure_rejects_out_of_range(device, path):

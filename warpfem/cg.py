@@ -27,6 +27,19 @@ PAIR_THREADS = 2048
 MODES = ("grid", "launches")
 """How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
+PRODUCTS = ("gather", "scatter")
+"""How the matrix product runs: each row gathers its blocks and their mirrors (no atomic per block), or
+each stored block also scatters its transpose into another row with an atomic add (half the reads)."""
+
+GATHER_MAX_ROWS = 131_072
+"""The largest system (rows) whose product gathers by default; larger ones scatter. Measured on an H100 in one
+session (scripts/results/cg-gather-all-sizes-cuda0-20261122T200550Z.json against
+ab-prev-0e42e13-cuda0-20261122T200709Z.json and bench-full-cuda0-20261122T194915Z.json): gather ahead up
+to 256 armadillos (65 k rows: 8.00 against 8.89 ms per frame; 64: 3.96 against 4.12; paper scene C 1.67
+against 1.93), behind at 1024 (261 k rows: 32.6 against 29.4) and at 1.1 M tets (197 k rows: 98 against
+72 us per CG iteration), where the matrix outgrows the L2 cache and the gather's second read of every
+off-diagonal block costs more than the scatter's atomics."""
+
 DEFAULT_MODE = "grid"
 """The path a solve takes unless told: "grid", on every device and size. Measured on an H100 in one
 session (scripts/results/bench-full-cuda0-20261122T185601Z.json and cg-paths-cuda0-20261122T190214Z.json,
@@ -94,6 +107,7 @@ class CGSolver:
         grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
             plus one for the coupling pairs if any, at most one per SM (the barriers need every block
             resident).
+        product: "gather" or "scatter" (:data:`PRODUCTS`); None: gather up to :data:`GATHER_MAX_ROWS` rows.
     """
 
     def __init__(
@@ -107,9 +121,10 @@ class CGSolver:
         unroll: int = 4,
         mode: str | None = None,
         grid_blocks: int | None = None,
+        product: str | None = None,
     ) -> None:
         self.device = wp.get_device(device)
-        self.cols, self.free = cols, free
+        self.free = free
         self.unroll = int(unroll)
         n = free.shape[0]
         self.mode = mode or DEFAULT_MODE
@@ -117,10 +132,27 @@ class CGSolver:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if grid_blocks is not None and grid_blocks < 1:
             raise ValueError(f"grid_blocks must be at least 1, got {grid_blocks}")
+        if product not in (None, *PRODUCTS):
+            raise ValueError(f"product must be one of {PRODUCTS} or None, got {product!r}")
+        self.product = product or ("gather" if n <= GATHER_MAX_ROWS else "scatter")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
-        starts = row_start.numpy()
+        starts, cols_host = row_start.numpy(), cols.numpy()
+        if self.product == "gather":
+            # each row's entries: its stored (upper) blocks, then the mirrors of the blocks above it
+            slot_row = np.repeat(np.arange(n, dtype=np.int32), np.diff(starts))
+            mirrored = np.flatnonzero(cols_host != slot_row)
+            entry_row = np.concatenate([slot_row, cols_host[mirrored]])
+            order = np.argsort(entry_row, kind="stable")
+            entry_col = np.concatenate([cols_host, slot_row[mirrored]])[order]
+            entry_slot = np.concatenate([np.arange(len(cols_host)), -mirrored - 1])[order]
+            starts = np.concatenate([[0], np.cumsum(np.bincount(entry_row, minlength=n))])
+            self.entry_col = wp.array(entry_col.astype(np.int32), dtype=wp.int32, device=self.device)
+            self.entry_slot = wp.array(entry_slot.astype(np.int32), dtype=wp.int32, device=self.device)
+        else:  # chunks of each row's stored blocks
+            self.entry_col = cols
+            self.entry_slot = wp.zeros(0, dtype=wp.int32, device=self.device)
         sizes = -(-np.diff(starts) // self.chunk)
         rows = np.repeat(np.arange(n, dtype=np.int32), sizes)
         first = np.repeat(starts[:-1], sizes) + self.chunk * (
@@ -203,8 +235,10 @@ class CGSolver:
                 self.chunk_row,
                 self.chunk_start,
                 self.chunk_end,
-                self.cols,
+                self.entry_col,
+                self.entry_slot,
                 values,
+                int(self.product == "gather"),
                 *self._pairs,
                 u,
                 gate,
@@ -233,7 +267,8 @@ class CGSolver:
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
         if self.mode == "grid":
             threads = self.grid_blocks * BLOCK if dev.is_cuda else 1
-            matrix = [self.chunk_row, self.chunk_start, self.chunk_end, self.cols, values]
+            matrix = [self.chunk_row, self.chunk_start, self.chunk_end, self.entry_col, self.entry_slot, values]
+            matrix.append(int(self.product == "gather"))
             reset = wp.launch(
                 K.cg_solve_reset,
                 dim=max(n, self.totals.shape[0]),

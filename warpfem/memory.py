@@ -36,6 +36,10 @@ TET_BYTES = 176
 BLOCK_BYTES = 43
 """Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
 
+GATHER_BLOCK_BYTES = 18
+"""More bytes per stored block where CG's product gathers (up to ``warpfem.cg.GATHER_MAX_ROWS`` rows): the
+entries (column and slot, about 1.9 per stored block: the block and its mirror) and their longer chunk table."""
+
 DENSE_BYTES = 32
 """Device bytes per dense vertex: embedding tet and barycentric weights, mapped position."""
 
@@ -123,13 +127,15 @@ def estimate(
     Returns:
         The estimate by part.
     """
+    from warpfem.cg import GATHER_MAX_ROWS
+
     q = sum(len(t) for t in tets)
     n = sum(int(np.unique(t).size) for t in tets)
     blocks = sum(matrix_blocks(t) for t in tets)
     parts = {
         "tets": TET_BYTES * q + TET_FACE_BYTES * sum(tet_face_refs),
         "tet vertices": VERTEX_BYTES * n,
-        "matrix": BLOCK_BYTES * blocks,
+        "matrix": (BLOCK_BYTES + (GATHER_BLOCK_BYTES if n <= GATHER_MAX_ROWS else 0)) * blocks,
         "dense vertices": DENSE_BYTES * sum(dense_vertices),
     }
     points = sum(collision_points)
