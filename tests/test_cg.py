@@ -193,7 +193,8 @@ def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
 def test_product_is_chosen_by_size_and_checked(device, monkeypatch):
     a = _system(device)[0]
     args = (a["row_start"], a["cols"], a["free"], 10, device)
-    assert CGSolver(*args).product == "gather"  # 27 rows
+    assert CGSolver(*args).product == ("gather" if wp.get_device(device).is_cuda else "scatter")  # 27 rows
+    assert CGSolver(*args, product="gather").product == "gather"
     monkeypatch.setattr(cg_module, "GATHER_MAX_ROWS", 20)
     assert CGSolver(*args).product == "scatter"
     with pytest.raises(ValueError, match="product"):

@@ -32,7 +32,8 @@ PRODUCTS = ("gather", "scatter")
 each stored block also scatters its transpose into another row with an atomic add (half the reads)."""
 
 GATHER_MAX_ROWS = 131_072
-"""The largest system (rows) whose product gathers by default; larger ones scatter. Measured on an H100 in one
+"""The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU (one
+thread: 11.7 against 9.9 ms per frame on scene C when it gathered), scatter. Measured on an H100 in one
 session (scripts/results/cg-gather-all-sizes-cuda0-20261122T200550Z.json against
 ab-prev-0e42e13-cuda0-20261122T200709Z.json and bench-full-cuda0-20261122T194915Z.json): gather ahead up
 to 256 armadillos (65 k rows: 8.00 against 8.89 ms per frame; 64: 3.96 against 4.12; paper scene C 1.67
@@ -107,7 +108,8 @@ class CGSolver:
         grid_blocks: Blocks of the "grid" mode on CUDA; None: enough for a thread per row or product chunk,
             plus one for the coupling pairs if any, at most one per SM (the barriers need every block
             resident).
-        product: "gather" or "scatter" (:data:`PRODUCTS`); None: gather up to :data:`GATHER_MAX_ROWS` rows.
+        product: "gather" or "scatter" (:data:`PRODUCTS`); None: gather on CUDA up to :data:`GATHER_MAX_ROWS`
+            rows, else scatter.
     """
 
     def __init__(
@@ -134,7 +136,9 @@ class CGSolver:
             raise ValueError(f"grid_blocks must be at least 1, got {grid_blocks}")
         if product not in (None, *PRODUCTS):
             raise ValueError(f"product must be one of {PRODUCTS} or None, got {product!r}")
-        self.product = product or ("gather" if n <= GATHER_MAX_ROWS else "scatter")
+        # the CPU runs the product on one thread, where atomic adds cost no more than stores: half the reads win
+        gather_default = self.device.is_cuda and n <= GATHER_MAX_ROWS
+        self.product = product or ("gather" if gather_default else "scatter")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
