@@ -45,7 +45,7 @@ def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float)
 
 
 @wp.kernel
-def elastic_forces(
+def elastic_forces_and_stiffness(
     # inputs: state
     x: wp.array(dtype=wp.vec3),
     # inputs: model
@@ -54,11 +54,16 @@ def elastic_forces(
     rest_volume: wp.array(dtype=float),
     tet_mu: wp.array(dtype=float),
     tet_lambda: wp.array(dtype=float),
+    tet_beta: wp.array(dtype=float),
+    tet_slots: wp.array(dtype=wp.int32),
+    # inputs: step
+    dt: float,
     # outputs
     rotation_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
 ):
-    """Per tet: its rotation and its corotational elastic force (N) on each corner (atomic adds)."""
+    """Per tet: rotation, corotational elastic force (N), (dt^2 + dt beta) R K_ab R^T into the upper triangle."""
     e = wp.tid()
     t = tets[e]
     x0 = x[t[0]]
@@ -75,43 +80,17 @@ def elastic_forces(
     eps = 0.5 * (RtF + wp.transpose(RtF)) - wp.identity(n=3, dtype=float)
     sigma = 2.0 * mu * eps + lam * wp.trace(eps) * wp.identity(n=3, dtype=float)
     P = R * sigma
+
+    scale = dt * dt + dt * tet_beta[e]
     for a in range(4):
-        wp.atomic_add(force_out, t[a], -vol * (P * shape_gradient(dmi, a)))
-
-
-@wp.kernel
-def stiffness_blocks(
-    # inputs: model
-    slot_start: wp.array(dtype=wp.int32),
-    slot_terms: wp.array(dtype=wp.int32),
-    dm_inv: wp.array(dtype=wp.mat33),
-    rest_volume: wp.array(dtype=float),
-    tet_mu: wp.array(dtype=float),
-    tet_lambda: wp.array(dtype=float),
-    tet_beta: wp.array(dtype=float),
-    # inputs: step
-    rotation: wp.array(dtype=wp.mat33),
-    dt: float,
-    # outputs
-    matrix_out: wp.array(dtype=wp.mat33),
-):
-    """Per stored block: the sum of (dt^2 + dt beta) R K_ab R^T over its terms (tet, a, b), written (not added).
-
-    Gathered, a thread per block: adding each tet's ten blocks with atomics cost 90 atomic float adds per
-    tet, the elastic stage's bottleneck from a few thousand tets on.
-    """
-    s = wp.tid()
-    block = wp.mat33()
-    for k in range(slot_start[s], slot_start[s + 1]):
-        term = slot_terms[k]
-        e = term // 16
-        dmi = dm_inv[e]
-        R = rotation[e]
-        ga = shape_gradient(dmi, (term // 4) % 4)
-        gb = shape_gradient(dmi, term % 4)
-        K = stiffness_block(ga, gb, rest_volume[e], tet_mu[e], tet_lambda[e])
-        block += (dt * dt + dt * tet_beta[e]) * (R * K * wp.transpose(R))
-    matrix_out[s] = block
+        ga = shape_gradient(dmi, a)
+        wp.atomic_add(force_out, t[a], -vol * (P * ga))
+        for b in range(4):
+            slot = tet_slots[e * 16 + a * 4 + b]
+            if slot >= 0:  # the upper triangle only: the matrix is symmetric
+                gb = shape_gradient(dmi, b)
+                block = R * stiffness_block(ga, gb, vol, mu, lam) * wp.transpose(R)
+                wp.atomic_add(matrix_out, slot, scale * block)
 
 
 @wp.kernel

@@ -12,34 +12,26 @@ from warpfem.model import Model
 def elastic_forces_and_stiffness(
     model: Model, x: wp.array, dt: float, rotation_out: wp.array, force_out: wp.array, matrix_out: wp.array
 ) -> None:
-    """Every tet's corotational elastic force (N) into ``force_out`` and the stiffness into ``matrix_out``.
+    """Add every tet's corotational elastic force (N) and (dt^2 + dt beta) R K R^T to the outputs.
 
-    ``force_out`` is accumulated into (zero it first); ``matrix_out`` is overwritten with each stored block's
-    sum of (dt^2 + dt beta) R K_ab R^T; ``rotation_out`` receives each tet's rotation. Two launches for all
-    bodies: forces per tet, then the blocks gathered per block.
+    ``force_out`` and ``matrix_out`` are accumulated into (zero them first); ``rotation_out`` receives each
+    tet's rotation. One launch for all bodies.
     """
     wp.launch(
-        K.elastic_forces,
+        K.elastic_forces_and_stiffness,
         dim=model.tet_count,
-        inputs=[x, model.tets, model.dm_inv, model.rest_volume, model.tet_mu, model.tet_lambda],
-        outputs=[rotation_out, force_out],
-        device=model.device,
-    )
-    wp.launch(
-        K.stiffness_blocks,
-        dim=model.nnz_blocks,
         inputs=[
-            model.slot_start,
-            model.slot_terms,
+            x,
+            model.tets,
             model.dm_inv,
             model.rest_volume,
             model.tet_mu,
             model.tet_lambda,
             model.tet_beta,
-            rotation_out,
+            model.tet_slots,
             dt,
         ],
-        outputs=[matrix_out],
+        outputs=[rotation_out, force_out, matrix_out],
         device=model.device,
     )
 

@@ -29,13 +29,12 @@ VERTEX_BYTES = 280
 CSR row and diagonal slot, force, rhs, CG direction, inverse diagonal block, 5 CG vectors and zero ones,
 collision gradient."""
 
-TET_BYTES = 152
+TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
-its 10 stiffness terms (the blocks gather them), rotation."""
+16 matrix slots, rotation."""
 
-BLOCK_BYTES = 47
-"""Device bytes per stored 3x3 matrix block: the float block, its int32 column and first stiffness term, its
-share of CG's chunk table."""
+BLOCK_BYTES = 43
+"""Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
 
 GATHER_BLOCK_BYTES = 18
 """More bytes per stored block where CG's product gathers (on CUDA up to ``warpfem.cg.GATHER_MAX_ROWS`` rows;

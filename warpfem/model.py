@@ -85,8 +85,7 @@ class Model:
     row_start: wp.array  # int32 (n+1), block CSR rows of the upper triangle (the matrix is symmetric)
     cols: wp.array  # int32 (nnz), block CSR columns (>= the row)
     diag_slot: wp.array  # int32 (n), the diagonal block of each row
-    slot_start: wp.array  # int32 (nnz+1), each stored block's first term in slot_terms
-    slot_terms: wp.array  # int32 (10 q), the (tet e, corners a, b) adding to each block, as e*16 + a*4 + b
+    tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e at e*16 + a*4 + b; -1 below the diagonal
     dense_tet: wp.array  # int32, global tet of each dense vertex
     dense_bary: wp.array  # vec4, barycentric coordinates in that tet
     vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
@@ -345,10 +344,6 @@ class ModelBuilder:
             d0 += len(b["embed_tet"])
         all_tets = np.concatenate(tets)
         row_start, cols, diag_slot, tet_slots = block_pattern(all_tets, v0)
-        # the stiffness is gathered per stored block: the terms (tet, a, b) of each block, block by block
-        terms = np.flatnonzero(tet_slots >= 0)
-        slot_terms = terms[np.argsort(tet_slots[terms], kind="stable")]
-        slot_start = np.concatenate([[0], np.cumsum(np.bincount(tet_slots[terms], minlength=len(cols)))])
 
         def cat(key: str) -> np.ndarray:
             return np.concatenate([b[key] for b in self._bodies])
@@ -374,8 +369,7 @@ class ModelBuilder:
             row_start=arr(row_start, wp.int32),
             cols=arr(cols, wp.int32),
             diag_slot=arr(diag_slot, wp.int32),
-            slot_start=arr(slot_start.astype(np.int32), wp.int32),
-            slot_terms=arr(slot_terms.astype(np.int32), wp.int32),
+            tet_slots=arr(tet_slots, wp.int32),
             dense_tet=arr(np.concatenate(dense_tet).astype(np.int32), wp.int32),
             dense_bary=arr(cat("embed_bary").astype(f32).reshape(-1, 4), wp.vec4),
             vertex_depth=arr(cat("depth").astype(f32), float),

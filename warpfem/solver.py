@@ -114,6 +114,7 @@ class Solver:
 
         def elastic() -> None:
             self.force.zero_()
+            self.matrix.zero_()
             fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
 
         def collision() -> None:
