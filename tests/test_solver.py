@@ -41,8 +41,8 @@ def test_free_fall_matches_kinematics(device):
 
 
 def test_cg_starts_from_the_last_velocity_change(device):
-    """CG starts from v + dv (dv: the velocity change of the step that made the state): in a free fall that
-    is nearly the answer, so a step from a state with its dv takes fewer iterations than from the same
+    """CG starts from v moved along dv (the velocity change of the step that made the state): in a free fall
+    that is nearly the answer, so a step from a state with its dv takes fewer iterations than from the same
     state with dv zeroed, and lands on the same velocities."""
     model, _ = _cube(device, y0=10.0)
     solver = Solver(model, gravity=(0, -G, 0), ground=None, cg_iterations=50, cg_tolerance=1e-4)

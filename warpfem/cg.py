@@ -33,7 +33,7 @@ each stored block also scatters its transpose into another row with an atomic ad
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU (one
-thread: 11.7 against 9.9 ms per frame on scene C when it gathered), scatter. Measured on an H100 in one
+thread: 11.7 against 10.3 ms per frame on scene C when it gathered), scatter. Measured on an H100 in one
 session (scripts/results/cg-gather-all-sizes-cuda0-20261122T200550Z.json against
 ab-prev-0e42e13-cuda0-20261122T200709Z.json and bench-full-cuda0-20261122T194915Z.json): gather ahead up
 to 256 armadillos (65 k rows: 8.00 against 8.89 ms per frame; 64: 3.96 against 4.12; paper scene C 1.67
@@ -228,7 +228,9 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
-    def _apply(self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array, w_out=None):
+    def _apply(
+        self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array, w_out: wp.array | None = None
+    ):
         """The launch of w += A u (``w_out``, default w, zeroed before), u.w into ``dot_out[iteration + step]``."""
         return wp.launch(
             K.cg_apply,

@@ -139,7 +139,7 @@ def advance_positions(
     dv_out: wp.array,
     bad_vertex_out: wp.array,
 ) -> None:
-    """x_out = x + dt v_new and dv_out = v_new - v (the next step's CG guess).
+    """x_out = x + dt v_new and dv_out = v_new - v (the direction the next step's CG start moves along).
 
     The lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min).
     """

@@ -51,7 +51,8 @@ class State:
     """Tet-vertex positions (m) and velocities (m/s) of every body, flat.
 
     ``dv`` is the velocity change (m/s) of the step that produced the state (zero initially): the next step's
-    CG starts from ``v + dv``, which a free fall or a steady push leaves already converged.
+    CG starts from ``v`` moved along ``dv`` (see :meth:`warpfem.cg.CGSolver.solve`), which in a free fall or a
+    steady push is nearly the answer.
     """
 
     x: wp.array
