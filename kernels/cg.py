@@ -18,8 +18,9 @@ synchronisation and can be captured with ``wp.capture_while``; an iteration past
 cap changes nothing. Rows with ``free == 0`` (pinned vertices) are held at their initial value.
 
 The start is x + theta d, the given x moved along a direction d (the solver passes the last step's
-velocity change) by the step that minimises the A-norm error along d: never a worse start than x, and in
-a free fall or a steady push nearly the answer. It costs one more product and one more reduction.
+velocity change) by the step that minimises the A-norm error along d, clamped to [0, 1] and taken only
+along a smooth direction (see :func:`line_step`): never a worse start than x, and in a free fall or a steady
+push nearly the answer. It costs one more product and one more reduction.
 
 ``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
 grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at kernel boundaries, so an
@@ -156,9 +157,8 @@ def add_block(
     row: int, c: int, A: wp.mat33, u_c: wp.vec3, u_row: wp.vec3, acc: wp.vec3, w_out: wp.array(dtype=wp.vec3)
 ) -> wp.vec3:
     """One stored block (row, c) of a scattering chunk: returns acc + A u_c; adds A^T u_row to w[c] if c > row."""
-    if c == row:
-        return acc + A * u_c
-    wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+    if c != row:
+        wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
     return acc + A * u_c
 
 
@@ -286,10 +286,10 @@ def cg_apply(
 ):
     """w += A u (w zeroed before); u.w into delta[k] with k = iteration + step.
 
-    ``values`` holds the upper triangle; each row gathers its stored blocks and the mirrors of the blocks
-    above it (see ``chunk_product``). u is zero on pinned rows, so they add nothing; what lands in w on them
-    is ignored by ``cg_update``. Threads past the chunks apply the coupling pairs. With ``gate`` set, skipped (adding
-    nothing) when iteration k will not run.
+    ``values`` holds the upper triangle; the chunks gather or scatter (see ``chunk_product``). u is zero on
+    pinned rows, so they add nothing; what lands in w on them is ignored by ``cg_update``. Threads past the
+    chunks apply the coupling pairs. With ``gate`` set, skipped (adding nothing) when iteration k will not
+    run.
     """
     i = wp.tid()
     k = iteration[0] + step
@@ -696,7 +696,7 @@ def cg_solve(
     mass: wp.array(dtype=float),
     tolerance: wp.array(dtype=float),
     max_iterations: wp.array(dtype=wp.int32),
-    # synchronisation (zeroed by cg_solve_reset, as is w)
+    # synchronisation (zeroed by cg_solve_reset, as are w and s)
     barrier: wp.array(dtype=wp.int32),
     totals: wp.array(dtype=float),
     # outputs

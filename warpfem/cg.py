@@ -228,6 +228,11 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
+    def _matrix(self, values: wp.array) -> list:
+        """The matrix arguments of the product kernels, in their order: chunk table, entries, blocks, product."""
+        entries = [self.chunk_row, self.chunk_start, self.chunk_end, self.entry_col, self.entry_slot]
+        return [*entries, values, int(self.product == "gather")]
+
     def _apply(
         self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array, w_out: wp.array | None = None
     ):
@@ -238,13 +243,7 @@ class CGSolver:
             block_dim=BLOCK,
             inputs=[
                 self._apply_threads,
-                self.chunk_row,
-                self.chunk_start,
-                self.chunk_end,
-                self.entry_col,
-                self.entry_slot,
-                values,
-                int(self.product == "gather"),
+                *self._matrix(values),
                 *self._pairs,
                 u,
                 gate,
@@ -273,8 +272,6 @@ class CGSolver:
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
         if self.mode == "grid":
             threads = self.grid_blocks * BLOCK if dev.is_cuda else 1
-            matrix = [self.chunk_row, self.chunk_start, self.chunk_end, self.entry_col, self.entry_slot, values]
-            matrix.append(int(self.product == "gather"))
             reset = wp.launch(
                 K.cg_solve_reset,
                 dim=max(n, self.totals.shape[0]),
@@ -290,7 +287,7 @@ class CGSolver:
                 inputs=[
                     threads,
                     self.grid_blocks,
-                    *matrix,
+                    *self._matrix(values),
                     *self._pairs,
                     diag_inv,
                     self.free,

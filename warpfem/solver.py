@@ -59,8 +59,8 @@ class Solver:
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
             touch (one body without self-collision) gets no collision stage at all.
         cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve) or
-            "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: by size (see
-            :class:`warpfem.cg.CGSolver`).
+            "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
+            (:data:`warpfem.cg.DEFAULT_MODE`).
     """
 
     def __init__(
