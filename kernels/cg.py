@@ -5,17 +5,14 @@ The iteration is Chronopoulos and Gear's single-reduction form of PCG: each iter
 against four launches and two reductions of the textbook form. The scalars follow from the two dots:
 ``beta_k = gamma_k / gamma_{k-1}``, ``alpha_k = gamma_k / (delta_k - beta_k gamma_k / alpha_{k-1})``.
 
-``cg_apply`` runs one thread per chunk of at most a few blocks of a row (more threads and shorter
-dependent loops than a thread per row: small systems are latency bound, large ones read the blocks in
-nearly coalesced runs). The matrix is stored as its upper triangle; the product either gathers (a row's
-entries are its stored blocks and the mirrors of those above it: one atomic add per chunk into its own row)
-or scatters (each stored block also adds its transpose into another row: an atomic per block, half the
-reads), see ``warpfem.cg.GATHER_MAX_ROWS``. A coupling term (pairs of points embedded in the mesh, such as
-contacts) is applied by extra threads of the same launch. Dot products are reduced per block (a tile sum,
-then one atomic add per block). All per-iteration scalars live in device
-arrays indexed by the device-side iteration counter plus the unrolled step, so the loop needs no host
-synchronisation and can be captured with ``wp.capture_while``; an iteration past convergence or past the
-cap changes nothing. Rows with ``free == 0`` (pinned vertices) are held at their initial value.
+``cg_apply`` runs one thread per chunk of at most a few blocks of a row (more threads and shorter dependent
+loops than a thread per row: small systems are latency bound, large ones read the blocks in nearly coalesced
+runs); the product itself, gathered or scattered, and the coupling pairs (contacts, applied by extra threads
+of the same launch) are in :mod:`warpfem.kernels.product`. Dot products are reduced per block (a tile sum,
+then one atomic add per block). All per-iteration scalars live in device arrays indexed by the device-side
+iteration counter plus the unrolled step, so the loop needs no host synchronisation and can be captured with
+``wp.capture_while``; an iteration past convergence or past the cap changes nothing. Rows with ``free == 0``
+(pinned vertices) are held at their initial value.
 
 The start is x + theta d, the given x moved along a direction d (the solver passes the last step's
 velocity change) by the step that minimises the A-norm error along d, clamped to [0, 1] and taken only
@@ -26,11 +23,14 @@ push nearly the answer. It costs one more product and one more reduction.
 grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at kernel boundaries, so an
 iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
 on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
-On the CPU the same kernel runs as a single thread.
+Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones), each
+thread keeps its chunk's columns and blocks in registers for the whole solve, so an iteration's product
+loads only the vector (``held``). On the CPU the same kernel runs as a single thread.
 """
 
 import warp as wp
 from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
+from warpfem.kernels.product import chunk_product, live_pairs, own_chunk, pair_product, partial_product
 
 
 @wp.func
@@ -50,207 +50,6 @@ def is_active(
     """Whether iteration ``k`` runs: under the cap, residual r.M^-1 r above tolerance^2 b.M^-1 b, no breakdown."""
     g = gamma[k]
     return k < max_iterations and g > 0.0 and g > tolerance * tolerance * bz[0]
-
-
-@wp.func
-def embedded_product(
-    verts_a: wp.vec4i,
-    weights_a: wp.vec4,
-    verts_b: wp.vec4i,
-    weights_b: wp.vec4,
-    C: wp.mat33,
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """w += (J^T C J less its diagonal blocks) u for one pair; returns this pair's share of u.w.
-
-    ``J u = sum_k weights_a[k] u[verts_a[k]] - weights_b[k] u[verts_b[k]]`` is the pair's relative value.
-    The eight values of u are loaded once, before any atomic add: a load after an atomic add to a buffer
-    that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop made a chain
-    of eight dependent round trips to memory.
-    """
-    Ua = wp.matrix_from_rows(u[verts_a[0]], u[verts_a[1]], u[verts_a[2]], u[verts_a[3]])
-    Ub = wp.matrix_from_rows(u[verts_b[0]], u[verts_b[1]], u[verts_b[2]], u[verts_b[3]])
-    s = wp.vec3()
-    for k in range(4):
-        s += weights_a[k] * Ua[k] - weights_b[k] * Ub[k]
-    dot = float(0.0)
-    for k in range(4):
-        da = weights_a[k] * (C * (s - weights_a[k] * Ua[k]))
-        db = -weights_b[k] * (C * (s + weights_b[k] * Ub[k]))
-        wp.atomic_add(w_out, verts_a[k], da)
-        wp.atomic_add(w_out, verts_b[k], db)
-        dot += wp.dot(Ua[k], da) + wp.dot(Ub[k], db)
-    return dot
-
-
-GROUP = 4
-"""Entries of a chunk whose loads are issued together."""
-
-
-@wp.func
-def entry_term(valid: bool, slot: int, A: wp.mat33, u_c: wp.vec3) -> wp.vec3:
-    """One entry's share of its row of A u: A u_c for a stored block (slot >= 0), A^T u_c for a mirrored one."""
-    if not valid:
-        return wp.vec3()
-    if slot >= 0:
-        return A * u_c
-    return wp.transpose(A) * u_c
-
-
-@wp.func
-def stored(slot: int) -> int:
-    """The stored block of an entry: ``slot`` itself, or ``-slot - 1`` for a mirrored entry."""
-    return wp.where(slot >= 0, slot, -slot - 1)
-
-
-@wp.func
-def chunk_gather(
-    i: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """w[row] += chunk i's share of row ``row`` of A u, gathered: one atomic add; returns its share of u.w.
-
-    The product of systems up to ``warpfem.cg.GATHER_MAX_ROWS`` rows.
-
-    A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
-    stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
-    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows (the
-    scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
-    columns and slots, then blocks and u at the columns.
-    """
-    row = chunk_row[i]
-    first = chunk_start[i]
-    end = chunk_end[i]
-    u_row = u[row]
-    acc = wp.vec3()
-    for g in range(first, end, GROUP):
-        k0 = wp.min(g, end - 1)
-        k1 = wp.min(g + 1, end - 1)
-        k2 = wp.min(g + 2, end - 1)
-        k3 = wp.min(g + 3, end - 1)
-        c0, s0 = entry_col[k0], entry_slot[k0]
-        c1, s1 = entry_col[k1], entry_slot[k1]
-        c2, s2 = entry_col[k2], entry_slot[k2]
-        c3, s3 = entry_col[k3], entry_slot[k3]
-        A0, u0 = values[stored(s0)], u[c0]
-        A1, u1 = values[stored(s1)], u[c1]
-        A2, u2 = values[stored(s2)], u[c2]
-        A3, u3 = values[stored(s3)], u[c3]
-        acc += entry_term(True, s0, A0, u0)
-        acc += entry_term(g + 1 < end, s1, A1, u1)
-        acc += entry_term(g + 2 < end, s2, A2, u2)
-        acc += entry_term(g + 3 < end, s3, A3, u3)
-    wp.atomic_add(w_out, row, acc)
-    return wp.dot(u_row, acc)
-
-
-@wp.func
-def add_block(
-    row: int, c: int, A: wp.mat33, u_c: wp.vec3, u_row: wp.vec3, acc: wp.vec3, w_out: wp.array(dtype=wp.vec3)
-) -> wp.vec3:
-    """One stored block (row, c) of a scattering chunk: returns acc + A u_c; adds A^T u_row to w[c] if c > row."""
-    if c != row:
-        wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
-    return acc + A * u_c
-
-
-@wp.func
-def chunk_scatter(
-    i: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """w += chunk i's stored blocks times u and their transposes (scattered with atomics); returns its u.w.
-
-    The product of larger systems: each stored block is read once (half the traffic of the gather, which
-    reads each off-diagonal block twice), at the cost of an atomic add per block into another row: ahead
-    once the matrix outgrows the L2 cache (1.1 M tets: 72 against 98 us per iteration on an H100). A chunk
-    holds consecutive stored blocks of its row; loads go in groups of :data:`GROUP` ahead of the atomics (a
-    load after an atomic add to a buffer that may alias ``u`` waits for it in program order).
-    """
-    row = chunk_row[i]
-    first = chunk_start[i]
-    end = chunk_end[i]
-    u_row = u[row]
-    acc = wp.vec3()
-    for g in range(first, end, GROUP):
-        k0 = wp.min(g, end - 1)
-        k1 = wp.min(g + 1, end - 1)
-        k2 = wp.min(g + 2, end - 1)
-        k3 = wp.min(g + 3, end - 1)
-        c0, c1, c2, c3 = cols[k0], cols[k1], cols[k2], cols[k3]
-        A0, A1, A2, A3 = values[k0], values[k1], values[k2], values[k3]
-        u0, u1, u2, u3 = u[c0], u[c1], u[c2], u[c3]
-        acc = add_block(row, c0, A0, u0, u_row, acc, w_out)
-        if g + 1 < end:
-            acc = add_block(row, c1, A1, u1, u_row, acc, w_out)
-        if g + 2 < end:
-            acc = add_block(row, c2, A2, u2, u_row, acc, w_out)
-        if g + 3 < end:
-            acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
-    wp.atomic_add(w_out, row, acc)
-    # u.(A u) over the stored triangle: 2 u_row.(A_rc u_c) off the diagonal, u_row.(A_rr u_row) on it
-    diagonal = wp.where(cols[first] == row, wp.dot(u_row, values[first] * u_row), 0.0)
-    return 2.0 * wp.dot(u_row, acc) - diagonal
-
-
-@wp.func
-def chunk_product(
-    i: int,
-    gather: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """Chunk i of the product, gathered or scattered.
-
-    ``gather`` != 0: the chunk holds entries (see ``chunk_gather``); else ``entry_col`` holds the stored
-    blocks' columns (see ``chunk_scatter``).
-    """
-    if gather != 0:
-        return chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
-    return chunk_scatter(i, chunk_row, chunk_start, chunk_end, entry_col, values, u, w_out)
-
-
-@wp.func
-def live_pairs(pair_count: wp.array(dtype=wp.int32), pair_matrix: wp.array(dtype=wp.mat33)) -> int:
-    """The coupling pairs in use: the count, capped at the buffer's capacity."""
-    return wp.min(pair_count[0], pair_matrix.shape[0])
-
-
-@wp.func
-def pair_product(
-    c: int,
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """w += coupling pair c's share of A u (c below ``live_pairs``); returns its u.w."""
-    return embedded_product(
-        pair_verts_a[c], pair_weights_a[c], pair_verts_b[c], pair_weights_b[c], pair_matrix[c], u, w_out
-    )
 
 
 @wp.kernel
@@ -615,41 +414,6 @@ def cg_finish(
     residual_max_out[0] = wp.max(residual_max_out[0], res)
 
 
-@wp.func
-def partial_product(
-    lane: int,
-    threads: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    gather: int,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    w_out: wp.array(dtype=wp.vec3),
-) -> float:
-    """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
-
-    The pairs start at the lane after the last chunk's (wrapping around), so they go to idle threads first
-    rather than lengthening the chains of the threads that hold chunks.
-    """
-    dot = float(0.0)
-    n_chunks = chunk_row.shape[0]
-    for i in range(lane, n_chunks, threads):
-        dot += chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
-    first_pair = ((lane - n_chunks) % threads + threads) % threads
-    for c in range(first_pair, live_pairs(pair_count, pair_matrix), threads):
-        dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
-    return dot
-
-
 @wp.kernel
 def cg_solve_reset(
     n: int,
@@ -674,6 +438,7 @@ def cg_solve(
     # inputs: launch shape
     threads: int,
     blocks: int,
+    held: int,
     # inputs: matrix
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
@@ -720,9 +485,12 @@ def cg_solve(
     """
     lane = wp.tid()
     n = free.shape[0]
+    own = own_chunk(held, lane, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
     partial_product(
         lane,
         threads,
+        held,
+        own,
         chunk_row,
         chunk_start,
         chunk_end,
@@ -742,6 +510,8 @@ def cg_solve(
     partial_product(
         lane,
         threads,
+        held,
+        own,
         chunk_row,
         chunk_start,
         chunk_end,
@@ -781,6 +551,8 @@ def cg_solve(
         part = partial_product(
             lane,
             threads,
+            held,
+            own,
             chunk_row,
             chunk_start,
             chunk_end,

@@ -14,16 +14,18 @@ from warpfem.shapes import box_tet_mesh
     params=[
         dict(mode="grid"),
         dict(mode="grid", grid_blocks=4),
+        dict(mode="grid", grid_blocks=4, hold_chunks=False),
         dict(mode="launches"),
         dict(mode="grid", grid_blocks=4, product="scatter"),
         dict(mode="launches", product="scatter"),
     ],
-    ids=["grid", "grid-4-blocks", "per-iteration-launches", "grid-scatter", "launches-scatter"],
+    ids=["grid", "grid-4-blocks", "grid-4-blocks-unheld", "per-iteration-launches", "grid-scatter", "launches-scatter"],
 )
 def path(request):
     """Both CG paths: the whole solve in one persistent launch (on CUDA also forced onto 4 blocks, so that
-    even these tiny systems meet at real grid barriers), and two launches per iteration; each with the
-    product that gathers (the default at these sizes) and with the one that scatters."""
+    even these tiny systems meet at real grid barriers, each thread holding its chunk of the product in
+    registers or, unheld, reading it every iteration), and two launches per iteration; each with the product
+    that gathers (the default at these sizes) and with the one that scatters."""
     return request.param
 
 
@@ -217,3 +219,17 @@ def test_default_path_is_one_persistent_launch(device):
     assert CGSolver(a["row_start"], a["cols"], a["free"], 10, device, mode="launches").mode == "launches"
     with pytest.raises(ValueError, match="mode"):
         CGSolver(a["row_start"], a["cols"], a["free"], 10, device, mode="fast")
+
+
+def test_chunks_held_only_where_each_has_a_thread(device):
+    """A grid solve with a gathered product holds each thread's chunk in registers when every chunk has a
+    thread of its own (CUDA, small systems); never on the CPU (one thread), with the scatter, per-iteration
+    launches, or when told not to."""
+    a = _system(device)[0]
+    args = (a["row_start"], a["cols"], a["free"], 10, device)
+    on_cuda = wp.get_device(device).is_cuda
+    assert CGSolver(*args, mode="grid", product="gather").held == on_cuda
+    assert CGSolver(*args, mode="grid", grid_blocks=1, product="gather").held == on_cuda  # 256 threads, ~100 chunks
+    assert not CGSolver(*args, mode="grid", product="gather", hold_chunks=False).held
+    assert not CGSolver(*args, mode="grid", product="scatter").held
+    assert not CGSolver(*args, mode="launches", product="gather").held

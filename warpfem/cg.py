@@ -14,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
+from warpfem.kernels.product import OWN_CHUNK_ENTRIES
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
@@ -110,6 +111,9 @@ class CGSolver:
             resident).
         product: "gather" or "scatter" (:data:`PRODUCTS`); None: gather on CUDA up to :data:`GATHER_MAX_ROWS`
             rows, else scatter.
+        hold_chunks: Let a "grid" solve whose gathered product has a thread for every chunk keep each
+            chunk's columns and blocks in registers for the whole solve (the ``held`` attribute says whether
+            it does); False: read them every iteration (for tests of that path).
     """
 
     def __init__(
@@ -124,6 +128,7 @@ class CGSolver:
         mode: str | None = None,
         grid_blocks: int | None = None,
         product: str | None = None,
+        hold_chunks: bool = True,
     ) -> None:
         self.device = wp.get_device(device)
         self.free = free
@@ -213,6 +218,17 @@ class CGSolver:
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
         else:
             self.grid_blocks = 1
+        threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
+        # each thread's chunk in registers for the whole grid solve where every chunk has a thread: on an H100
+        # 5.57 against 6.67 us per iteration on paper scene A, 4.22 against 5.91 on C (one session,
+        # scripts/results/cg-held-chunks-cuda0-20261122T211605Z.json)
+        self.held = bool(
+            hold_chunks
+            and self.mode == "grid"
+            and self.product == "gather"
+            and self.chunk <= OWN_CHUNK_ENTRIES
+            and threads >= len(rows)
+        )
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
 
@@ -287,6 +303,7 @@ class CGSolver:
                 inputs=[
                     threads,
                     self.grid_blocks,
+                    int(self.held),
                     *self._matrix(values),
                     *self._pairs,
                     diag_inv,

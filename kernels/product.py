@@ -1,0 +1,365 @@
+"""The block-matrix product of the CG kernels: chunks of a 3x3-block CSR matrix and matrix-free pairs.
+
+The matrix is stored as its upper triangle. A chunk is at most a few entries of one row; the product either
+gathers (a row's entries are its stored blocks and the mirrors of those above it: one atomic add per chunk
+into its own row) or scatters (each stored block also adds its transpose into another row: an atomic per
+block, half the reads), see ``warpfem.cg.GATHER_MAX_ROWS``. A coupling term (pairs of points embedded in the
+mesh, such as contacts) is applied by extra threads. A persistent solve whose every chunk has a thread of its
+own keeps that chunk's columns and blocks in registers for the whole solve (:class:`OwnChunk`): an iteration
+then loads only the vector.
+"""
+
+import warp as wp
+
+
+@wp.func
+def embedded_product(
+    verts_a: wp.vec4i,
+    weights_a: wp.vec4,
+    verts_b: wp.vec4i,
+    weights_b: wp.vec4,
+    C: wp.mat33,
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += (J^T C J less its diagonal blocks) u for one pair; returns this pair's share of u.w.
+
+    ``J u = sum_k weights_a[k] u[verts_a[k]] - weights_b[k] u[verts_b[k]]`` is the pair's relative value.
+    The eight values of u are loaded once, before any atomic add: a load after an atomic add to a buffer
+    that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop made a chain
+    of eight dependent round trips to memory.
+    """
+    Ua = wp.matrix_from_rows(u[verts_a[0]], u[verts_a[1]], u[verts_a[2]], u[verts_a[3]])
+    Ub = wp.matrix_from_rows(u[verts_b[0]], u[verts_b[1]], u[verts_b[2]], u[verts_b[3]])
+    s = wp.vec3()
+    for k in range(4):
+        s += weights_a[k] * Ua[k] - weights_b[k] * Ub[k]
+    dot = float(0.0)
+    for k in range(4):
+        da = weights_a[k] * (C * (s - weights_a[k] * Ua[k]))
+        db = -weights_b[k] * (C * (s + weights_b[k] * Ub[k]))
+        wp.atomic_add(w_out, verts_a[k], da)
+        wp.atomic_add(w_out, verts_b[k], db)
+        dot += wp.dot(Ua[k], da) + wp.dot(Ub[k], db)
+    return dot
+
+
+GROUP = 4
+"""Entries of a chunk whose loads are issued together."""
+
+
+@wp.func
+def entry_term(valid: bool, slot: int, A: wp.mat33, u_c: wp.vec3) -> wp.vec3:
+    """One entry's share of its row of A u: A u_c for a stored block (slot >= 0), A^T u_c for a mirrored one."""
+    if not valid:
+        return wp.vec3()
+    if slot >= 0:
+        return A * u_c
+    return wp.transpose(A) * u_c
+
+
+@wp.func
+def stored(slot: int) -> int:
+    """The stored block of an entry: ``slot`` itself, or ``-slot - 1`` for a mirrored entry."""
+    return wp.where(slot >= 0, slot, -slot - 1)
+
+
+@wp.func
+def chunk_gather(
+    i: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w[row] += chunk i's share of row ``row`` of A u, gathered: one atomic add; returns its share of u.w.
+
+    The product of systems up to ``warpfem.cg.GATHER_MAX_ROWS`` rows.
+
+    A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
+    stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
+    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows (the
+    scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
+    columns and slots, then blocks and u at the columns.
+    """
+    row = chunk_row[i]
+    first = chunk_start[i]
+    end = chunk_end[i]
+    u_row = u[row]
+    acc = wp.vec3()
+    for g in range(first, end, GROUP):
+        k0 = wp.min(g, end - 1)
+        k1 = wp.min(g + 1, end - 1)
+        k2 = wp.min(g + 2, end - 1)
+        k3 = wp.min(g + 3, end - 1)
+        c0, s0 = entry_col[k0], entry_slot[k0]
+        c1, s1 = entry_col[k1], entry_slot[k1]
+        c2, s2 = entry_col[k2], entry_slot[k2]
+        c3, s3 = entry_col[k3], entry_slot[k3]
+        A0, u0 = values[stored(s0)], u[c0]
+        A1, u1 = values[stored(s1)], u[c1]
+        A2, u2 = values[stored(s2)], u[c2]
+        A3, u3 = values[stored(s3)], u[c3]
+        acc += entry_term(True, s0, A0, u0)
+        acc += entry_term(g + 1 < end, s1, A1, u1)
+        acc += entry_term(g + 2 < end, s2, A2, u2)
+        acc += entry_term(g + 3 < end, s3, A3, u3)
+    wp.atomic_add(w_out, row, acc)
+    return wp.dot(u_row, acc)
+
+
+@wp.func
+def add_block(
+    row: int, c: int, A: wp.mat33, u_c: wp.vec3, u_row: wp.vec3, acc: wp.vec3, w_out: wp.array(dtype=wp.vec3)
+) -> wp.vec3:
+    """One stored block (row, c) of a scattering chunk: returns acc + A u_c; adds A^T u_row to w[c] if c > row."""
+    if c != row:
+        wp.atomic_add(w_out, c, wp.transpose(A) * u_row)
+    return acc + A * u_c
+
+
+@wp.func
+def chunk_scatter(
+    i: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += chunk i's stored blocks times u and their transposes (scattered with atomics); returns its u.w.
+
+    The product of larger systems: each stored block is read once (half the traffic of the gather, which
+    reads each off-diagonal block twice), at the cost of an atomic add per block into another row: ahead
+    once the matrix outgrows the L2 cache (1.1 M tets: 72 against 98 us per iteration on an H100). A chunk
+    holds consecutive stored blocks of its row; loads go in groups of :data:`GROUP` ahead of the atomics (a
+    load after an atomic add to a buffer that may alias ``u`` waits for it in program order).
+    """
+    row = chunk_row[i]
+    first = chunk_start[i]
+    end = chunk_end[i]
+    u_row = u[row]
+    acc = wp.vec3()
+    for g in range(first, end, GROUP):
+        k0 = wp.min(g, end - 1)
+        k1 = wp.min(g + 1, end - 1)
+        k2 = wp.min(g + 2, end - 1)
+        k3 = wp.min(g + 3, end - 1)
+        c0, c1, c2, c3 = cols[k0], cols[k1], cols[k2], cols[k3]
+        A0, A1, A2, A3 = values[k0], values[k1], values[k2], values[k3]
+        u0, u1, u2, u3 = u[c0], u[c1], u[c2], u[c3]
+        acc = add_block(row, c0, A0, u0, u_row, acc, w_out)
+        if g + 1 < end:
+            acc = add_block(row, c1, A1, u1, u_row, acc, w_out)
+        if g + 2 < end:
+            acc = add_block(row, c2, A2, u2, u_row, acc, w_out)
+        if g + 3 < end:
+            acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
+    wp.atomic_add(w_out, row, acc)
+    # u.(A u) over the stored triangle: 2 u_row.(A_rc u_c) off the diagonal, u_row.(A_rr u_row) on it
+    diagonal = wp.where(cols[first] == row, wp.dot(u_row, values[first] * u_row), 0.0)
+    return 2.0 * wp.dot(u_row, acc) - diagonal
+
+
+@wp.func
+def chunk_product(
+    i: int,
+    gather: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """Chunk i of the product, gathered or scattered.
+
+    ``gather`` != 0: the chunk holds entries (see ``chunk_gather``); else ``entry_col`` holds the stored
+    blocks' columns (see ``chunk_scatter``).
+    """
+    if gather != 0:
+        return chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
+    return chunk_scatter(i, chunk_row, chunk_start, chunk_end, entry_col, values, u, w_out)
+
+
+@wp.func
+def live_pairs(pair_count: wp.array(dtype=wp.int32), pair_matrix: wp.array(dtype=wp.mat33)) -> int:
+    """The coupling pairs in use: the count, capped at the buffer's capacity."""
+    return wp.min(pair_count[0], pair_matrix.shape[0])
+
+
+@wp.func
+def pair_product(
+    c: int,
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """w += coupling pair c's share of A u (c below ``live_pairs``); returns its u.w."""
+    return embedded_product(
+        pair_verts_a[c], pair_weights_a[c], pair_verts_b[c], pair_weights_b[c], pair_matrix[c], u, w_out
+    )
+
+
+@wp.func
+def pair_share(
+    lane: int,
+    threads: int,
+    n_chunks: int,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """The calling thread's share of the pairs' w += A u and u.w (pairs strided over ``threads`` threads).
+
+    The pairs start at the lane after the last chunk's (wrapping around), so they go to idle threads first
+    rather than lengthening the chains of the threads that hold chunks.
+    """
+    dot = float(0.0)
+    first_pair = ((lane - n_chunks) % threads + threads) % threads
+    for c in range(first_pair, live_pairs(pair_count, pair_matrix), threads):
+        dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
+    return dot
+
+
+OWN_CHUNK_ENTRIES = 4
+"""The most entries a chunk held in registers (:class:`OwnChunk`) has."""
+
+
+@wp.struct
+class OwnChunk:
+    """A thread's chunk of the gathered product, in registers for a whole solve (the blocks do not change).
+
+    Attributes:
+        row: The chunk's row.
+        count: Its entries (at most :data:`OWN_CHUNK_ENTRIES`); 0 for a thread that owns no chunk.
+        cols: The entries' columns (unused ones repeat the last).
+        slots: The entries' slots (see :func:`chunk_gather`).
+        a0: The entries' blocks, as stored (a mirrored entry is applied transposed).
+    """
+
+    row: int
+    count: int
+    cols: wp.vec4i
+    slots: wp.vec4i
+    a0: wp.mat33
+    a1: wp.mat33
+    a2: wp.mat33
+    a3: wp.mat33
+
+
+@wp.func
+def own_chunk(
+    held: int,
+    lane: int,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+) -> OwnChunk:
+    """Chunk ``lane`` of a gathered product (at most :data:`OWN_CHUNK_ENTRIES` entries per chunk), loaded once.
+
+    A lane past the last chunk gets ``count = 0`` (it loads the last chunk but applies nothing), as does every
+    lane when ``held`` is 0 (it loads nothing: the entries may not be a gather's).
+    """
+    c = OwnChunk()
+    n_chunks = chunk_row.shape[0]
+    if held == 0 or n_chunks == 0:
+        return c
+    i = wp.min(lane, n_chunks - 1)
+    first = chunk_start[i]
+    end = chunk_end[i]
+    k1 = wp.min(first + 1, end - 1)
+    k2 = wp.min(first + 2, end - 1)
+    k3 = wp.min(first + 3, end - 1)
+    c.row = chunk_row[i]
+    c.count = wp.where(lane < n_chunks, end - first, 0)
+    c.cols = wp.vec4i(entry_col[first], entry_col[k1], entry_col[k2], entry_col[k3])
+    c.slots = wp.vec4i(entry_slot[first], entry_slot[k1], entry_slot[k2], entry_slot[k3])
+    c.a0 = values[stored(c.slots[0])]
+    c.a1 = values[stored(c.slots[1])]
+    c.a2 = values[stored(c.slots[2])]
+    c.a3 = values[stored(c.slots[3])]
+    return c
+
+
+@wp.func
+def own_chunk_product(c: OwnChunk, u: wp.array(dtype=wp.vec3), w_out: wp.array(dtype=wp.vec3)) -> float:
+    """w[row] += the held chunk's share of A u, as :func:`chunk_gather` (one round trip: u only); its u.w."""
+    if c.count == 0:
+        return 0.0
+    u0, u1, u2, u3, u_row = u[c.cols[0]], u[c.cols[1]], u[c.cols[2]], u[c.cols[3]], u[c.row]
+    acc = entry_term(True, c.slots[0], c.a0, u0)
+    acc += entry_term(c.count > 1, c.slots[1], c.a1, u1)
+    acc += entry_term(c.count > 2, c.slots[2], c.a2, u2)
+    acc += entry_term(c.count > 3, c.slots[3], c.a3, u3)
+    wp.atomic_add(w_out, c.row, acc)
+    return wp.dot(u_row, acc)
+
+
+@wp.func
+def partial_product(
+    lane: int,
+    threads: int,
+    held: int,
+    own: OwnChunk,
+    chunk_row: wp.array(dtype=wp.int32),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_end: wp.array(dtype=wp.int32),
+    entry_col: wp.array(dtype=wp.int32),
+    entry_slot: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33),
+    gather: int,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
+
+    With ``held`` set, every chunk has a thread of its own and ``own`` is this thread's (:func:`own_chunk`);
+    else the thread walks chunks ``lane``, ``lane + threads``, ... reading their entries and blocks.
+    """
+    n_chunks = chunk_row.shape[0]
+    dot = float(0.0)
+    if held != 0:
+        dot = own_chunk_product(own, u, w_out)
+    else:
+        for i in range(lane, n_chunks, threads):
+            dot += chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
+    return dot + pair_share(
+        lane,
+        threads,
+        n_chunks,
+        pair_count,
+        pair_verts_a,
+        pair_weights_a,
+        pair_verts_b,
+        pair_weights_b,
+        pair_matrix,
+        u,
+        w_out,
+    )
