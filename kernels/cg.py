@@ -481,7 +481,8 @@ def cg_solve(
     iteration, each also reducing a dot into its own slot of ``totals``): no launch and no device-side loop
     node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
     reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
-    barriers vanish. Counts the solve like ``cg_finish``.
+    barriers vanish. Counts the solve like ``cg_finish``. With ``held`` set (every chunk has a thread of its
+    own), each thread loads its chunk once (``own_chunk``) and every product of the solve reuses it.
     """
     lane = wp.tid()
     n = free.shape[0]

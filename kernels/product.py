@@ -252,7 +252,7 @@ class OwnChunk:
         count: Its entries (at most :data:`OWN_CHUNK_ENTRIES`); 0 for a thread that owns no chunk.
         cols: The entries' columns (unused ones repeat the last).
         slots: The entries' slots (see :func:`chunk_gather`).
-        a0: The entries' blocks, as stored (a mirrored entry is applied transposed).
+        a0: The first entry's block, as stored (a mirrored entry is applied transposed); a1, a2, a3 the next.
     """
 
     row: int
