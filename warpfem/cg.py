@@ -218,7 +218,7 @@ class CGSolver:
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
         else:
             self.grid_blocks = 1
-        threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
+        self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
         # each thread's chunk in registers for the whole grid solve where every chunk has a thread: on an H100
         # 5.57 against 6.67 us per iteration on paper scene A, 4.22 against 5.91 on C (one session,
         # scripts/results/cg-held-chunks-cuda0-20261122T211605Z.json)
@@ -227,7 +227,7 @@ class CGSolver:
             and self.mode == "grid"
             and self.product == "gather"
             and self.chunk <= OWN_CHUNK_ENTRIES
-            and threads >= len(rows)
+            and self.grid_threads >= len(rows)
         )
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
@@ -287,7 +287,7 @@ class CGSolver:
         dev = self.device
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
         if self.mode == "grid":
-            threads = self.grid_blocks * BLOCK if dev.is_cuda else 1
+            threads = self.grid_threads
             reset = wp.launch(
                 K.cg_solve_reset,
                 dim=max(n, self.totals.shape[0]),
