@@ -95,3 +95,57 @@ def grid_total(
     warp_sum_add(value, totals, slot)
     grid_sync(barrier, target, stalled_out)
     return load_coherent(totals, slot)
+
+
+BLOCK_ROWS = 256
+"""The most rows a block of a pipelined solve owns (its shared accumulator's size; one thread per row)."""
+
+BLOCK_ACCUMULATE = r"""
+#if defined(__CUDA_ARCH__)
+__shared__ float buffer[3 * 256];
+float* slot = buffer + 3 * index;
+if (take != 0) {
+    wp::vec3 total(slot[0], slot[1], slot[2]);
+    slot[0] = 0.0f;
+    slot[1] = 0.0f;
+    slot[2] = 0.0f;
+    return total;
+}
+atomicAdd(slot, value[0]);
+atomicAdd(slot + 1, value[1]);
+atomicAdd(slot + 2, value[2]);
+return wp::vec3(0.0f, 0.0f, 0.0f);
+#else
+wp::vec3 total = scratch.data[index];
+if (take != 0) {
+    scratch.data[index] = wp::vec3(0.0f, 0.0f, 0.0f);
+    return total;
+}
+scratch.data[index] = wp::vec3(total[0] + value[0], total[1] + value[1], total[2] + value[2]);
+return wp::vec3(0.0f, 0.0f, 0.0f);
+#endif
+"""
+
+BLOCK_SYNC = r"""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+"""
+
+
+@wp.func_native(BLOCK_ACCUMULATE)
+def block_accumulate(scratch: wp.array(dtype=wp.vec3), index: int, value: wp.vec3, take: int) -> wp.vec3:
+    """A per-block accumulator of vec3 rows: add ``value`` into row ``index``, or take the row (and zero it).
+
+    ``take`` 0 adds and returns zero; ``take`` 1 returns the row's sum and zeroes it. On CUDA it lives in the
+    block's shared memory (:data:`BLOCK_ROWS` rows, shared atomic adds); on the CPU,
+    where a launch is one thread, in ``scratch``. Adds and takes of a row must be separated by
+    :func:`block_sync`.
+    """
+    ...
+
+
+@wp.func_native(BLOCK_SYNC)
+def block_sync():
+    """Barrier of the block's threads (and of their shared-memory writes); a no-op on the CPU."""
+    ...
