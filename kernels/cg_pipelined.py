@@ -98,50 +98,20 @@ def load_pair(
     return h
 
 
-mat43 = wp.types.matrix(shape=(4, 3), dtype=wp.float32)
-
-
-@wp.struct
-class Fetched:
-    """What a held thread loads for one product: its chunk's terms and its two pairs' eight values each."""
-
-    terms: wp.vec3
-    a0: mat43
-    b0: mat43
-    a1: mat43
-    b1: mat43
-
-
 @wp.func
-def rows_of(verts: wp.vec4i, v: wp.array(dtype=wp.vec3), offset: int) -> mat43:
-    """v at the four vertices (read at ``offset`` + vertex)."""
-    return wp.matrix_from_rows(v[offset + verts[0]], v[offset + verts[1]], v[offset + verts[2]], v[offset + verts[3]])
-
-
-@wp.func
-def fetch(chunk: OwnChunk, pair0: HeldPair, pair1: HeldPair, v: wp.array(dtype=wp.vec3), offset: int) -> Fetched:
-    """Every load of a held thread's share of A v, issued together (one round trip to memory).
-
-    A pair that is not live loads vertex 0's value (never used): no branch between the loads.
-    """
-    f = Fetched()
-    f.terms = held_terms(chunk, v, offset)
-    f.a0 = rows_of(pair0.verts_a, v, offset)
-    f.b0 = rows_of(pair0.verts_b, v, offset)
-    f.a1 = rows_of(pair1.verts_a, v, offset)
-    f.b1 = rows_of(pair1.verts_b, v, offset)
-    return f
-
-
-@wp.func
-def pair_to_block(h: HeldPair, Va: mat43, Vb: mat43, lo: int, hi: int, acc: wp.array(dtype=wp.vec3)):
+def pair_to_block(h: HeldPair, v: wp.array(dtype=wp.vec3), offset: int, lo: int, hi: int, acc: wp.array(dtype=wp.vec3)):
     """Add the pair's share of A v (less its diagonal blocks, as ``embedded_product``) to the block's rows.
 
-    ``Va`` and ``Vb`` hold v at the pair's vertices. Rows outside the block's [lo, hi) are left to the blocks
-    that own them.
+    Rows outside the block's [lo, hi) are left to the blocks that own them.
     """
     if h.live == 0:
         return
+    Va = wp.matrix_from_rows(
+        v[offset + h.verts_a[0]], v[offset + h.verts_a[1]], v[offset + h.verts_a[2]], v[offset + h.verts_a[3]]
+    )
+    Vb = wp.matrix_from_rows(
+        v[offset + h.verts_b[0]], v[offset + h.verts_b[1]], v[offset + h.verts_b[2]], v[offset + h.verts_b[3]]
+    )
     jv = wp.vec3()
     for k in range(4):
         jv += h.weights_a[k] * Va[k] - h.weights_b[k] * Vb[k]
@@ -157,13 +127,11 @@ def pair_to_block(h: HeldPair, Va: mat43, Vb: mat43, lo: int, hi: int, acc: wp.a
 @wp.func
 def owned_product(
     held: int,
-    fetched: Fetched,
     t: int,
     block_threads: int,
     chunk: OwnChunk,
     pair0: HeldPair,
     pair1: HeldPair,
-    live: int,
     ch_lo: int,
     ch_hi: int,
     lo: int,
@@ -174,6 +142,7 @@ def owned_product(
     entry_col: wp.array(dtype=wp.int32),
     entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
+    pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
     pair_weights_a: wp.array(dtype=wp.vec4),
     pair_verts_b: wp.array(dtype=wp.vec4i),
@@ -185,25 +154,25 @@ def owned_product(
 ):
     """The calling thread's share of (A v) on its block's rows [lo, hi), added into the block accumulator.
 
-    Held (CUDA): its chunk and two pairs, from ``fetched`` (:func:`fetch`), then pairs past ``2
-    block_threads`` read from memory; else (the CPU's one thread) every chunk ``ch_lo + t``, ``ch_lo + t +
-    block_threads``, ... and every pair. Ends with :func:`block_sync`: the block's rows of A v are then
-    complete in the accumulator.
+    Held (CUDA): its chunk and two pairs from registers, pairs past ``2 block_threads`` read from memory;
+    else (the CPU's one thread) every chunk ``ch_lo + t``, ``ch_lo + t + block_threads``, ... and every pair.
+    Ends with :func:`block_sync`: the block's rows of A v are then complete in the accumulator.
     """
     first_unheld = t
     if held != 0:
         if chunk.count > 0:
-            block_accumulate(acc, chunk.row - lo, fetched.terms, 0)
-        pair_to_block(pair0, fetched.a0, fetched.b0, lo, hi, acc)
-        pair_to_block(pair1, fetched.a1, fetched.b1, lo, hi, acc)
+            block_accumulate(acc, chunk.row - lo, held_terms(chunk, v, offset), 0)
+        pair_to_block(pair0, v, offset, lo, hi, acc)
+        pair_to_block(pair1, v, offset, lo, hi, acc)
         first_unheld = t + 2 * block_threads
     else:
         for i in range(ch_lo + t, ch_hi, block_threads):
             terms = gather_terms(i, chunk_start, chunk_end, entry_col, entry_slot, values, v, offset)
             block_accumulate(acc, chunk_row[i] - lo, terms, 0)
+    live = live_pairs(pair_count, pair_matrix)
     for c in range(first_unheld, live, block_threads):
         h = load_pair(c, live, lo, hi, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix)
-        pair_to_block(h, rows_of(h.verts_a, v, offset), rows_of(h.verts_b, v, offset), lo, hi, acc)
+        pair_to_block(h, v, offset, lo, hi, acc)
     block_sync()
 
 
@@ -344,43 +313,62 @@ def cg_solve_pipelined(
     ch_lo = block_chunk[blk]
     ch_hi = block_chunk[blk + 1]
     n_chunks = chunk_row.shape[0]
-    live = live_pairs(pair_count, pair_matrix)
-    pa = pair_verts_a
-    wa = pair_weights_a
-    pb = pair_verts_b
-    wb = pair_weights_b
     chunk = OwnChunk()
     pair0 = HeldPair()
     pair1 = HeldPair()
-    # a held thread's row (CUDA): its vectors, inverse diagonal block and pin in registers for the solve
-    mine = RowState()
-    my_row = lo + t
-    owner = held != 0 and my_row < hi
-    my_D = wp.mat33()
-    my_free = int(0)
     if held != 0:
         if ch_lo + t < ch_hi:
             chunk = load_chunk(ch_lo + t, True, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
-        pair0 = load_pair(t, live, lo, hi, pa, wa, pb, wb, pair_matrix)
-        pair1 = load_pair(t + block_threads, live, lo, hi, pa, wa, pb, wb, pair_matrix)
-        if owner:
-            my_D = diag_inv[my_row]
-            my_free = free[my_row]
+        live = live_pairs(pair_count, pair_matrix)
+        pair0 = load_pair(t, live, lo, hi, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix)
+        pair1 = load_pair(
+            t + block_threads, live, lo, hi, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix
+        )
     for i in range(lo + t, hi, block_threads):  # zero the accumulator (shared memory starts undefined), q, z
         block_accumulate(acc, i - lo, wp.vec3(), 1)
         q_buf[i] = wp.vec3()
         z_buf[i] = wp.vec3()
 
     # the start, as cg_solve's: A x into w and A d into s (atomic adds), the step along d, r, u
-    if held != 0:
-        own_chunk_product(chunk, x_out, w_out)
-        own_chunk_product(chunk, direction, s_out)
-    else:
-        for i in range(lane, n_chunks, threads):
-            chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, x_out, w_out)
-            chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, direction, s_out)
-    pair_share(lane, threads, n_chunks, pair_count, pa, wa, pb, wb, pair_matrix, x_out, w_out)
-    pair_share(lane, threads, n_chunks, pair_count, pa, wa, pb, wb, pair_matrix, direction, s_out)
+    for v in range(2):
+        if held != 0:
+            if chunk.count > 0:
+                if v == 0:
+                    own_chunk_product(chunk, x_out, w_out)
+                else:
+                    own_chunk_product(chunk, direction, s_out)
+        else:
+            for i in range(lane, n_chunks, threads):
+                if v == 0:
+                    chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, x_out, w_out)
+                else:
+                    chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, direction, s_out)
+    pair_share(
+        lane,
+        threads,
+        n_chunks,
+        pair_count,
+        pair_verts_a,
+        pair_weights_a,
+        pair_verts_b,
+        pair_weights_b,
+        pair_matrix,
+        x_out,
+        w_out,
+    )
+    pair_share(
+        lane,
+        threads,
+        n_chunks,
+        pair_count,
+        pair_verts_a,
+        pair_weights_a,
+        pair_verts_b,
+        pair_weights_b,
+        pair_matrix,
+        direction,
+        s_out,
+    )
     sync = blocks
     grid_sync(barrier, sync, stalled_out)
     proj = wp.vec3()
@@ -401,23 +389,21 @@ def cg_solve_pipelined(
     tol2 = tolerance[0] * tolerance[0]
     max_k = max_iterations[0]
 
+    # w = A u (u published by the last barrier); each row's vectors into registers (CUDA) or the arrays
+    mine = RowState()
     k = int(0)
     refresh = bool(True)
     gamma_prev = float(0.0)
     a_prev = float(0.0)
-    m_mine = wp.vec3()
     while True:
         if refresh:  # the start, and after a replacement: w = A u from the published u, the rest from the arrays
-            fetched = fetch(chunk, pair0, pair1, u_out, 0)
             owned_product(
                 held,
-                fetched,
                 t,
                 block_threads,
                 chunk,
                 pair0,
                 pair1,
-                live,
                 ch_lo,
                 ch_hi,
                 lo,
@@ -428,10 +414,11 @@ def cg_solve_pipelined(
                 entry_col,
                 entry_slot,
                 values,
-                pa,
-                wa,
-                pb,
-                wb,
+                pair_count,
+                pair_verts_a,
+                pair_weights_a,
+                pair_verts_b,
+                pair_weights_b,
                 pair_matrix,
                 u_out,
                 0,
@@ -447,22 +434,17 @@ def cg_solve_pipelined(
         parity = (k % 2) * n
         gd = wp.vec2()
         if held != 0:
-            if owner:
-                m_mine = my_D * mine.w
-                m_buf[parity + my_row] = m_mine
+            if lo + t < hi:
                 gd = row_dots(mine)
+                m_buf[parity + lo + t] = diag_inv[lo + t] * mine.w
         else:
             for i in range(lo + t, hi, block_threads):
                 st = load_row(i, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf)
                 gd += row_dots(st)
                 m_buf[parity + i] = diag_inv[i] * st.w
-        warp_sum_add(gd[0], totals, 5 + 2 * k)
         warp_sum_add(gd[1], totals, 6 + 2 * k)
         sync += blocks
-        grid_sync(barrier, sync, stalled_out)
-        # the product's loads go out with the scalars' (one round trip), before the convergence test
-        fetched = fetch(chunk, pair0, pair1, m_buf, parity)
-        gamma = load_coherent(totals, 5 + 2 * k)
+        gamma = grid_total(gd[0], totals, 5 + 2 * k, barrier, sync, stalled_out)
         delta = load_coherent(totals, 6 + 2 * k)
         if k >= max_k or gamma <= 0.0 or gamma <= tol2 * bz:
             break
@@ -472,13 +454,11 @@ def cg_solve_pipelined(
         # n = A m on the block's rows, then every vector of the row by its recurrence
         owned_product(
             held,
-            fetched,
             t,
             block_threads,
             chunk,
             pair0,
             pair1,
-            live,
             ch_lo,
             ch_hi,
             lo,
@@ -489,44 +469,41 @@ def cg_solve_pipelined(
             entry_col,
             entry_slot,
             values,
-            pa,
-            wa,
-            pb,
-            wb,
+            pair_count,
+            pair_verts_a,
+            pair_weights_a,
+            pair_verts_b,
+            pair_weights_b,
             pair_matrix,
             m_buf,
             parity,
             acc,
         )
-        if held != 0:
-            if owner:
-                n_i = wp.where(my_free != 0, block_accumulate(acc, t, wp.vec3(), 1), wp.vec3())
-                mine = advance_row(mine, m_mine, n_i, a, beta)
-        else:
-            for i in range(lo + t, hi, block_threads):
-                n_i = wp.where(free[i] != 0, block_accumulate(acc, i - lo, wp.vec3(), 1), wp.vec3())
-                st = load_row(i, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf)
-                st = advance_row(st, m_buf[parity + i], n_i, a, beta)
+        for i in range(lo + t, hi, block_threads):
+            n_i = wp.where(free[i] != 0, block_accumulate(acc, i - lo, wp.vec3(), 1), wp.vec3())
+            m_i = m_buf[parity + i]
+            if held != 0:
+                mine = advance_row(mine, m_i, n_i, a, beta)
+            else:
+                st = advance_row(load_row(i, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf), m_i, n_i, a, beta)
                 store_row(i, st, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf)
         gamma_prev = gamma
         a_prev = a
         k += 1
         if replace_every > 0 and k % replace_every == 0:
             # r = b - A x and u = M^-1 r afresh (x published at a barrier), then w = A u at the loop's top
-            if owner:
-                store_row(my_row, mine, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf)
+            if held != 0:
+                for i in range(lo + t, hi, block_threads):
+                    store_row(i, mine, x_out, r_out, u_out, w_out, p_out, s_out, q_buf, z_buf)
             sync += blocks
             grid_sync(barrier, sync, stalled_out)
-            fetched = fetch(chunk, pair0, pair1, x_out, 0)
             owned_product(
                 held,
-                fetched,
                 t,
                 block_threads,
                 chunk,
                 pair0,
                 pair1,
-                live,
                 ch_lo,
                 ch_hi,
                 lo,
@@ -537,10 +514,11 @@ def cg_solve_pipelined(
                 entry_col,
                 entry_slot,
                 values,
-                pa,
-                wa,
-                pb,
-                wb,
+                pair_count,
+                pair_verts_a,
+                pair_weights_a,
+                pair_verts_b,
+                pair_weights_b,
                 pair_matrix,
                 x_out,
                 0,
@@ -554,8 +532,9 @@ def cg_solve_pipelined(
             sync += blocks
             grid_sync(barrier, sync, stalled_out)
             refresh = True
-    if owner:
-        x_out[my_row] = mine.x
+    if held != 0:
+        for i in range(lo + t, hi, block_threads):
+            x_out[i] = mine.x
     if lane == 0:
         counts_out[0] = counts_out[0] + 1
         counts_out[1] = counts_out[1] + k
