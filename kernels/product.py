@@ -65,48 +65,6 @@ def stored(slot: int) -> int:
 
 
 @wp.func
-def gather_terms(
-    i: int,
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    offset: int,
-) -> wp.vec3:
-    """Gathered chunk i's share of its row of A u, with u read at ``offset`` + column.
-
-    A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
-    stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
-    chunk reads what it needs for its own row: no atomic add per block into other rows (the scatter of
-    transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`: columns and
-    slots, then blocks and u at the columns.
-    """
-    first = chunk_start[i]
-    end = chunk_end[i]
-    acc = wp.vec3()
-    for g in range(first, end, GROUP):
-        k0 = wp.min(g, end - 1)
-        k1 = wp.min(g + 1, end - 1)
-        k2 = wp.min(g + 2, end - 1)
-        k3 = wp.min(g + 3, end - 1)
-        c0, s0 = entry_col[k0], entry_slot[k0]
-        c1, s1 = entry_col[k1], entry_slot[k1]
-        c2, s2 = entry_col[k2], entry_slot[k2]
-        c3, s3 = entry_col[k3], entry_slot[k3]
-        A0, u0 = values[stored(s0)], u[offset + c0]
-        A1, u1 = values[stored(s1)], u[offset + c1]
-        A2, u2 = values[stored(s2)], u[offset + c2]
-        A3, u3 = values[stored(s3)], u[offset + c3]
-        acc += entry_term(True, s0, A0, u0)
-        acc += entry_term(g + 1 < end, s1, A1, u1)
-        acc += entry_term(g + 2 < end, s2, A2, u2)
-        acc += entry_term(g + 3 < end, s3, A3, u3)
-    return acc
-
-
-@wp.func
 def chunk_gather(
     i: int,
     chunk_row: wp.array(dtype=wp.int32),
@@ -118,13 +76,38 @@ def chunk_gather(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w[row] += chunk i's share of row ``row`` of A u (:func:`gather_terms`): one atomic add; returns its u.w.
+    """w[row] += chunk i's share of row ``row`` of A u, gathered: one atomic add; returns its share of u.w.
 
     The product of systems up to ``warpfem.cg.GATHER_MAX_ROWS`` rows.
+
+    A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
+    stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
+    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows (the
+    scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
+    columns and slots, then blocks and u at the columns.
     """
     row = chunk_row[i]
+    first = chunk_start[i]
+    end = chunk_end[i]
     u_row = u[row]
-    acc = gather_terms(i, chunk_start, chunk_end, entry_col, entry_slot, values, u, 0)
+    acc = wp.vec3()
+    for g in range(first, end, GROUP):
+        k0 = wp.min(g, end - 1)
+        k1 = wp.min(g + 1, end - 1)
+        k2 = wp.min(g + 2, end - 1)
+        k3 = wp.min(g + 3, end - 1)
+        c0, s0 = entry_col[k0], entry_slot[k0]
+        c1, s1 = entry_col[k1], entry_slot[k1]
+        c2, s2 = entry_col[k2], entry_slot[k2]
+        c3, s3 = entry_col[k3], entry_slot[k3]
+        A0, u0 = values[stored(s0)], u[c0]
+        A1, u1 = values[stored(s1)], u[c1]
+        A2, u2 = values[stored(s2)], u[c2]
+        A3, u3 = values[stored(s3)], u[c3]
+        acc += entry_term(True, s0, A0, u0)
+        acc += entry_term(g + 1 < end, s1, A1, u1)
+        acc += entry_term(g + 2 < end, s2, A2, u2)
+        acc += entry_term(g + 3 < end, s3, A3, u3)
     wp.atomic_add(w_out, row, acc)
     return wp.dot(u_row, acc)
 
@@ -283,38 +266,6 @@ class OwnChunk:
 
 
 @wp.func
-def load_chunk(
-    i: int,
-    valid: bool,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-) -> OwnChunk:
-    """Chunk i of a gathered product (at most :data:`OWN_CHUNK_ENTRIES` entries), into registers.
-
-    ``count`` is 0 where not ``valid`` (i must still be a chunk).
-    """
-    c = OwnChunk()
-    first = chunk_start[i]
-    end = chunk_end[i]
-    k1 = wp.min(first + 1, end - 1)
-    k2 = wp.min(first + 2, end - 1)
-    k3 = wp.min(first + 3, end - 1)
-    c.row = chunk_row[i]
-    c.count = wp.where(valid, end - first, 0)
-    c.cols = wp.vec4i(entry_col[first], entry_col[k1], entry_col[k2], entry_col[k3])
-    c.slots = wp.vec4i(entry_slot[first], entry_slot[k1], entry_slot[k2], entry_slot[k3])
-    c.a0 = values[stored(c.slots[0])]
-    c.a1 = values[stored(c.slots[1])]
-    c.a2 = values[stored(c.slots[2])]
-    c.a3 = values[stored(c.slots[3])]
-    return c
-
-
-@wp.func
 def own_chunk(
     held: int,
     lane: int,
@@ -325,27 +276,30 @@ def own_chunk(
     entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
 ) -> OwnChunk:
-    """Chunk ``lane`` of a gathered product, loaded once (:func:`load_chunk`).
+    """Chunk ``lane`` of a gathered product (at most :data:`OWN_CHUNK_ENTRIES` entries per chunk), loaded once.
 
     A lane past the last chunk gets ``count = 0`` (it loads the last chunk but applies nothing), as does every
     lane when ``held`` is 0 (it loads nothing: the entries may not be a gather's).
     """
+    c = OwnChunk()
     n_chunks = chunk_row.shape[0]
     if held == 0 or n_chunks == 0:
-        return OwnChunk()
+        return c
     i = wp.min(lane, n_chunks - 1)
-    return load_chunk(i, lane < n_chunks, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
-
-
-@wp.func
-def held_terms(c: OwnChunk, u: wp.array(dtype=wp.vec3), offset: int) -> wp.vec3:
-    """The held chunk's share of its row of A u, with u read at ``offset`` + column (zero if it has none)."""
-    u0, u1, u2, u3 = u[offset + c.cols[0]], u[offset + c.cols[1]], u[offset + c.cols[2]], u[offset + c.cols[3]]
-    acc = entry_term(c.count > 0, c.slots[0], c.a0, u0)
-    acc += entry_term(c.count > 1, c.slots[1], c.a1, u1)
-    acc += entry_term(c.count > 2, c.slots[2], c.a2, u2)
-    acc += entry_term(c.count > 3, c.slots[3], c.a3, u3)
-    return acc
+    first = chunk_start[i]
+    end = chunk_end[i]
+    k1 = wp.min(first + 1, end - 1)
+    k2 = wp.min(first + 2, end - 1)
+    k3 = wp.min(first + 3, end - 1)
+    c.row = chunk_row[i]
+    c.count = wp.where(lane < n_chunks, end - first, 0)
+    c.cols = wp.vec4i(entry_col[first], entry_col[k1], entry_col[k2], entry_col[k3])
+    c.slots = wp.vec4i(entry_slot[first], entry_slot[k1], entry_slot[k2], entry_slot[k3])
+    c.a0 = values[stored(c.slots[0])]
+    c.a1 = values[stored(c.slots[1])]
+    c.a2 = values[stored(c.slots[2])]
+    c.a3 = values[stored(c.slots[3])]
+    return c
 
 
 @wp.func
@@ -353,8 +307,11 @@ def own_chunk_product(c: OwnChunk, u: wp.array(dtype=wp.vec3), w_out: wp.array(d
     """w[row] += the held chunk's share of A u, as :func:`chunk_gather` (one round trip: u only); its u.w."""
     if c.count == 0:
         return 0.0
-    u_row = u[c.row]
-    acc = held_terms(c, u, 0)
+    u0, u1, u2, u3, u_row = u[c.cols[0]], u[c.cols[1]], u[c.cols[2]], u[c.cols[3]], u[c.row]
+    acc = entry_term(True, c.slots[0], c.a0, u0)
+    acc += entry_term(c.count > 1, c.slots[1], c.a1, u1)
+    acc += entry_term(c.count > 2, c.slots[2], c.a2, u2)
+    acc += entry_term(c.count > 3, c.slots[3], c.a3, u3)
     wp.atomic_add(w_out, c.row, acc)
     return wp.dot(u_row, acc)
 

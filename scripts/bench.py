@@ -215,7 +215,7 @@ def time_scene(
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "cg_path": solver.cg.mode,
-        "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode != "launches" else None,
+        "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
         "bodies": len(model.bodies),
         "tets": model.tet_count,
@@ -379,9 +379,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--cg-paths",
         default="auto",
-        help="comma list of CG paths to time every scene with: grid (one persistent launch, two barriers per "
-        "iteration; grid:B on B blocks), pipelined (one barrier per iteration; pipelined:B), launches (two per "
-        "iteration), auto (the default path)",
+        help="comma list of CG paths to time every scene with: grid (one persistent launch; grid:B on B "
+        "blocks), launches (two per iteration), auto (by size, the default)",
     )
     parser.add_argument(
         "--deviation",
@@ -400,11 +399,8 @@ def main(argv=None) -> int:
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
     skip = set(filter(None, args.skip.split(",")))
     cg_paths = [p for p in args.cg_paths.split(",") if p]
-    if not cg_paths or not all(re.fullmatch(r"auto|launches|(grid|pipelined)(:[1-9][0-9]*)?", p) for p in cg_paths):
-        parser.error(
-            "--cg-paths: expected a comma list of auto, launches, grid, grid:B, pipelined or pipelined:B, "
-            f"got '{args.cg_paths}'"
-        )
+    if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
+        parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     if skip - {"paper", "piles", "cg"}:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
     scene_defaults = load_scene(ROOT / "scenes" / "default.toml")

@@ -15,24 +15,11 @@ from warpfem.shapes import box_tet_mesh
         dict(mode="grid"),
         dict(mode="grid", grid_blocks=4),
         dict(mode="grid", grid_blocks=4, hold_chunks=False),
-        dict(mode="pipelined"),
-        dict(mode="pipelined", grid_blocks=4),
-        dict(mode="pipelined", grid_blocks=4, hold_chunks=False),
         dict(mode="launches"),
         dict(mode="grid", grid_blocks=4, product="scatter"),
         dict(mode="launches", product="scatter"),
     ],
-    ids=[
-        "grid",
-        "grid-4-blocks",
-        "grid-4-blocks-unheld",
-        "pipelined",
-        "pipelined-4-blocks",
-        "pipelined-4-blocks-unheld",
-        "per-iteration-launches",
-        "grid-scatter",
-        "launches-scatter",
-    ],
+    ids=["grid", "grid-4-blocks", "grid-4-blocks-unheld", "per-iteration-launches", "grid-scatter", "launches-scatter"],
 )
 def path(request):
     """Both CG paths: the whole solve in one persistent launch (on CUDA also forced onto 4 blocks, so that

@@ -14,8 +14,6 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels import cg_pipelined as KP
-from warpfem.kernels.grid import BLOCK_ROWS
 from warpfem.kernels.product import OWN_CHUNK_ENTRIES
 
 BLOCK = 256
@@ -27,15 +25,8 @@ CHUNK = {"cuda": 4, "cpu": 64}
 PAIR_THREADS = 2048
 """Threads of the product that apply the coupling pairs (each strides over the live ones)."""
 
-MODES = ("grid", "pipelined", "launches")
-"""How a solve runs: one persistent launch meeting at two grid barriers per iteration (Chronopoulos-Gear PCG),
-one persistent launch meeting at one (pipelined PCG, :mod:`warpfem.kernels.cg_pipelined`: each block owns a
-run of rows and their product; on CUDA up to :data:`BLOCK_ROWS` rows and chunks per block), or two launches
-per iteration."""
-
-REPLACE_EVERY = 25
-"""Iterations of pipelined PCG between recomputations of r = b - A x, u and w = A u (its recurrences drift
-in float32; see :mod:`warpfem.kernels.cg_pipelined`)."""
+MODES = ("grid", "launches")
+"""How a solve runs: one persistent launch meeting at grid barriers, or two launches per iteration."""
 
 PRODUCTS = ("gather", "scatter")
 """How the matrix product runs: each row gathers its blocks and their mirrors (no atomic per block), or
@@ -151,10 +142,8 @@ class CGSolver:
         if product not in (None, *PRODUCTS):
             raise ValueError(f"product must be one of {PRODUCTS} or None, got {product!r}")
         # the CPU runs the product on one thread, where atomic adds cost no more than stores: half the reads win
-        gather_default = (self.device.is_cuda and n <= GATHER_MAX_ROWS) or self.mode == "pipelined"
+        gather_default = self.device.is_cuda and n <= GATHER_MAX_ROWS
         self.product = product or ("gather" if gather_default else "scatter")
-        if self.mode == "pipelined" and self.product != "gather":
-            raise ValueError("the pipelined mode needs the gathered product")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = CHUNK["cuda" if self.device.is_cuda else "cpu"]
@@ -182,15 +171,6 @@ class CGSolver:
         self.chunk_row = wp.array(rows, dtype=wp.int32, device=self.device)
         self.chunk_start = wp.array(first.astype(np.int32), dtype=wp.int32, device=self.device)
         self.chunk_end = wp.array(last.astype(np.int32), dtype=wp.int32, device=self.device)
-        if self.mode == "pipelined":
-            layout = self._owned_layout(sizes, grid_blocks)
-            if layout is None:
-                raise ValueError(
-                    f"the pipelined mode holds at most {BLOCK_ROWS} rows and chunks per block on "
-                    f"{self.device.sm_count} blocks; this system has {n} rows in {len(rows)} chunks"
-                )
-            self.block_row = wp.array(layout[0], dtype=wp.int32, device=self.device)
-            self.block_chunk = wp.array(layout[1], dtype=wp.int32, device=self.device)
         if coupling is None:
             zero = dict(shape=0, device=self.device)
             coupling = Coupling(
@@ -229,15 +209,9 @@ class CGSolver:
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
         self.barrier = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.totals = wp.zeros(7 + 2 * self.capacity, dtype=float, device=self.device)
+        self.totals = wp.zeros(5 + 2 * self.capacity, dtype=float, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
-        if self.mode == "pipelined":
-            self.grid_blocks = self.block_row.shape[0] - 1
-            self.acc = wp.zeros(n if not self.device.is_cuda else 0, dtype=wp.vec3, device=self.device)
-            self.m = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
-            self.q = wp.zeros(n, dtype=wp.vec3, device=self.device)
-            self.z = wp.zeros(n, dtype=wp.vec3, device=self.device)
-        elif self.device.is_cuda:
+        if self.device.is_cuda:
             # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
             pair_block = 1 if coupling.matrix.shape[0] > 0 else 0
             wanted = grid_blocks if grid_blocks is not None else -(-max(n, len(rows), 1) // BLOCK) + pair_block
@@ -254,36 +228,9 @@ class CGSolver:
             and self.product == "gather"
             and self.chunk <= OWN_CHUNK_ENTRIES
             and self.grid_threads >= len(rows)
-        ) or bool(hold_chunks and self.mode == "pipelined" and self.device.is_cuda)
+        )
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
-
-    def _owned_layout(self, chunks_per_row: np.ndarray, blocks: int | None) -> tuple[np.ndarray, np.ndarray] | None:
-        """Row and chunk offsets of the pipelined mode's blocks (contiguous runs of rows with their chunks).
-
-        On CUDA each block owns at most :data:`BLOCK_ROWS` rows and chunks (a thread each), packed greedily
-        into as few blocks as hold them, or spread evenly over ``blocks``; None if they need more blocks than
-        SMs. On the CPU one block (the launch's one thread) owns everything.
-        """
-        n = len(chunks_per_row)
-        chunk_at = np.concatenate([[0], np.cumsum(chunks_per_row)]).astype(np.int64)
-        if not self.device.is_cuda:
-            return np.array([0, n], np.int32), np.array([0, chunk_at[-1]], np.int32)
-        if blocks is None:
-            starts = [0]
-            while starts[-1] < n:
-                first = starts[-1]
-                end = min(first + BLOCK_ROWS, int(np.searchsorted(chunk_at, chunk_at[first] + BLOCK_ROWS, "right")) - 1)
-                starts.append(max(end, first + 1))
-        else:
-            starts = np.unique(np.searchsorted(chunk_at, np.linspace(0, chunk_at[-1], blocks + 1)[:-1])).tolist()
-            starts = [s for s in starts if s < n] + [n]
-        row_at = np.array(starts, np.int64)
-        if np.any(np.diff(row_at) > BLOCK_ROWS) or np.any(np.diff(chunk_at[row_at]) > BLOCK_ROWS):
-            return None
-        if len(row_at) - 1 > self.device.sm_count:
-            return None
-        return row_at.astype(np.int32), chunk_at[row_at].astype(np.int32)
 
     def configure(self, max_iterations: int, tolerance: float) -> None:
         """Set the iteration cap and relative tolerance (0: always run ``max_iterations``).
@@ -339,49 +286,6 @@ class CGSolver:
         n = self.free.shape[0]
         dev = self.device
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
-        if self.mode == "pipelined":
-            threads = self.grid_threads
-            reset = wp.launch(
-                K.cg_solve_reset,
-                dim=max(n, self.totals.shape[0]),
-                inputs=[n],
-                outputs=[self.w, self.s, self.totals, self.barrier],
-                device=dev,
-                record_cmd=True,
-            )
-            solve = wp.launch(
-                KP.cg_solve_pipelined,
-                dim=threads,
-                block_dim=BLOCK if dev.is_cuda else 1,
-                inputs=[
-                    threads,
-                    self.grid_blocks,
-                    BLOCK if dev.is_cuda else 1,
-                    int(self.held),
-                    REPLACE_EVERY,
-                    self.block_row,
-                    self.block_chunk,
-                    *self._matrix(values)[:-1],
-                    *self._pairs,
-                    diag_inv,
-                    self.free,
-                    b,
-                    direction,
-                    mass,
-                    self.tolerance,
-                    self.max_iterations,
-                    self.barrier,
-                    self.totals,
-                    self.acc,
-                    self.m,
-                    self.q,
-                    self.z,
-                ],
-                outputs=[*vectors, self.counts, self.residual_max, self.stalled],
-                device=dev,
-                record_cmd=True,
-            )
-            return [reset, solve], [], []
         if self.mode == "grid":
             threads = self.grid_threads
             reset = wp.launch(

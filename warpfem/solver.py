@@ -58,10 +58,9 @@ class Solver:
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
             touch (one body without self-collision) gets no collision stage at all.
-        cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve, two grid
-            barriers per iteration), "pipelined" (one persistent launch, one barrier per iteration) or
-            "launches" (two launches per iteration), the first two optionally with ":B" for B blocks; None:
-            the default (:data:`warpfem.cg.DEFAULT_MODE`).
+        cg_path: How CG runs (:data:`warpfem.cg.MODES`): "grid" (one persistent launch per solve) or
+            "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
+            (:data:`warpfem.cg.DEFAULT_MODE`).
     """
 
     def __init__(
@@ -90,11 +89,8 @@ class Solver:
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         coupling = self.collider.coupling if self.collider is not None else None
         mode, _, blocks = (cg_path or "").partition(":")
-        if blocks and (mode not in ("grid", "pipelined") or not blocks.isdigit()):
-            raise ValueError(
-                f"cg_path must be 'grid', 'pipelined' (each optionally ':B' for B blocks), 'launches' or None, "
-                f"got {cg_path!r}"
-            )
+        if blocks and (mode != "grid" or not blocks.isdigit()):
+            raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
         self.cg = CGSolver(
             model.row_start,
             model.cols,
