@@ -24,13 +24,13 @@ grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at
 iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
 on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
 Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones), each
-thread keeps its chunk's columns and blocks in registers for the whole solve, so an iteration's product
-loads only the vector (``held``). On the CPU the same kernel runs as a single thread.
+thread keeps its chunk's columns and blocks, and its first contact pair, in registers for the whole solve,
+so an iteration's product loads only the vector (``held``). On the CPU the same kernel runs as a single thread.
 """
 
 import warp as wp
 from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
-from warpfem.kernels.product import chunk_product, live_pairs, own_chunk, pair_product, partial_product
+from warpfem.kernels.product import chunk_product, live_pairs, own_chunk, own_pair, pair_product, partial_product
 
 
 @wp.func
@@ -482,16 +482,30 @@ def cg_solve(
     node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
     reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
     barriers vanish. Counts the solve like ``cg_finish``. With ``held`` set (every chunk has a thread of its
-    own), each thread loads its chunk once (``own_chunk``) and every product of the solve reuses it.
+    own), each thread loads its chunk and its first coupling pair once (``own_chunk``, ``own_pair``) and
+    every product of the solve reuses them.
     """
     lane = wp.tid()
     n = free.shape[0]
     own = own_chunk(held, lane, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
+    pair = own_pair(
+        held,
+        lane,
+        threads,
+        chunk_row.shape[0],
+        pair_count,
+        pair_verts_a,
+        pair_weights_a,
+        pair_verts_b,
+        pair_weights_b,
+        pair_matrix,
+    )
     partial_product(
         lane,
         threads,
         held,
         own,
+        pair,
         chunk_row,
         chunk_start,
         chunk_end,
@@ -513,6 +527,7 @@ def cg_solve(
         threads,
         held,
         own,
+        pair,
         chunk_row,
         chunk_start,
         chunk_end,
@@ -554,6 +569,7 @@ def cg_solve(
             threads,
             held,
             own,
+            pair,
             chunk_row,
             chunk_start,
             chunk_end,

@@ -214,10 +214,72 @@ def pair_product(
 
 
 @wp.func
+def first_pair(lane: int, threads: int, n_chunks: int) -> int:
+    """The first coupling pair of a thread's share.
+
+    Pairs start at the lane after the last chunk's (wrapping around), so they go to idle threads first rather
+    than lengthening the chains of the threads that hold chunks.
+    """
+    return ((lane - n_chunks) % threads + threads) % threads
+
+
+@wp.struct
+class OwnPair:
+    """A thread's first coupling pair, in registers for a whole solve (the pairs do not change during it).
+
+    Attributes:
+        verts_a: Point a's vertices. weights_a: Their weights.
+        verts_b: Point b's vertices. weights_b: Their weights.
+        C: The pair's 3x3 matrix.
+        count: 1 if the thread has a pair, else 0.
+        live: The live pairs of the solve (read once).
+    """
+
+    verts_a: wp.vec4i
+    weights_a: wp.vec4
+    verts_b: wp.vec4i
+    weights_b: wp.vec4
+    C: wp.mat33
+    count: int
+    live: int
+
+
+@wp.func
+def own_pair(
+    held: int,
+    lane: int,
+    threads: int,
+    n_chunks: int,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_verts_a: wp.array(dtype=wp.vec4i),
+    pair_weights_a: wp.array(dtype=wp.vec4),
+    pair_verts_b: wp.array(dtype=wp.vec4i),
+    pair_weights_b: wp.array(dtype=wp.vec4),
+    pair_matrix: wp.array(dtype=wp.mat33),
+) -> OwnPair:
+    """The thread's first pair (:func:`first_pair`) and the live count, loaded once per solve where ``held``."""
+    h = OwnPair()
+    if held == 0:
+        return h
+    h.live = live_pairs(pair_count, pair_matrix)
+    c = first_pair(lane, threads, n_chunks)
+    if c < h.live:
+        h.verts_a = pair_verts_a[c]
+        h.weights_a = pair_weights_a[c]
+        h.verts_b = pair_verts_b[c]
+        h.weights_b = pair_weights_b[c]
+        h.C = pair_matrix[c]
+        h.count = 1
+    return h
+
+
+@wp.func
 def pair_share(
     lane: int,
     threads: int,
     n_chunks: int,
+    held: int,
+    own: OwnPair,
     pair_count: wp.array(dtype=wp.int32),
     pair_verts_a: wp.array(dtype=wp.vec4i),
     pair_weights_a: wp.array(dtype=wp.vec4),
@@ -229,12 +291,20 @@ def pair_share(
 ) -> float:
     """The calling thread's share of the pairs' w += A u and u.w (pairs strided over ``threads`` threads).
 
-    The pairs start at the lane after the last chunk's (wrapping around), so they go to idle threads first
-    rather than lengthening the chains of the threads that hold chunks.
+    With ``held`` set the first pair and the live count come from ``own`` (:func:`own_pair`), so that pair
+    costs one round trip to memory (u at its vertices) instead of three (the count, the pair, then u); the
+    pairs past one per thread are read as without.
     """
     dot = float(0.0)
-    first_pair = ((lane - n_chunks) % threads + threads) % threads
-    for c in range(first_pair, live_pairs(pair_count, pair_matrix), threads):
+    first = first_pair(lane, threads, n_chunks)
+    live = own.live
+    if held != 0:
+        if own.count != 0:
+            dot += embedded_product(own.verts_a, own.weights_a, own.verts_b, own.weights_b, own.C, u, w_out)
+        first += threads
+    else:
+        live = live_pairs(pair_count, pair_matrix)
+    for c in range(first, live, threads):
         dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
     return dot
 
@@ -321,7 +391,8 @@ def partial_product(
     lane: int,
     threads: int,
     held: int,
-    own: OwnChunk,
+    held_chunk: OwnChunk,
+    held_pair: OwnPair,
     chunk_row: wp.array(dtype=wp.int32),
     chunk_start: wp.array(dtype=wp.int32),
     chunk_end: wp.array(dtype=wp.int32),
@@ -340,13 +411,14 @@ def partial_product(
 ) -> float:
     """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
 
-    With ``held`` set, every chunk has a thread of its own and ``own`` is this thread's (:func:`own_chunk`);
+    With ``held`` set, every chunk has a thread of its own and ``held_chunk`` is this thread's (:func:`own_chunk`),
+    ``held_pair`` its first pair (:func:`own_pair`);
     else the thread walks chunks ``lane``, ``lane + threads``, ... reading their entries and blocks.
     """
     n_chunks = chunk_row.shape[0]
     dot = float(0.0)
     if held != 0:
-        dot = own_chunk_product(own, u, w_out)
+        dot = own_chunk_product(held_chunk, u, w_out)
     else:
         for i in range(lane, n_chunks, threads):
             dot += chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
@@ -354,6 +426,8 @@ def partial_product(
         lane,
         threads,
         n_chunks,
+        held,
+        held_pair,
         pair_count,
         pair_verts_a,
         pair_weights_a,

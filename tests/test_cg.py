@@ -143,9 +143,20 @@ def test_pinned_rows_keep_their_start_value(device, path):
 def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
     """Contacts as a matrix-free term: the solve equals the dense solve of A + sum J^T C J."""
     monkeypatch.setattr(cg_module, "PAIR_THREADS", 2)  # fewer pair threads than pairs: each strides
+    _check_coupled_solve(device, 5, 8, dict(unroll=unroll, **path))
+
+
+def test_pairs_beyond_one_per_thread(device):
+    """More pairs than the persistent launch has threads (one block of 256 on CUDA): the held first pair of
+    each thread and the ones it reads past it both enter the product."""
+    cg = _check_coupled_solve(device, 300, 320, dict(mode="grid", grid_blocks=1))
+    assert cg.held == wp.get_device(device).is_cuda
+
+
+def _check_coupled_solve(device, pairs: int, capacity: int, options: dict) -> CGSolver:
+    """Solve a random system with ``pairs`` coupling pairs; check it against NumPy's dense solve."""
     a, A, _, rng = _system(device, seed=3)
     n = A.shape[0] // 3
-    pairs, capacity = 5, 8
     verts = np.stack([rng.permutation(n)[:8] for _ in range(pairs)]).astype(np.int32)  # distinct per pair
     weights = rng.dirichlet(np.ones(4), size=(pairs, 2))
     C = []
@@ -180,7 +191,7 @@ def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
         pad(np.array(C), wp.mat33),
     )
     b = rng.normal(size=(n, 3))
-    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, unroll=unroll, **path)
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, coupling=coupling, **options)
     cg.configure(500, 1e-6)
     x0 = rng.normal(size=(n, 3))  # a nonzero start: the coupling enters the initial residual too
     x = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=device)
@@ -190,6 +201,7 @@ def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
     reference = np.linalg.solve(A_full, b.ravel())
     assert cg.read_stats().residual_max <= 1e-6
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
+    return cg
 
 
 def test_product_is_chosen_by_size_and_checked(device, monkeypatch):
