@@ -30,7 +30,15 @@ so an iteration's product loads only the vector (``held``). On the CPU the same 
 
 import warp as wp
 from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
-from warpfem.kernels.product import chunk_product, live_pairs, own_chunk, own_pair, pair_product, partial_product
+from warpfem.kernels.product import (
+    Pairs,
+    chunk_product,
+    live_pairs,
+    own_chunk,
+    own_pair,
+    pair_product,
+    partial_product,
+)
 
 
 @wp.func
@@ -64,12 +72,7 @@ def cg_apply(
     values: wp.array(dtype=wp.mat33),
     gather: int,
     # inputs: coupling pairs (threads past the chunks)
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
     # inputs: vector and iteration
     u: wp.array(dtype=wp.vec3),
     gate: int,
@@ -101,10 +104,8 @@ def cg_apply(
         if i < n_chunks:
             dot = chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
         else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
-            for c in range(i - n_chunks, live_pairs(pair_count, pair_matrix), n_threads - n_chunks):
-                dot += pair_product(
-                    c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out
-                )
+            for c in range(i - n_chunks, live_pairs(pairs), n_threads - n_chunks):
+                dot += pair_product(c, pairs, u, w_out)
     block_sum(dot, delta_out, k)
 
 
@@ -447,12 +448,7 @@ def cg_solve(
     entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     gather: int,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
     # inputs: system and limits
     diag_inv: wp.array(dtype=wp.mat33),
     free: wp.array(dtype=wp.int32),
@@ -493,12 +489,7 @@ def cg_solve(
         lane,
         threads,
         chunk_row.shape[0],
-        pair_count,
-        pair_verts_a,
-        pair_weights_a,
-        pair_verts_b,
-        pair_weights_b,
-        pair_matrix,
+        pairs,
     )
     partial_product(
         lane,
@@ -513,12 +504,7 @@ def cg_solve(
         entry_slot,
         values,
         gather,
-        pair_count,
-        pair_verts_a,
-        pair_weights_a,
-        pair_verts_b,
-        pair_weights_b,
-        pair_matrix,
+        pairs,
         x_out,
         w_out,
     )
@@ -535,12 +521,7 @@ def cg_solve(
         entry_slot,
         values,
         gather,
-        pair_count,
-        pair_verts_a,
-        pair_weights_a,
-        pair_verts_b,
-        pair_weights_b,
-        pair_matrix,
+        pairs,
         direction,
         s_out,
     )
@@ -577,12 +558,7 @@ def cg_solve(
             entry_slot,
             values,
             gather,
-            pair_count,
-            pair_verts_a,
-            pair_weights_a,
-            pair_verts_b,
-            pair_weights_b,
-            pair_matrix,
+            pairs,
             u_out,
             w_out,
         )

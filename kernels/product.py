@@ -190,26 +190,38 @@ def chunk_product(
     return chunk_scatter(i, chunk_row, chunk_start, chunk_end, entry_col, values, u, w_out)
 
 
+@wp.struct
+class Pairs:
+    """The coupling pairs of a product: ``warpfem.cg.Coupling`` as one kernel argument.
+
+    Pair c ties the point ``sum_k weights_a[c][k] x[verts_a[c][k]]`` to the point of ``verts_b`` and
+    ``weights_b`` through ``matrix[c]``; the first ``count[0]`` (capped at the capacity) are live.
+    """
+
+    count: wp.array(dtype=wp.int32)
+    verts_a: wp.array(dtype=wp.vec4i)
+    weights_a: wp.array(dtype=wp.vec4)
+    verts_b: wp.array(dtype=wp.vec4i)
+    weights_b: wp.array(dtype=wp.vec4)
+    matrix: wp.array(dtype=wp.mat33)
+
+
 @wp.func
-def live_pairs(pair_count: wp.array(dtype=wp.int32), pair_matrix: wp.array(dtype=wp.mat33)) -> int:
+def live_pairs(pairs: Pairs) -> int:
     """The coupling pairs in use: the count, capped at the buffer's capacity."""
-    return wp.min(pair_count[0], pair_matrix.shape[0])
+    return wp.min(pairs.count[0], pairs.matrix.shape[0])
 
 
 @wp.func
 def pair_product(
     c: int,
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
     """w += coupling pair c's share of A u (c below ``live_pairs``); returns its u.w."""
     return embedded_product(
-        pair_verts_a[c], pair_weights_a[c], pair_verts_b[c], pair_weights_b[c], pair_matrix[c], u, w_out
+        pairs.verts_a[c], pairs.weights_a[c], pairs.verts_b[c], pairs.weights_b[c], pairs.matrix[c], u, w_out
     )
 
 
@@ -250,25 +262,20 @@ def own_pair(
     lane: int,
     threads: int,
     n_chunks: int,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
 ) -> OwnPair:
     """The thread's first pair (:func:`first_pair`) and the live count, loaded once per solve where ``held``."""
     h = OwnPair()
     if held == 0:
         return h
-    h.live = live_pairs(pair_count, pair_matrix)
+    h.live = live_pairs(pairs)
     c = first_pair(lane, threads, n_chunks)
     if c < h.live:
-        h.verts_a = pair_verts_a[c]
-        h.weights_a = pair_weights_a[c]
-        h.verts_b = pair_verts_b[c]
-        h.weights_b = pair_weights_b[c]
-        h.C = pair_matrix[c]
+        h.verts_a = pairs.verts_a[c]
+        h.weights_a = pairs.weights_a[c]
+        h.verts_b = pairs.verts_b[c]
+        h.weights_b = pairs.weights_b[c]
+        h.C = pairs.matrix[c]
         h.count = 1
     return h
 
@@ -280,12 +287,7 @@ def pair_share(
     n_chunks: int,
     held: int,
     own: OwnPair,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -303,9 +305,9 @@ def pair_share(
             dot += embedded_product(own.verts_a, own.weights_a, own.verts_b, own.weights_b, own.C, u, w_out)
         first += threads
     else:
-        live = live_pairs(pair_count, pair_matrix)
+        live = live_pairs(pairs)
     for c in range(first, live, threads):
-        dot += pair_product(c, pair_verts_a, pair_weights_a, pair_verts_b, pair_weights_b, pair_matrix, u, w_out)
+        dot += pair_product(c, pairs, u, w_out)
     return dot
 
 
@@ -400,12 +402,7 @@ def partial_product(
     entry_slot: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33),
     gather: int,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_verts_a: wp.array(dtype=wp.vec4i),
-    pair_weights_a: wp.array(dtype=wp.vec4),
-    pair_verts_b: wp.array(dtype=wp.vec4i),
-    pair_weights_b: wp.array(dtype=wp.vec4),
-    pair_matrix: wp.array(dtype=wp.mat33),
+    pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -428,12 +425,7 @@ def partial_product(
         n_chunks,
         held,
         held_pair,
-        pair_count,
-        pair_verts_a,
-        pair_weights_a,
-        pair_verts_b,
-        pair_weights_b,
-        pair_matrix,
+        pairs,
         u,
         w_out,
     )

@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels.product import OWN_CHUNK_ENTRIES
+from warpfem.kernels.product import OWN_CHUNK_ENTRIES, Pairs
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
@@ -181,8 +181,11 @@ class CGSolver:
                 wp.zeros(dtype=wp.vec4, **zero),
                 wp.zeros(dtype=wp.mat33, **zero),
             )
-        self._pairs = [coupling.count, coupling.verts_a, coupling.weights_a, coupling.verts_b, coupling.weights_b]
-        self._pairs.append(coupling.matrix)
+        self.pairs = Pairs()
+        self.pairs.count = coupling.count
+        self.pairs.verts_a, self.pairs.weights_a = coupling.verts_a, coupling.weights_a
+        self.pairs.verts_b, self.pairs.weights_b = coupling.verts_b, coupling.weights_b
+        self.pairs.matrix = coupling.matrix
         # one thread per chunk, then up to PAIR_THREADS threads striding over the live pairs
         threads = len(rows) + min(coupling.matrix.shape[0], PAIR_THREADS)
         self._apply_threads = threads
@@ -260,7 +263,7 @@ class CGSolver:
             inputs=[
                 self._apply_threads,
                 *self._matrix(values),
-                *self._pairs,
+                self.pairs,
                 u,
                 gate,
                 self.iteration,
@@ -305,7 +308,7 @@ class CGSolver:
                     self.grid_blocks,
                     int(self.held),
                     *self._matrix(values),
-                    *self._pairs,
+                    self.pairs,
                     diag_inv,
                     self.free,
                     b,
