@@ -484,13 +484,7 @@ def cg_solve(
     lane = wp.tid()
     n = free.shape[0]
     own = own_chunk(held, lane, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
-    pair = own_pair(
-        held,
-        lane,
-        threads,
-        chunk_row.shape[0],
-        pairs,
-    )
+    pair = own_pair(held, lane, threads, chunk_row.shape[0], pairs)
     partial_product(
         lane,
         threads,
