@@ -31,6 +31,7 @@ so an iteration's product loads only the vector (``held``). On the CPU the same 
 import warp as wp
 from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
 from warpfem.kernels.product import (
+    BlockMatrix,
     Pairs,
     chunk_product,
     live_pairs,
@@ -64,13 +65,7 @@ def is_active(
 def cg_apply(
     # inputs: matrix
     n_threads: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    gather: int,
+    matrix: BlockMatrix,
     # inputs: coupling pairs (threads past the chunks)
     pairs: Pairs,
     # inputs: vector and iteration
@@ -88,10 +83,9 @@ def cg_apply(
 ):
     """w += A u (w zeroed before); u.w into delta[k] with k = iteration + step.
 
-    ``values`` holds the upper triangle; the chunks gather or scatter (see ``chunk_product``). u is zero on
-    pinned rows, so they add nothing; what lands in w on them is ignored by ``cg_update``. Threads past the
-    chunks apply the coupling pairs. With ``gate`` set, skipped (adding nothing) when iteration k will not
-    run.
+    The chunks gather or scatter (see ``chunk_product``). u is zero on pinned rows, so they add nothing; what
+    lands in w on them is ignored by ``cg_update``. Threads past the chunks apply the coupling pairs. With
+    ``gate`` set, skipped (adding nothing) when iteration k will not run.
     """
     i = wp.tid()
     k = iteration[0] + step
@@ -100,9 +94,9 @@ def cg_apply(
     if gate != 0:
         run = is_active(k, gamma, bz, tolerance[0], max_iterations[0])
     if i < n_threads and run:
-        n_chunks = chunk_row.shape[0]
+        n_chunks = matrix.chunk_row.shape[0]
         if i < n_chunks:
-            dot = chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
+            dot = chunk_product(i, matrix, u, w_out)
         else:  # the pair threads stride over the live pairs (usually far fewer than the capacity)
             for c in range(i - n_chunks, live_pairs(pairs), n_threads - n_chunks):
                 dot += pair_product(c, pairs, u, w_out)
@@ -441,13 +435,7 @@ def cg_solve(
     blocks: int,
     held: int,
     # inputs: matrix
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    gather: int,
+    matrix: BlockMatrix,
     pairs: Pairs,
     # inputs: system and limits
     diag_inv: wp.array(dtype=wp.mat33),
@@ -483,21 +471,15 @@ def cg_solve(
     """
     lane = wp.tid()
     n = free.shape[0]
-    own = own_chunk(held, lane, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values)
-    pair = own_pair(held, lane, threads, chunk_row.shape[0], pairs)
+    own = own_chunk(held, lane, matrix)
+    pair = own_pair(held, lane, threads, matrix.chunk_row.shape[0], pairs)
     partial_product(
         lane,
         threads,
         held,
         own,
         pair,
-        chunk_row,
-        chunk_start,
-        chunk_end,
-        entry_col,
-        entry_slot,
-        values,
-        gather,
+        matrix,
         pairs,
         x_out,
         w_out,
@@ -508,13 +490,7 @@ def cg_solve(
         held,
         own,
         pair,
-        chunk_row,
-        chunk_start,
-        chunk_end,
-        entry_col,
-        entry_slot,
-        values,
-        gather,
+        matrix,
         pairs,
         direction,
         s_out,
@@ -545,13 +521,7 @@ def cg_solve(
             held,
             own,
             pair,
-            chunk_row,
-            chunk_start,
-            chunk_end,
-            entry_col,
-            entry_slot,
-            values,
-            gather,
+            matrix,
             pairs,
             u_out,
             w_out,

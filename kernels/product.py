@@ -64,15 +64,29 @@ def stored(slot: int) -> int:
     return wp.where(slot >= 0, slot, -slot - 1)
 
 
+@wp.struct
+class BlockMatrix:
+    """A product's symmetric 3x3-block matrix, cut into chunks: one kernel argument.
+
+    Chunk i is the entries ``chunk_start[i]`` to ``chunk_end[i]`` of row ``chunk_row[i]``. Gathered
+    (``gather`` != 0), an entry is a column and a slot (see :func:`chunk_gather`); scattered, ``entry_col``
+    holds the stored blocks' columns and ``entry_slot`` is empty. ``values`` holds the stored blocks (the
+    upper triangle).
+    """
+
+    chunk_row: wp.array(dtype=wp.int32)
+    chunk_start: wp.array(dtype=wp.int32)
+    chunk_end: wp.array(dtype=wp.int32)
+    entry_col: wp.array(dtype=wp.int32)
+    entry_slot: wp.array(dtype=wp.int32)
+    values: wp.array(dtype=wp.mat33)
+    gather: int
+
+
 @wp.func
 def chunk_gather(
     i: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
+    matrix: BlockMatrix,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -86,9 +100,9 @@ def chunk_gather(
     scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
     columns and slots, then blocks and u at the columns.
     """
-    row = chunk_row[i]
-    first = chunk_start[i]
-    end = chunk_end[i]
+    row = matrix.chunk_row[i]
+    first = matrix.chunk_start[i]
+    end = matrix.chunk_end[i]
     u_row = u[row]
     acc = wp.vec3()
     for g in range(first, end, GROUP):
@@ -96,14 +110,14 @@ def chunk_gather(
         k1 = wp.min(g + 1, end - 1)
         k2 = wp.min(g + 2, end - 1)
         k3 = wp.min(g + 3, end - 1)
-        c0, s0 = entry_col[k0], entry_slot[k0]
-        c1, s1 = entry_col[k1], entry_slot[k1]
-        c2, s2 = entry_col[k2], entry_slot[k2]
-        c3, s3 = entry_col[k3], entry_slot[k3]
-        A0, u0 = values[stored(s0)], u[c0]
-        A1, u1 = values[stored(s1)], u[c1]
-        A2, u2 = values[stored(s2)], u[c2]
-        A3, u3 = values[stored(s3)], u[c3]
+        c0, s0 = matrix.entry_col[k0], matrix.entry_slot[k0]
+        c1, s1 = matrix.entry_col[k1], matrix.entry_slot[k1]
+        c2, s2 = matrix.entry_col[k2], matrix.entry_slot[k2]
+        c3, s3 = matrix.entry_col[k3], matrix.entry_slot[k3]
+        A0, u0 = matrix.values[stored(s0)], u[c0]
+        A1, u1 = matrix.values[stored(s1)], u[c1]
+        A2, u2 = matrix.values[stored(s2)], u[c2]
+        A3, u3 = matrix.values[stored(s3)], u[c3]
         acc += entry_term(True, s0, A0, u0)
         acc += entry_term(g + 1 < end, s1, A1, u1)
         acc += entry_term(g + 2 < end, s2, A2, u2)
@@ -125,11 +139,7 @@ def add_block(
 @wp.func
 def chunk_scatter(
     i: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
+    matrix: BlockMatrix,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -141,9 +151,9 @@ def chunk_scatter(
     holds consecutive stored blocks of its row; loads go in groups of :data:`GROUP` ahead of the atomics (a
     load after an atomic add to a buffer that may alias ``u`` waits for it in program order).
     """
-    row = chunk_row[i]
-    first = chunk_start[i]
-    end = chunk_end[i]
+    row = matrix.chunk_row[i]
+    first = matrix.chunk_start[i]
+    end = matrix.chunk_end[i]
     u_row = u[row]
     acc = wp.vec3()
     for g in range(first, end, GROUP):
@@ -151,8 +161,8 @@ def chunk_scatter(
         k1 = wp.min(g + 1, end - 1)
         k2 = wp.min(g + 2, end - 1)
         k3 = wp.min(g + 3, end - 1)
-        c0, c1, c2, c3 = cols[k0], cols[k1], cols[k2], cols[k3]
-        A0, A1, A2, A3 = values[k0], values[k1], values[k2], values[k3]
+        c0, c1, c2, c3 = matrix.entry_col[k0], matrix.entry_col[k1], matrix.entry_col[k2], matrix.entry_col[k3]
+        A0, A1, A2, A3 = matrix.values[k0], matrix.values[k1], matrix.values[k2], matrix.values[k3]
         u0, u1, u2, u3 = u[c0], u[c1], u[c2], u[c3]
         acc = add_block(row, c0, A0, u0, u_row, acc, w_out)
         if g + 1 < end:
@@ -163,20 +173,14 @@ def chunk_scatter(
             acc = add_block(row, c3, A3, u3, u_row, acc, w_out)
     wp.atomic_add(w_out, row, acc)
     # u.(A u) over the stored triangle: 2 u_row.(A_rc u_c) off the diagonal, u_row.(A_rr u_row) on it
-    diagonal = wp.where(cols[first] == row, wp.dot(u_row, values[first] * u_row), 0.0)
+    diagonal = wp.where(matrix.entry_col[first] == row, wp.dot(u_row, matrix.values[first] * u_row), 0.0)
     return 2.0 * wp.dot(u_row, acc) - diagonal
 
 
 @wp.func
 def chunk_product(
     i: int,
-    gather: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
+    matrix: BlockMatrix,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
@@ -185,9 +189,9 @@ def chunk_product(
     ``gather`` != 0: the chunk holds entries (see ``chunk_gather``); else ``entry_col`` holds the stored
     blocks' columns (see ``chunk_scatter``).
     """
-    if gather != 0:
-        return chunk_gather(i, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
-    return chunk_scatter(i, chunk_row, chunk_start, chunk_end, entry_col, values, u, w_out)
+    if matrix.gather != 0:
+        return chunk_gather(i, matrix, u, w_out)
+    return chunk_scatter(i, matrix, u, w_out)
 
 
 @wp.struct
@@ -341,12 +345,7 @@ class OwnChunk:
 def own_chunk(
     held: int,
     lane: int,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
+    matrix: BlockMatrix,
 ) -> OwnChunk:
     """Chunk ``lane`` of a gathered product (at most :data:`OWN_CHUNK_ENTRIES` entries per chunk), loaded once.
 
@@ -354,23 +353,23 @@ def own_chunk(
     lane when ``held`` is 0 (it loads nothing: the entries may not be a gather's).
     """
     c = OwnChunk()
-    n_chunks = chunk_row.shape[0]
+    n_chunks = matrix.chunk_row.shape[0]
     if held == 0 or n_chunks == 0:
         return c
     i = wp.min(lane, n_chunks - 1)
-    first = chunk_start[i]
-    end = chunk_end[i]
+    first = matrix.chunk_start[i]
+    end = matrix.chunk_end[i]
     k1 = wp.min(first + 1, end - 1)
     k2 = wp.min(first + 2, end - 1)
     k3 = wp.min(first + 3, end - 1)
-    c.row = chunk_row[i]
+    c.row = matrix.chunk_row[i]
     c.count = wp.where(lane < n_chunks, end - first, 0)
-    c.cols = wp.vec4i(entry_col[first], entry_col[k1], entry_col[k2], entry_col[k3])
-    c.slots = wp.vec4i(entry_slot[first], entry_slot[k1], entry_slot[k2], entry_slot[k3])
-    c.a0 = values[stored(c.slots[0])]
-    c.a1 = values[stored(c.slots[1])]
-    c.a2 = values[stored(c.slots[2])]
-    c.a3 = values[stored(c.slots[3])]
+    c.cols = wp.vec4i(matrix.entry_col[first], matrix.entry_col[k1], matrix.entry_col[k2], matrix.entry_col[k3])
+    c.slots = wp.vec4i(matrix.entry_slot[first], matrix.entry_slot[k1], matrix.entry_slot[k2], matrix.entry_slot[k3])
+    c.a0 = matrix.values[stored(c.slots[0])]
+    c.a1 = matrix.values[stored(c.slots[1])]
+    c.a2 = matrix.values[stored(c.slots[2])]
+    c.a3 = matrix.values[stored(c.slots[3])]
     return c
 
 
@@ -395,37 +394,22 @@ def partial_product(
     held: int,
     held_chunk: OwnChunk,
     held_pair: OwnPair,
-    chunk_row: wp.array(dtype=wp.int32),
-    chunk_start: wp.array(dtype=wp.int32),
-    chunk_end: wp.array(dtype=wp.int32),
-    entry_col: wp.array(dtype=wp.int32),
-    entry_slot: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33),
-    gather: int,
+    matrix: BlockMatrix,
     pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
     """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
 
-    With ``held`` set, every chunk has a thread of its own and ``held_chunk`` is this thread's (:func:`own_chunk`),
-    ``held_pair`` its first pair (:func:`own_pair`);
-    else the thread walks chunks ``lane``, ``lane + threads``, ... reading their entries and blocks.
+    With ``held`` set, every chunk has a thread of its own: ``held_chunk`` is this thread's (:func:`own_chunk`)
+    and ``held_pair`` its first pair (:func:`own_pair`). Else the thread walks chunks ``lane``,
+    ``lane + threads``, ... reading their entries and blocks.
     """
-    n_chunks = chunk_row.shape[0]
+    n_chunks = matrix.chunk_row.shape[0]
     dot = float(0.0)
     if held != 0:
         dot = own_chunk_product(held_chunk, u, w_out)
     else:
         for i in range(lane, n_chunks, threads):
-            dot += chunk_product(i, gather, chunk_row, chunk_start, chunk_end, entry_col, entry_slot, values, u, w_out)
-    return dot + pair_share(
-        lane,
-        threads,
-        n_chunks,
-        held,
-        held_pair,
-        pairs,
-        u,
-        w_out,
-    )
+            dot += chunk_product(i, matrix, u, w_out)
+    return dot + pair_share(lane, threads, n_chunks, held, held_pair, pairs, u, w_out)

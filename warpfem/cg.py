@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels.product import OWN_CHUNK_ENTRIES, Pairs
+from warpfem.kernels.product import OWN_CHUNK_ENTRIES, BlockMatrix, Pairs
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
@@ -247,10 +247,14 @@ class CGSolver:
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
 
-    def _matrix(self, values: wp.array) -> list:
-        """The matrix arguments of the product kernels, in their order: chunk table, entries, blocks, product."""
-        entries = [self.chunk_row, self.chunk_start, self.chunk_end, self.entry_col, self.entry_slot]
-        return [*entries, values, int(self.product == "gather")]
+    def _matrix(self, values: wp.array) -> BlockMatrix:
+        """The product kernels' matrix argument: the chunk table and entries with the blocks ``values``."""
+        matrix = BlockMatrix()
+        matrix.chunk_row, matrix.chunk_start, matrix.chunk_end = self.chunk_row, self.chunk_start, self.chunk_end
+        matrix.entry_col, matrix.entry_slot = self.entry_col, self.entry_slot
+        matrix.values = values
+        matrix.gather = int(self.product == "gather")
+        return matrix
 
     def _apply(
         self, values: wp.array, u: wp.array, gate: int, step: int, dot_out: wp.array, w_out: wp.array | None = None
@@ -262,7 +266,7 @@ class CGSolver:
             block_dim=BLOCK,
             inputs=[
                 self._apply_threads,
-                *self._matrix(values),
+                self._matrix(values),
                 self.pairs,
                 u,
                 gate,
@@ -307,7 +311,7 @@ class CGSolver:
                     threads,
                     self.grid_blocks,
                     int(self.held),
-                    *self._matrix(values),
+                    self._matrix(values),
                     self.pairs,
                     diag_inv,
                     self.free,
