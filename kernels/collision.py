@@ -159,12 +159,13 @@ def refit_trees(
     threads: int,
     # outputs
     inverse_out: wp.array(dtype=wp.mat33),
+    origin_out: wp.array(dtype=wp.vec3),
     node_lower_out: wp.array(dtype=wp.vec3),
     node_upper_out: wp.array(dtype=wp.vec3),
     body_lower_out: wp.array(dtype=wp.vec3),
     body_upper_out: wp.array(dtype=wp.vec3),
 ):
-    """Per body (one block of ``threads`` threads): its tets' inverse edge matrices and its tree's boxes.
+    """Per body (one block of ``threads`` threads): its tets' inverse edge matrices, first corners, tree boxes.
 
     The tree of body b is complete, in heap order (node k has children 2k+1 and 2k+2) from
     ``node_start[b]``, its L = ``leaf_start[b+1] - leaf_start[b]`` leaves last; the leaves are boxed from
@@ -177,6 +178,7 @@ def refit_trees(
         x0 = x[t[0]]
         A = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
         inverse_out[e] = wp.where(wp.abs(wp.determinant(A)) < 1.0e-20, wp.mat33(), wp.inverse(A))
+        origin_out[e] = x0
     ns = node_start[body]
     ls = leaf_start[body]
     first_leaf = leaf_start[body + 1] - ls - 1
@@ -200,16 +202,44 @@ def refit_trees(
 
 
 @wp.func
-def point_in_tet(
+def tet_weights(q: wp.vec3, inverse: wp.mat33, origin: wp.vec3) -> wp.vec4:
+    """Barycentric weights of ``q`` in a tet, from its inverse edge matrix and first corner."""
+    b = inverse * (q - origin)
+    return wp.vec4(1.0 - b[0] - b[1] - b[2], b[0], b[1], b[2])
+
+
+@wp.func
+def leaf_holds(
+    q: wp.vec3,
+    leaf: wp.vec4i,
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
+) -> int:
+    """Bit k set if the leaf's k-th tet holds ``q`` (a flat tet, with a zero inverse, holds nothing).
+
+    The four tets' loads do not depend on one another, so they are in flight together.
+    """
+    mask = int(0)
+    for k in range(4):
+        e = wp.max(leaf[k], 0)
+        inverse = tet_inverse[e]
+        w = tet_weights(q, inverse, tet_origin[e])
+        if leaf[k] >= 0 and wp.min(w) >= 0.0 and wp.determinant(inverse) != 0.0:
+            mask = mask | (1 << k)
+    return mask
+
+
+@wp.func
+def record_contact(
     p: int,
     q: wp.vec3,
     e: int,
+    w: wp.vec4,
     same: bool,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
-    tet_inverse: wp.array(dtype=wp.mat33),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     point_velocity: wp.array(dtype=wp.vec3),
@@ -227,17 +257,15 @@ def point_in_tet(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ) -> bool:
-    """Point p (at q) against tet e: if inside with a positive depth, records the contact and returns True."""
+    """Point p (at q, weights w in tet e, which holds it): if it has a positive depth, records the contact.
+
+    Returns whether it did. A point of the tet's own body (``same``) in the one-ring of its anchors is
+    refused.
+    """
     t = tets[e]
-    inverse = tet_inverse[e]
-    b = inverse * (q - x[t[0]])
-    b0 = 1.0 - b[0] - b[1] - b[2]
-    if b[0] < 0.0 or b[1] < 0.0 or b[2] < 0.0 or b0 < 0.0 or wp.determinant(inverse) == 0.0:
-        return False
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
             return False
-    w = wp.vec4(b0, b[0], b[1], b[2])
     d = float(0.0)
     g = wp.vec3()
     f0 = tet_face_start[e]
@@ -288,6 +316,35 @@ def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
     return q[0] >= lo[0] and q[1] >= lo[1] and q[2] >= lo[2] and q[0] <= hi[0] and q[1] <= hi[1] and q[2] <= hi[2]
 
 
+@wp.func
+def group_holds(
+    q: wp.vec3, node_lower: wp.array(dtype=wp.vec3), node_upper: wp.array(dtype=wp.vec3), base: int, size: int
+) -> int:
+    """Bit j set if box ``base + j`` holds ``q``, for the ``size`` (at most 8) consecutive boxes from ``base``.
+
+    The boxes' loads do not depend on one another, so they are in flight together.
+    """
+    mask = int(0)
+    for j in range(8):
+        k = base + wp.min(j, size - 1)
+        if j < size and overlaps(q, node_lower[k], node_upper[k]):
+            mask = mask | (1 << j)
+    return mask
+
+
+@wp.func
+def lowest_bit(mask: int) -> int:
+    """Index of the lowest set bit of a nonzero mask."""
+    j = int(0)
+    while (mask >> j) & 1 == 0:
+        j += 1
+    return j
+
+
+WALK_STRIDE = wp.constant(3)
+"""Tree levels a walk descends at a time: it tests 2^3 = 8 boxes at once (the grandchildren's children)."""
+
+
 @wp.kernel
 def detect_contacts(
     # inputs: geometry
@@ -302,6 +359,7 @@ def detect_contacts(
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     points: wp.array(dtype=wp.vec3),
@@ -330,16 +388,21 @@ def detect_contacts(
     collides with itself), and only their trees are walked (see ``refit_trees``), so a point never walks
     its own body's tets, which it lies among, unless the body collides with itself. ``lanes`` threads share
     a point, each walking every ``lanes``-th of its bodies (a point in a pile lies in the boxes of up to
-    five others: one thread walking them all was the launch's long pole). The walk is stackless (heap
-    order: descend to the left child of a box that holds the point, else go to the next sibling up the
-    tree). In each body the first tet that holds the point and gives it a positive depth answers it: a
-    contact with the point, the tet, the point's barycentric weights in the tet, the unit direction and the
-    depth (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those
-    past ``capacity`` are dropped (the host sees the overflow as count > capacity).
+    five others: one thread walking them all was the launch's long pole).
+
+    The walk is depth first, left to right, ``WALK_STRIDE`` levels at a time: the 8 boxes three levels
+    below a box that holds the point are tested together (one round trip to memory instead of one per
+    node on the way), the bits of those that hold it kept on a stack packed 8 to a level in an int64; the
+    first step down from the root takes the 1 to 3 levels that leave the rest a multiple of three. At a
+    leaf, its four tets are tested together, then those that hold the point in leaf order. In each body
+    the first tet (left to right) that holds the point and gives it a positive depth answers it: a contact
+    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
+    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
+    ``capacity`` are dropped (the host sees the overflow as count > capacity).
     """
-    t = wp.tid()
-    p = t // lanes
-    lane = t - p * lanes
+    tid = wp.tid()
+    p = tid // lanes
+    lane = tid - p * lanes
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
@@ -351,59 +414,70 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        found = bool(False)
         ns = node_start[body]
         ls = leaf_start[body]
-        first_leaf = leaf_start[body + 1] - ls - 1
-        node = int(0)
-        walking = bool(True)
-        while walking:
-            descend = bool(False)
-            if overlaps(q, node_lower[ns + node], node_upper[ns + node]):
-                if node < first_leaf:
-                    descend = True
-                else:
-                    leaf = leaf_tets[ls + node - first_leaf]
-                    for k in range(4):
-                        if not found and leaf[k] >= 0:
-                            found = point_in_tet(
-                                p,
-                                q,
-                                leaf[k],
-                                same,
-                                x,
-                                v,
-                                dt,
-                                tets,
-                                tet_inverse,
-                                tet_face_start,
-                                tet_faces,
-                                point_velocity,
-                                point_anchor,
-                                row_start,
-                                cols,
-                                depth,
-                                grad,
-                                capacity,
-                                count_out,
-                                contact_point_out,
-                                contact_tet_out,
-                                contact_bary_out,
-                                contact_normal_out,
-                                contact_depth_out,
-                                stats_out,
-                            )
-            if found:
-                walking = False
-            elif descend:
-                node = 2 * node + 1
+        leaves = leaf_start[body + 1] - ls
+        leaf_level = int(0)
+        while (1 << leaf_level) < leaves:
+            leaf_level += 1
+        top = wp.where(leaf_level == 0, 0, leaf_level - WALK_STRIDE * ((leaf_level - 1) // WALK_STRIDE))
+        level = top  # tree level of the group of boxes being walked
+        base = (1 << top) - 1  # its first node
+        mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
+        stack = wp.int64(0)
+        found = bool(False)
+        while not found and (mask != 0 or level > top):
+            if mask == 0:
+                # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
+                # top level, which has at most 8 nodes), and what was left of it
+                parent = ((base + 1) >> WALK_STRIDE) - 1
+                level -= WALK_STRIDE
+                first = (1 << level) - 1
+                base = first + (((parent - first) >> WALK_STRIDE) << WALK_STRIDE)
+                mask = int(stack & wp.int64(255))
+                stack = stack >> wp.int64(8)
             else:
-                while node > 0 and node % 2 == 0:  # a right child: up to the parent
-                    node = (node - 1) // 2
-                if node == 0:
-                    walking = False
+                node = base + lowest_bit(mask)
+                mask = mask & (mask - 1)
+                if level == leaf_level:
+                    leaf = leaf_tets[ls + node - (leaves - 1)]
+                    inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
+                    while inside != 0 and not found:
+                        k = lowest_bit(inside)
+                        inside = inside & (inside - 1)
+                        e = leaf[k]
+                        found = record_contact(
+                            p,
+                            q,
+                            e,
+                            tet_weights(q, tet_inverse[e], tet_origin[e]),
+                            same,
+                            x,
+                            v,
+                            dt,
+                            tets,
+                            tet_face_start,
+                            tet_faces,
+                            point_velocity,
+                            point_anchor,
+                            row_start,
+                            cols,
+                            depth,
+                            grad,
+                            capacity,
+                            count_out,
+                            contact_point_out,
+                            contact_tet_out,
+                            contact_bary_out,
+                            contact_normal_out,
+                            contact_depth_out,
+                            stats_out,
+                        )
                 else:
-                    node += 1  # a left child: on to its sibling
+                    stack = (stack << wp.int64(8)) | wp.int64(mask)
+                    level += WALK_STRIDE
+                    base = ((node + 1) << WALK_STRIDE) - 1
+                    mask = group_holds(q, node_lower, node_upper, ns + base, 8)
 
 
 @wp.func

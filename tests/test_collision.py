@@ -279,18 +279,21 @@ def test_tet_trees_hold_every_tet_once_in_balanced_leaves():
         assert (leaves >= 0).sum(axis=1).min() >= min(n, 1)  # no empty leaf: splits are even
 
 
+@pytest.mark.parametrize("cells", [(1, 1, 1), (3, 4, 3), (5, 4, 5)])
 @pytest.mark.parametrize("lanes", [1, 2, 4])
-def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes):
+def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells):
     """Against a NumPy barycentric test of every collision point against every tet it may collide with.
 
-    Two convex boxes, rotated and interpenetrating, and a third body colliding with itself: two boxes of
-    one mesh crossing each other (their points lie in each other's tets, far from their one-rings), which
-    also crosses the others. Every box is convex, so a point inside one of its tets is below all its faces
-    (a positive depth, which a contact needs).
+    Two convex boxes, rotated and interpenetrating, a third body colliding with itself: two boxes of one
+    mesh crossing each other (their points lie in each other's tets, far from their one-rings), which also
+    crosses the others, and a lone tet (a tree of one leaf) inside the first box. Every body is convex, so a
+    point inside one of its tets is below all its faces (a positive depth, which a contact needs). The box
+    resolutions give trees of 1 to 9 levels below the root, so the walk's first step down takes 1, 2 and 3
+    levels.
     """
 
     def box(offset, rx, ry):
-        verts, tets = _box((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), (3, 4, 3))
+        verts, tets = _box((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), cells)
         return verts @ _rotation(rx, ry).T + np.asarray(offset), tets
 
     b = ModelBuilder()
@@ -299,6 +302,8 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes):
     (va, ta), (vb, tb) = box((-0.1, 0.2, 0.1), 10, 70), box((-0.05, 0.3, 0.0), 45, 0)
     verts, tets = np.concatenate([va, vb]), np.concatenate([ta, tb + len(va)])
     b.add_body("crossed", verts, tets, 1e5, 0.3, 1000.0, collision_spacing=0.04, self_collision=True)
+    lone = np.array([[-0.1, -0.1, -0.1], [0.1, -0.1, -0.1], [-0.1, 0.1, -0.1], [-0.1, -0.1, 0.1]])
+    b.add_body("tet", lone, np.array([[0, 1, 2, 3]]), 1e5, 0.3, 1000.0, collision_spacing=0.04)
     model = b.finalize(device)
     x = model.rest_x.numpy()
     solver = Solver(model, ground=None)

@@ -54,6 +54,10 @@ BODY_BLOCK = 256
 LEAF_TETS = 4
 """Tets per leaf of a body's tree."""
 
+MAX_TREE_LEVELS = 27
+"""Deepest tree the detection walk can keep its place in (it descends three levels at a time and stacks 8
+bits per step in an int64): 2^27 leaves, half a billion tets in one body."""
+
 
 @dataclass(frozen=True)
 class TetTrees:
@@ -86,6 +90,10 @@ def tet_trees(tets: np.ndarray, x: np.ndarray, tet_ranges: list[tuple[int, int]]
     node_start, leaf_start, leaves = [0], [0], []
     for first, count in tet_ranges:
         depth = int(np.ceil(np.log2(max(1, -(-count // LEAF_TETS)))))
+        if depth > MAX_TREE_LEVELS:
+            raise ValueError(
+                f"a body of {count} tets needs a tree of {depth} levels; the walk keeps at most {MAX_TREE_LEVELS}"
+            )
         order = np.arange(first, first + count)
         bounds = np.array([0, count])
         for _ in range(depth):  # every segment holds at least LEAF_TETS tets until the last split
@@ -210,6 +218,7 @@ class Collider:
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
+        self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         tet_ranges = [(b.tet_start, b.tet_count) for b in model.bodies]
         trees = tet_trees(model.tets.numpy(), model.rest_x.numpy(), tet_ranges)
         starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
@@ -300,14 +309,21 @@ class Collider:
         )
 
     def _bound(self, x: wp.array, refit: bool = True) -> None:
-        """At positions ``x``: tet inverses, each body's tree of tet boxes and its box, the body BVH refitted."""
+        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH refitted."""
         m = self.model
         threads = BODY_BLOCK if m.device.is_cuda else 1
         wp.launch_tiled(
             K.refit_trees,
             dim=[len(m.bodies)],
             inputs=[m.tets, x, self.body_tet_start, self.node_start, self.leaf_start, self.leaf_tets, threads],
-            outputs=[self.tet_inverse, self.node_lower, self.node_upper, self.body_lowers, self.body_uppers],
+            outputs=[
+                self.tet_inverse,
+                self.tet_origin,
+                self.node_lower,
+                self.node_upper,
+                self.body_lowers,
+                self.body_uppers,
+            ],
             block_dim=threads,
             device=m.device,
         )
@@ -358,6 +374,7 @@ class Collider:
                 dt,
                 m.tets,
                 self.tet_inverse,
+                self.tet_origin,
                 m.tet_face_start,
                 m.tet_faces,
                 points,
