@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import json
 import sys
+from datetime import datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "scripts" / "results"
+PEER_HOURS = 12
+"""Newton runs this close in time to ours count as the same session's peer figures."""
 
 
 def newest(pattern: str) -> tuple[Path, dict] | None:
@@ -22,17 +25,24 @@ def main() -> int:
         return 1
     path, data = ours
     env = data["environment"]
-    # the peer: every Newton JSON of the same day and device, the newest run of each pile size winning (a
-    # Newton crash on a large pile ends its process: the sizes after it come from a separate run)
+    # the peer: every Newton JSON of the same device within PEER_HOURS of ours, the nearest in time first,
+    # so the nearest run of each pile size wins (a Newton crash on a large pile ends its process: the sizes
+    # after it come from a separate run)
+    ours_at = datetime.fromisoformat(env["date"])
     peers = []
-    for candidate in sorted(RESULTS.glob("bench-newton-cuda*.json"), reverse=True):
-        cenv = json.loads(candidate.read_text())["environment"]
-        if cenv["device"] == env["device"] and cenv["date"][:10] == env["date"][:10]:
-            peers.append((candidate, json.loads(candidate.read_text())))
+    for candidate in RESULTS.glob("bench-newton-cuda*.json"):
+        peer_data = json.loads(candidate.read_text())
+        gap = abs((datetime.fromisoformat(peer_data["environment"]["date"]) - ours_at).total_seconds())
+        if peer_data["environment"]["device"] == env["device"] and gap <= PEER_HOURS * 3600:
+            peers.append((gap, candidate, peer_data))
+    peers = [(candidate, peer_data) for _, candidate, peer_data in sorted(peers, key=lambda item: item[0])]
     newton: dict[int, dict] = {}
-    for _, peer_data in peers:
-        for r in peer_data["runs"]:
-            newton.setdefault(r["n"], r)
+    used = []  # the peer files a figure is taken from
+    for candidate, peer_data in peers:
+        fresh = [r for r in peer_data["runs"] if r["n"] not in newton]
+        newton.update((r["n"], r) for r in fresh)
+        if fresh:
+            used.append(candidate)
     peer = peers[0] if peers else None
     lines = [
         "# Benchmarks",
@@ -45,11 +55,12 @@ def main() -> int:
     ]
     if peer:
         penv = peer[1]["environment"]
-        names = ", ".join(f"`{p.name}`" for p, _ in peers)
+        names = ", ".join(f"`{p.name}`" for p in used)
         lines.append(
-            f"- peer: {names} — Newton {penv.get('newton', '')} `SolverVBD`, {penv['device']}, same day and tet "
-            "meshes, 10 substeps x 10 iterations per frame, self-contact on; pile sizes missing here crashed "
-            "in Newton (an illegal memory access; logs beside the JSON)"
+            f"- peer: {names} — Newton {penv.get('newton', '')} `SolverVBD`, {penv['device']}, within "
+            f"{PEER_HOURS} hours (the nearest run of each size) and the same tet meshes, 10 substeps x 10 "
+            "iterations per frame, self-contact on; pile sizes missing here have no Newton run in that window "
+            "(Newton 1.8 has crashed on 256 and more with an illegal memory access; logs beside the JSON)"
         )
     lines += [
         "",
