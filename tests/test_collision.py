@@ -279,6 +279,18 @@ def test_tet_trees_hold_every_tet_once_in_balanced_leaves():
         assert (leaves >= 0).sum(axis=1).min() >= min(n, 1)  # no empty leaf: splits are even
 
 
+def test_tet_trees_refuse_a_body_deeper_than_the_walk_can_keep(monkeypatch):
+    """The walk stacks 8 bits per three levels in an int64: a deeper tree is refused, naming the body's size."""
+    import warpfem.collision as collision
+
+    rng = np.random.default_rng(4)
+    x, tets = rng.random((40, 3)), rng.integers(0, 40, size=(33, 4))  # 9 leaves -> 16: a tree of 4 levels
+    collision.tet_trees(tets, x, [(0, 33)])
+    monkeypatch.setattr(collision, "MAX_TREE_LEVELS", 3)
+    with pytest.raises(ValueError, match="a body of 33 tets needs a tree of 4 levels"):
+        collision.tet_trees(tets, x, [(0, 33)])
+
+
 @pytest.mark.parametrize("cells", [(1, 1, 1), (3, 4, 3), (5, 4, 5)])
 @pytest.mark.parametrize("lanes", [1, 2, 4])
 def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells):
