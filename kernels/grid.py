@@ -79,57 +79,19 @@ def load_coherent(values: wp.array(dtype=float), index: int) -> float:
     ...
 
 
-GRID_TOTAL = r"""
-#if defined(__CUDA_ARCH__)
-__shared__ float warp_sums[32];
-float v = value;
-for (int offset = 16; offset > 0; offset >>= 1)
-    v += __shfl_down_sync(0xffffffffu, v, offset);
-if ((threadIdx.x & 31) == 0)
-    warp_sums[threadIdx.x >> 5] = v;
-__syncthreads();
-if (threadIdx.x == 0) {
-    float sum = 0.0f;
-    for (int w = 0; w < ((blockDim.x + 31) >> 5); ++w)
-        sum += warp_sums[w];
-    atomicAdd(totals.data + slot, sum);
-    if (gridDim.x > 1) {
-        int* counter = barrier.data;
-        int seen = 0;
-        int spins = 0;
-        asm volatile("red.release.gpu.global.add.s32 [%0], %1;" :: "l"(counter), "r"(1) : "memory");
-        do {
-            asm volatile("ld.acquire.gpu.global.s32 %0, [%1];" : "=r"(seen) : "l"(counter) : "memory");
-            if (++spins > (1 << 24)) {
-                atomicExch(stalled.data, 1);
-                break;
-            }
-        } while (seen < target);
-    }
-}
-__syncthreads();
-return *((volatile float*)totals.data + slot);
-#else
-totals.data[slot] += value;
-return totals.data[slot];
-#endif
-"""
-
-
-@wp.func_native(GRID_TOTAL)
+@wp.func
 def grid_total(
     value: float,
     totals: wp.array(dtype=float),
     slot: int,
     barrier: wp.array(dtype=wp.int32),
     target: int,
-    stalled: wp.array(dtype=wp.int32),
+    stalled_out: wp.array(dtype=wp.int32),
 ) -> float:
     """The sum of ``value`` over every thread of the launch, returned to all (``totals[slot]`` zeroed before).
 
-    A register shuffle sum per warp, the warps' sums added by the block's thread 0 into ``totals[slot]``
-    (one atomic per block: same-address atomics from every warp of the launch serialise in the cache),
-    then the grid barrier ``target`` (as :func:`grid_sync`, which also orders every write before it).
-    Every thread of the block must reach it, in blocks of at most 1,024 threads.
+    One atomic per warp, then the grid barrier ``target``: also orders every write before it.
     """
-    ...
+    warp_sum_add(value, totals, slot)
+    grid_sync(barrier, target, stalled_out)
+    return load_coherent(totals, slot)
