@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from warpfem.embedding import map_dense  # noqa: E402
-from warpfem.model import ModelBuilder  # noqa: E402
+from warpfem.model import ModelBuilder, State  # noqa: E402
 from warpfem.preprocess import prepare  # noqa: E402
 from warpfem.scene import ObjectConfig, load_scene  # noqa: E402
 from warpfem.simulate import Contacts, Simulation, add_prepared_body, dense_penetration, solver_of  # noqa: E402
@@ -183,10 +183,10 @@ def time_scene(
         sim.advance(timer)
         map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)
 
-    timer = PhaseTimer(device)
-    frame(timer)  # a frame run directly (also compiles everything)
+    frame(PhaseTimer(device))  # a frame run directly (also compiles everything)
     for _ in range(warmup):
         frame()  # captures the graph on CUDA
+    start = snapshot(sim)
     solver.read_cg_stats()
     contacts = Contacts()
     wp.synchronize_device(device)
@@ -197,21 +197,20 @@ def time_scene(
     ms = 1000.0 * (time.perf_counter() - t0) / frames
     stats = solver.read_cg_stats()
     contacts.read(solver, frames, None)
-    t1 = time.perf_counter()
-    map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)
-    wp.synchronize_device(device)
-    map_ms = 1000.0 * (time.perf_counter() - t1)
     dense = sim.dense.numpy()
     points = [dense[b.dense_start : b.dense_start + b.dense_count] for b in model.bodies]
     penetration = dense_penetration(sim, points)
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
-    # the phase split and the kernel profile where the timed frames ended (bodies in contact, not in the air)
-    phase_ms = phase_split(sim, timer, device)
+    end = sim.states[0].x.numpy()
+    phase_ms = phase_split(sim, start, frames, device)
+    rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
+    # the kernel profile where the timed frames ended (bodies in contact, not in the air)
     kernels = kernel_profile(lambda: frame(PhaseTimer(device))) if device.is_cuda else None
     return {
         "ms_per_frame": ms,
         "fps": 1000.0 / ms,
-        "phase_ms": {**phase_ms, "map": map_ms, "output": output_ms(sim)},
+        "phase_ms": {**phase_ms, "output": output_ms(sim)},
+        "phase_rerun_gap_m": rerun_gap,
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "cg_path": solver.cg.mode,
@@ -231,27 +230,52 @@ def time_scene(
     }
 
 
-def phase_split(sim: Simulation, timer: PhaseTimer, device, reps: int = 20) -> dict:
-    """Milliseconds per frame of each step phase.
+def snapshot(sim: Simulation) -> State:
+    """A copy of the simulation's current state (the start of the timed frames)."""
+    copy = sim.model.state()
+    copy.assign(sim.states[0])
+    return copy
 
-    On CUDA each phase of one step is captured as its own graph and replayed ``reps`` times from the state
-    the timed frames ended in (a direct, synchronised run would time the host round trips of the CG loop
-    instead); on the CPU, the first frame's synchronised laps.
+
+def phase_split(sim: Simulation, start: State, frames: int, device) -> dict:
+    """Milliseconds per frame of each phase (elastic, collision, solve, map) along the timed frames.
+
+    The timed frames are run again from their ``start`` state, phase by phase, so the split sees the same
+    contacts and CG iterations as the frame time (a split taken at one state, such as the settled end, does
+    not add up to it). On CUDA each phase of a frame is its own captured graph, timed on the device by events
+    recorded between the replays (the host does not wait); on the CPU, synchronised wall-clock laps.
     """
-    if not device.is_cuda:
-        return {k: 1000.0 * v for k, v in timer.seconds.items()}
-    a, b = sim.states
-    out = {}
-    for name, phase in sim.solver.phases(a, b, sim.dt):
-        with wp.ScopedCapture(device=device) as capture:
-            phase()
-        wp.capture_launch(capture.graph)
+    sim.states[0].assign(start)
+    model = sim.model
+    work = [
+        *sim.frame_phases(),
+        ("map", lambda: map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)),
+    ]
+    if device.is_cuda:
+        launchers = []
+        for name, phase in work:
+            with wp.ScopedCapture(device=device) as capture:
+                phase()
+            launchers.append((name, lambda graph=capture.graph: wp.capture_launch(graph)))
+        events = [wp.Event(device, enable_timing=True) for _ in range(frames * len(work) + 1)]
+        marks = iter(events)
+        wp.record_event(next(marks))
+        for _ in range(frames):
+            for _, launch in launchers:
+                launch()
+                wp.record_event(next(marks))
         wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            wp.capture_launch(capture.graph)
-        wp.synchronize_device(device)
-        out[name] = 1000.0 * sim.substeps * (time.perf_counter() - t0) / reps
+        laps = [wp.get_event_elapsed_time(a, b) for a, b in itertools.pairwise(events)]
+    else:
+        laps = []
+        for _ in range(frames):
+            for _, phase in work:
+                t0 = time.perf_counter()
+                phase()
+                laps.append(1000.0 * (time.perf_counter() - t0))
+    out: dict[str, float] = {}
+    for (name, _), lap in zip(itertools.cycle(work), laps, strict=False):
+        out[name] = out.get(name, 0.0) + lap / frames
     return out
 
 

@@ -13,6 +13,19 @@ PEER_HOURS = 12
 """Newton runs this close in time to ours count as the same session's peer figures."""
 
 
+def split_text(runs: list[dict]) -> str:
+    """How the runs' phase split was measured (runs before the trajectory split have no rerun gap)."""
+    if all("phase_rerun_gap_m" in r for r in runs):
+        return (
+            "the timed frames run again from their start, each phase of a frame its own captured graph, timed"
+            " on the device by events between them (the parts add up to the whole)."
+        )
+    return (
+        "each phase of a step captured as its own graph and replayed at the state the timed frames ended in"
+        " (approximate: the parts need not add up to the whole)."
+    )
+
+
 def newest(pattern: str) -> tuple[Path, dict] | None:
     paths = sorted(RESULTS.glob(pattern))
     return (paths[-1], json.loads(paths[-1].read_text())) if paths else None
@@ -65,9 +78,8 @@ def main() -> int:
     lines += [
         "",
         "Per 1/60 s frame: stepping, collisions and dense mapping on the device (a replayed CUDA graph), file",
-        "output excluded; 2 warm-up frames. Phase split: each phase of a step captured as its own graph and",
-        "replayed at the state the timed frames ended in (approximate: the parts need not add up to the whole;",
-        "output, the USD file writing, is outside the frame time). Penetration: the deepest dense vertex",
+        "output excluded; 2 warm-up frames. Phase split: " + split_text(data["runs"]),
+        "Output, the USD file writing, is outside the frame time. Penetration: the deepest dense vertex",
         "inside another body's tet mesh at the end; lowest point: ours the lowest dense vertex (the dense surface",
         "extends past the coarse one that touches the ground), Newton's its lowest tet vertex (ground at 0).",
         "",

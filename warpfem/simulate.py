@@ -169,15 +169,28 @@ class Simulation:
         self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
         self._graph = None
 
-    def _substeps(self, timer: PhaseTimer | None = None) -> None:
+    def frame_phases(self) -> list[tuple[str, Callable[[], None]]]:
+        """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
+
+        The states alternate between substeps; after an odd count the last one is copied back into
+        ``states[0]`` as part of the last "solve".
+        """
         a, b = self.states
-        if timer:
-            timer.start()
+        out = []
         for i in range(self.substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            self.solver.step(src, dst, self.dt, timer)
+            out += self.solver.phases(src, dst, self.dt)
         if self.substeps % 2 == 1:
-            a.assign(b)
+            out.append(("solve", lambda: a.assign(b)))
+        return out
+
+    def _substeps(self, timer: PhaseTimer | None = None) -> None:
+        if timer:
+            timer.start()
+        for name, phase in self.frame_phases():
+            phase()
+            if timer:
+                timer.lap(name)
 
     def advance(self, timer: PhaseTimer | None = None) -> None:
         """Advance one output frame (``substeps`` steps).
