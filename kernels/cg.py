@@ -20,7 +20,7 @@ along a smooth direction (see :func:`line_step`): never a worse start than x, an
 push nearly the answer. It costs one more product and one more reduction.
 
 ``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
-grid-wide barriers (a counter in global memory, :func:`grid_sync`) instead of at kernel boundaries, so an
+grid-wide barriers (an arrival count in global memory, :func:`grid_total`) instead of at kernel boundaries, so an
 iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
 on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
 Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones), each
@@ -29,7 +29,7 @@ so an iteration's product loads only the vector (``held``). On the CPU the same 
 """
 
 import warp as wp
-from warpfem.kernels.grid import grid_sync, grid_total, load_coherent, warp_sum_add
+from warpfem.kernels.grid import grid_total, load_coherent, warp_sum_add
 from warpfem.kernels.product import (
     BlockMatrix,
     Pairs,
@@ -415,17 +415,17 @@ def cg_solve_reset(
     w_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
     totals_out: wp.array(dtype=float),
-    barrier_out: wp.array(dtype=wp.int32),
+    words_out: wp.array(dtype=wp.uint64),
 ):
-    """Zero w and s (n rows), the reduction slots and the barrier counter of a persistent solve."""
+    """Zero w and s (n rows), the side sums and the barrier words of a persistent solve."""
     i = wp.tid()
     if i < n:
         w_out[i] = wp.vec3()
         s_out[i] = wp.vec3()
     if i < totals_out.shape[0]:
         totals_out[i] = 0.0
-    if i == 0:
-        barrier_out[0] = 0
+    if i < words_out.shape[0]:
+        words_out[i] = wp.uint64(0)
 
 
 @wp.kernel
@@ -446,7 +446,7 @@ def cg_solve(
     tolerance: wp.array(dtype=float),
     max_iterations: wp.array(dtype=wp.int32),
     # synchronisation (zeroed by cg_solve_reset, as are w and s)
-    barrier: wp.array(dtype=wp.int32),
+    words: wp.array(dtype=wp.uint64),
     totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
@@ -462,7 +462,7 @@ def cg_solve(
     """The whole solve in one persistent launch of ``blocks`` resident blocks (``threads`` threads in all).
 
     The same iteration as ``cg_update`` + ``cg_apply``, with grid barriers between the phases (two per
-    iteration, each also reducing a dot into its own slot of ``totals``): no launch and no device-side loop
+    iteration, each also reducing a dot into its own slot of ``words``): no launch and no device-side loop
     node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
     reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
     barriers vanish. Counts the solve like ``cg_finish``. With ``held`` set (every chunk has a thread of its
@@ -495,20 +495,20 @@ def cg_solve(
         direction,
         s_out,
     )
-    grid_sync(barrier, blocks, stalled_out)
+    grid_total(0.0, words, 0, blocks, stalled_out)
     proj = wp.vec3()
     for i in range(lane, n, threads):
         proj += project_row(i, free, b, direction, mass, w_out, s_out)
-    warp_sum_add(proj[0], totals, 2)
-    warp_sum_add(proj[1], totals, 3)
-    dmd = grid_total(proj[2], totals, 4, barrier, 2 * blocks, stalled_out)
-    theta = line_step(load_coherent(totals, 2), load_coherent(totals, 3), dmd)
+    warp_sum_add(proj[0], totals, 1)
+    warp_sum_add(proj[1], totals, 2)
+    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
+    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
     dots = wp.vec2()
     for i in range(lane, n, threads):
         dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    warp_sum_add(dots[1], totals, 1)
-    gamma = grid_total(dots[0], totals, 0, barrier, 3 * blocks, stalled_out)
-    bz = load_coherent(totals, 1)
+    warp_sum_add(dots[1], totals, 0)
+    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
+    bz = load_coherent(totals, 0)
     tol2 = tolerance[0] * tolerance[0]
     max_k = max_iterations[0]
     k = int(0)
@@ -526,7 +526,7 @@ def cg_solve(
             u_out,
             w_out,
         )
-        delta = grid_total(part, totals, 5 + 2 * k, barrier, (4 + 2 * k) * blocks, stalled_out)
+        delta = grid_total(part, words, 3 + 2 * k, blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:
             break
@@ -535,7 +535,7 @@ def cg_solve(
             ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
         gamma_prev = gamma
         a_prev = a
-        gamma = grid_total(ru, totals, 6 + 2 * k, barrier, (5 + 2 * k) * blocks, stalled_out)
+        gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
         k += 1
     if lane == 0:
         counts_out[0] = counts_out[0] + 1

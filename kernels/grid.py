@@ -1,29 +1,45 @@
 """Device-wide synchronisation for persistent launches: a grid barrier, warp sums and coherent loads.
 
 A persistent launch keeps at most one block per SM resident for its whole life, and its blocks meet at
-:func:`grid_sync` instead of at kernel boundaries (see ``warpfem.kernels.cg.cg_solve``). On the CPU a
+:func:`grid_total` instead of at kernel boundaries (see ``warpfem.kernels.cg.cg_solve``). On the CPU a
 launch is one thread and these reduce to plain operations.
 """
 
 import warp as wp
 
-GRID_SYNC = r"""
+GRID_TOTAL = r"""
 #if defined(__CUDA_ARCH__)
+__shared__ float grid_total_shared;
+unsigned long long* word = (unsigned long long*)words.data + slot;
+float v = value;
+for (int offset = 16; offset > 0; offset >>= 1)
+    v += __shfl_down_sync(0xffffffffu, v, offset);
+if ((threadIdx.x & 31) == 0)
+    atomicAdd((float*)word, v);
 __syncthreads();
-if (gridDim.x > 1 && threadIdx.x == 0) {
-    int* counter = barrier.data;
-    int seen = 0;
-    int spins = 0;
-    asm volatile("red.release.gpu.global.add.s32 [%0], %1;" :: "l"(counter), "r"(1) : "memory");
-    do {
-        asm volatile("ld.acquire.gpu.global.s32 %0, [%1];" : "=r"(seen) : "l"(counter) : "memory");
-        if (++spins > (1 << 24)) {
-            atomicExch(stalled.data, 1);
-            break;
-        }
-    } while (seen < target);
+if (threadIdx.x == 0) {
+    unsigned long long seen = 0;
+    if (gridDim.x > 1) {
+        int spins = 0;
+        asm volatile("red.release.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 1), "r"(1) : "memory");
+        do {
+            asm volatile("ld.acquire.gpu.global.b64 %0, [%1];" : "=l"(seen) : "l"(word) : "memory");
+            if (++spins > (1 << 24)) {
+                atomicExch(stalled.data, 1);
+                break;
+            }
+        } while ((unsigned int)(seen >> 32) < (unsigned int)blocks);
+    } else {
+        seen = *((volatile unsigned long long*)word);
+    }
+    grid_total_shared = __uint_as_float((unsigned int)(seen & 0xffffffffull));
 }
 __syncthreads();
+return grid_total_shared;
+#else
+float* total = (float*)((unsigned long long*)words.data + slot);
+*total += value;
+return *total;
 #endif
 """
 
@@ -48,21 +64,6 @@ return values.data[index];
 """
 
 
-@wp.func_native(GRID_SYNC)
-def grid_sync(barrier: wp.array(dtype=wp.int32), target: int, stalled: wp.array(dtype=wp.int32)):
-    """Grid-wide barrier of a persistent launch: returns once ``barrier[0]`` reaches ``target``.
-
-    Every block's thread 0 arrives (an atomic add with release semantics: the block's writes before the
-    block barrier are visible before it) and spins on loads with acquire semantics (what other blocks wrote
-    before arriving is visible after it), lighter than full fences around a relaxed atomic; the counter
-    only grows, so the n-th barrier of a launch of B blocks waits for n B arrivals. All blocks must be
-    resident at once (the host launches at most one block per SM); a launch of one block needs only the
-    block barrier. A barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather
-    than hang the device. A no-op on the CPU, where a launch is one thread.
-    """
-    ...
-
-
 @wp.func_native(WARP_SUM_ADD)
 def warp_sum_add(value: float, totals: wp.array(dtype=float), slot: int):
     """Add ``value`` of every thread into ``totals[slot]``, one atomic per warp of 32.
@@ -79,19 +80,20 @@ def load_coherent(values: wp.array(dtype=float), index: int) -> float:
     ...
 
 
-@wp.func
+@wp.func_native(GRID_TOTAL)
 def grid_total(
-    value: float,
-    totals: wp.array(dtype=float),
-    slot: int,
-    barrier: wp.array(dtype=wp.int32),
-    target: int,
-    stalled_out: wp.array(dtype=wp.int32),
+    value: float, words: wp.array(dtype=wp.uint64), slot: int, blocks: int, stalled: wp.array(dtype=wp.int32)
 ) -> float:
-    """The sum of ``value`` over every thread of the launch, returned to all (``totals[slot]`` zeroed before).
+    """The sum of ``value`` over every thread of a persistent launch of ``blocks`` blocks, returned to all.
 
-    One atomic per warp, then the grid barrier ``target``: also orders every write before it.
+    Also the grid barrier: it returns once every block has arrived, and what a block wrote before it is
+    visible after it. ``words[slot]`` (zeroed before; one slot per call) holds the sum in its low 32 bits (a
+    float: one atomic add per warp of 32) and the blocks arrived in its high 32 bits. Each block's thread 0
+    arrives with an atomic add with release semantics (the block's writes and sums before the block barrier
+    are visible before it) and spins on 64-bit loads with acquire semantics that read the count and the sum
+    at once: the sum costs no round trip to memory after the barrier. All blocks must be resident at once
+    (the host launches at most one block per SM); a launch of one block needs only the block barrier. A
+    barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather than hang the
+    device. On the CPU, where a launch is one thread, it adds ``value`` to the slot and returns it.
     """
-    warp_sum_add(value, totals, slot)
-    grid_sync(barrier, target, stalled_out)
-    return load_coherent(totals, slot)
+    ...

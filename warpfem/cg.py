@@ -211,8 +211,9 @@ class CGSolver:
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
-        self.barrier = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.totals = wp.zeros(5 + 2 * self.capacity, dtype=float, device=self.device)
+        self.totals = wp.zeros(3, dtype=float, device=self.device)  # the grid solve's side sums
+        # the grid solve's barriers and their sums (kernels.grid.grid_total): three to start, two per iteration
+        self.words = wp.zeros(3 + 2 * self.capacity, dtype=wp.uint64, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.device.is_cuda:
             # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
@@ -297,9 +298,9 @@ class CGSolver:
             threads = self.grid_threads
             reset = wp.launch(
                 K.cg_solve_reset,
-                dim=max(n, self.totals.shape[0]),
+                dim=max(n, self.words.shape[0]),
                 inputs=[n],
-                outputs=[self.w, self.s, self.totals, self.barrier],
+                outputs=[self.w, self.s, self.totals, self.words],
                 device=dev,
                 record_cmd=True,
             )
@@ -320,7 +321,7 @@ class CGSolver:
                     mass,
                     self.tolerance,
                     self.max_iterations,
-                    self.barrier,
+                    self.words,
                     self.totals,
                 ],
                 outputs=[*vectors, self.counts, self.residual_max, self.stalled],
