@@ -18,7 +18,8 @@ def split_text(runs: list[dict]) -> str:
     if all("phase_rerun_gap_m" in r for r in runs):
         return (
             "the timed frames run again from their start, each phase of a frame its own captured graph, timed"
-            " on the device by events between them (the parts add up to the whole)."
+            " on the device by events between them, so the parts add up to about the whole (on the GPU the rerun"
+            " drifts from the timed run, as float atomics add in another order: `phase_rerun_gap_m` in the JSON)."
         )
     return (
         "each phase of a step captured as its own graph and replayed at the state the timed frames ended in"
