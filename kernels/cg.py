@@ -34,10 +34,14 @@ from warpfem.kernels.product import (
     BlockMatrix,
     Pairs,
     chunk_product,
+    first_pair,
+    held_terms,
     live_pairs,
+    mat43,
     own_chunk,
     own_pair,
     pair_product,
+    pair_terms,
     partial_product,
 )
 
@@ -537,6 +541,219 @@ def cg_solve(
         a_prev = a
         gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
         k += 1
+    if lane == 0:
+        counts_out[0] = counts_out[0] + 1
+        counts_out[1] = counts_out[1] + k
+        res = float(0.0)
+        if bz > 0.0:
+            res = wp.sqrt(wp.max(gamma, 0.0) / bz)
+        residual_max_out[0] = wp.max(residual_max_out[0], res)
+
+
+@wp.func
+def advanced(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+):
+    """Row c at phase j of :func:`cg_solve_held`: (u_{j}, q_{j-1}, u_{j-1}) from the buffers.
+
+    q_{j-1} = m_{j-1} + beta q_{j-2} and u_j = u_{j-1} - a q_{j-1}, with m = M^-1 A u; every thread that
+    needs row c computes it the same way, so no barrier separates the update from the product.
+    """
+    m = m3[((j + 2) % 3) * n + c]
+    q_old = q2[(j % 2) * n + c]
+    u_old = u2[(j % 2) * n + c]
+    q = m + beta * q_old
+    return u_old - a * q, q, u_old
+
+
+@wp.func
+def advanced_u(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """u_j of row c (see :func:`advanced`)."""
+    u, q, u_old = advanced(c, n, j, a, beta, m3, q2, u2)
+    return u
+
+
+@wp.func
+def held_pair_phase(
+    va: wp.vec4i,
+    wa: wp.vec4,
+    vb: wp.vec4i,
+    wb: wp.vec4,
+    C: wp.mat33,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    diag_inv: wp.array(dtype=wp.mat33),
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+) -> float:
+    """One coupling pair at phase j: m_j += M^-1 (pair's A u_j) at its eight vertices; returns its u.A u."""
+    Ua = mat43()
+    Ub = mat43()
+    for k in range(4):
+        Ua[k] = advanced_u(va[k], n, j, a, beta, m3, q2, u2)
+        Ub[k] = advanced_u(vb[k], n, j, a, beta, m3, q2, u2)
+    Da, Db, dot = pair_terms(Ua, Ub, wa, wb, C)
+    out = (j % 3) * n
+    for k in range(4):
+        wp.atomic_add(m3, out + va[k], diag_inv[va[k]] * Da[k])
+        wp.atomic_add(m3, out + vb[k], diag_inv[vb[k]] * Db[k])
+    return dot
+
+
+@wp.kernel
+def cg_solve_held(
+    # inputs: launch shape
+    threads: int,
+    blocks: int,
+    # inputs: matrix
+    matrix: BlockMatrix,
+    pairs: Pairs,
+    # inputs: system and limits
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    tolerance: wp.array(dtype=float),
+    max_iterations: wp.array(dtype=wp.int32),
+    # synchronisation (zeroed by cg_solve_reset, as are w and s)
+    words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+    u2_out: wp.array(dtype=wp.vec3),
+    q2_out: wp.array(dtype=wp.vec3),
+    m3_out: wp.array(dtype=wp.vec3),
+    counts_out: wp.array(dtype=wp.int32),
+    residual_max_out: wp.array(dtype=float),
+    stalled_out: wp.array(dtype=wp.int32),
+):
+    """``cg_solve`` with one grid barrier per iteration, where every chunk of the product has a thread.
+
+    The same Chronopoulos-Gear iteration, with the preconditioned vectors u = M^-1 r, q = M^-1 s and
+    m = M^-1 A u: q_k = m_k + beta q_{k-1}, u_{k+1} = u_k - alpha q_k, and gamma = u.M u, so the update of a
+    row needs only that row. Each thread holding a chunk (or a coupling pair) computes u_{k+1} of the rows
+    it reads itself, right after the barrier that delivers gamma_k and delta_k, and goes straight on to the
+    product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add)
+    and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
+    registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
+    (read, written, zeroed), so no phase reads what it writes. The start is ``cg_solve``'s.
+    """
+    lane = wp.tid()
+    n = free.shape[0]
+    n_chunks = matrix.chunk_row.shape[0]
+    own = own_chunk(1, lane, matrix)
+    pair = own_pair(1, lane, threads, n_chunks, pairs)
+    partial_product(lane, threads, 1, own, pair, matrix, pairs, x_out, w_out)
+    partial_product(lane, threads, 1, own, pair, matrix, pairs, direction, s_out)
+    grid_total(0.0, words, 0, blocks, stalled_out)
+    proj = wp.vec3()
+    for i in range(lane, n, threads):
+        proj += project_row(i, free, b, direction, mass, w_out, s_out)
+    warp_sum_add(proj[0], totals, 1)
+    warp_sum_add(proj[1], totals, 2)
+    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
+    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
+    dots = wp.vec2()
+    for i in range(lane, n, threads):
+        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u2_out, p_out, s_out)
+        u2_out[n + i] = wp.vec3()
+        q2_out[i] = wp.vec3()
+        q2_out[n + i] = wp.vec3()
+        m3_out[i] = wp.vec3()
+        m3_out[n + i] = wp.vec3()
+        m3_out[2 * n + i] = wp.vec3()
+    warp_sum_add(dots[1], totals, 0)
+    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
+    bz = load_coherent(totals, 0)
+    row = own.row
+    D = diag_inv[row]
+    first = lane == 0
+    if lane > 0 and lane < n_chunks:
+        first = matrix.chunk_row[lane - 1] != row
+    owner = own.count > 0 and first and free[row] != 0
+    A_ii = wp.mat33()
+    x = wp.vec3()
+    p = wp.vec3()
+    if owner:
+        A_ii = wp.inverse(D)
+        x = x_out[row]
+    tol2 = tolerance[0] * tolerance[0]
+    max_k = max_iterations[0]
+    k = int(0)
+    j = int(0)  # phase 0 is the product of u_0 alone (a = beta = 0)
+    a = float(0.0)
+    beta = float(0.0)
+    gamma_prev = float(0.0)
+    a_prev = float(0.0)
+    delta = float(0.0)
+    while True:
+        part = wp.vec2()
+        if own.count > 0:
+            u_row, q_row, u_old = advanced(row, n, j, a, beta, m3_out, q2_out, u2_out)
+            u0 = advanced_u(own.cols[0], n, j, a, beta, m3_out, q2_out, u2_out)
+            u1 = advanced_u(own.cols[1], n, j, a, beta, m3_out, q2_out, u2_out)
+            u2 = advanced_u(own.cols[2], n, j, a, beta, m3_out, q2_out, u2_out)
+            u3 = advanced_u(own.cols[3], n, j, a, beta, m3_out, q2_out, u2_out)
+            acc = held_terms(own, u0, u1, u2, u3)
+            wp.atomic_add(m3_out, (j % 3) * n + row, D * acc)
+            part[0] = wp.dot(u_row, acc)
+            if owner:
+                u2_out[((j + 1) % 2) * n + row] = u_row
+                q2_out[((j + 1) % 2) * n + row] = q_row
+                m3_out[((j + 1) % 3) * n + row] = wp.vec3()
+                p = u_old + beta * p
+                x = x + a * p
+                part[1] = wp.dot(u_row, A_ii * u_row)
+        if pair.count != 0:
+            part[0] += held_pair_phase(
+                pair.verts_a, pair.weights_a, pair.verts_b, pair.weights_b, pair.C, n, j, a, beta, diag_inv,
+                m3_out, q2_out, u2_out,
+            )  # fmt: skip
+        for c in range(first_pair(lane, threads, n_chunks) + threads, pair.live, threads):
+            part[0] += held_pair_phase(
+                pairs.verts_a[c], pairs.weights_a[c], pairs.verts_b[c], pairs.weights_b[c], pairs.matrix[c], n,
+                j, a, beta, diag_inv, m3_out, q2_out, u2_out,
+            )  # fmt: skip
+        if j > 0:
+            warp_sum_add(part[1], totals, 2 + j)
+        delta = grid_total(part[0], words, 3 + j, blocks, stalled_out)
+        if j > 0:
+            gamma_prev = gamma
+            a_prev = a
+            gamma = load_coherent(totals, 2 + j)
+            k += 1
+        if not (k < max_k and gamma > 0.0 and gamma > tol2 * bz):
+            break
+        a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
+        if a <= 0.0:
+            break
+        j = k + 1
+    if owner:
+        x_out[row] = x
     if lane == 0:
         counts_out[0] = counts_out[0] + 1
         counts_out[1] = counts_out[1] + k

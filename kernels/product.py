@@ -11,6 +11,37 @@ then loads only the vector.
 
 import warp as wp
 
+mat43 = wp.types.matrix(shape=(4, 3), dtype=wp.float32)
+"""A pair's values at its four a (or b) vertices, one per row."""
+
+
+@wp.func
+def pair_terms(
+    Ua: mat43,
+    Ub: mat43,
+    weights_a: wp.vec4,
+    weights_b: wp.vec4,
+    C: wp.mat33,
+):
+    """One pair's (J^T C J less its diagonal blocks) u, given u at its eight vertices (rows of Ua and Ub).
+
+    ``J u = sum_k weights_a[k] Ua[k] - weights_b[k] Ub[k]`` is the pair's relative value. Returns the terms
+    for the a and b vertices (rows of two 4x3 matrices) and the pair's share of u.w.
+    """
+    s = wp.vec3()
+    for k in range(4):
+        s += weights_a[k] * Ua[k] - weights_b[k] * Ub[k]
+    Da = mat43()
+    Db = mat43()
+    dot = float(0.0)
+    for k in range(4):
+        da = weights_a[k] * (C * (s - weights_a[k] * Ua[k]))
+        db = -weights_b[k] * (C * (s + weights_b[k] * Ub[k]))
+        Da[k] = da
+        Db[k] = db
+        dot += wp.dot(Ua[k], da) + wp.dot(Ub[k], db)
+    return Da, Db, dot
+
 
 @wp.func
 def embedded_product(
@@ -22,25 +53,18 @@ def embedded_product(
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """w += (J^T C J less its diagonal blocks) u for one pair; returns this pair's share of u.w.
+    """w += (J^T C J less its diagonal blocks) u for one pair (see :func:`pair_terms`); returns its u.w.
 
-    ``J u = sum_k weights_a[k] u[verts_a[k]] - weights_b[k] u[verts_b[k]]`` is the pair's relative value.
     The eight values of u are loaded once, before any atomic add: a load after an atomic add to a buffer
     that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop made a chain
     of eight dependent round trips to memory.
     """
     Ua = wp.matrix_from_rows(u[verts_a[0]], u[verts_a[1]], u[verts_a[2]], u[verts_a[3]])
     Ub = wp.matrix_from_rows(u[verts_b[0]], u[verts_b[1]], u[verts_b[2]], u[verts_b[3]])
-    s = wp.vec3()
+    Da, Db, dot = pair_terms(Ua, Ub, weights_a, weights_b, C)
     for k in range(4):
-        s += weights_a[k] * Ua[k] - weights_b[k] * Ub[k]
-    dot = float(0.0)
-    for k in range(4):
-        da = weights_a[k] * (C * (s - weights_a[k] * Ua[k]))
-        db = -weights_b[k] * (C * (s + weights_b[k] * Ub[k]))
-        wp.atomic_add(w_out, verts_a[k], da)
-        wp.atomic_add(w_out, verts_b[k], db)
-        dot += wp.dot(Ua[k], da) + wp.dot(Ub[k], db)
+        wp.atomic_add(w_out, verts_a[k], Da[k])
+        wp.atomic_add(w_out, verts_b[k], Db[k])
     return dot
 
 
@@ -379,12 +403,19 @@ def own_chunk_product(c: OwnChunk, u: wp.array(dtype=wp.vec3), w_out: wp.array(d
     if c.count == 0:
         return 0.0
     u0, u1, u2, u3, u_row = u[c.cols[0]], u[c.cols[1]], u[c.cols[2]], u[c.cols[3]], u[c.row]
+    acc = held_terms(c, u0, u1, u2, u3)
+    wp.atomic_add(w_out, c.row, acc)
+    return wp.dot(u_row, acc)
+
+
+@wp.func
+def held_terms(c: OwnChunk, u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3) -> wp.vec3:
+    """The held chunk's share of its row of A u, given u at its four columns (unused ones ignored)."""
     acc = entry_term(True, c.slots[0], c.a0, u0)
     acc += entry_term(c.count > 1, c.slots[1], c.a1, u1)
     acc += entry_term(c.count > 2, c.slots[2], c.a2, u2)
     acc += entry_term(c.count > 3, c.slots[3], c.a3, u3)
-    wp.atomic_add(w_out, c.row, acc)
-    return wp.dot(u_row, acc)
+    return acc
 
 
 @wp.func

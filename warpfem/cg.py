@@ -211,9 +211,10 @@ class CGSolver:
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
-        self.totals = wp.zeros(3, dtype=float, device=self.device)  # the grid solve's side sums
-        # the grid solve's barriers and their sums (kernels.grid.grid_total): three to start, two per iteration
-        self.words = wp.zeros(3 + 2 * self.capacity, dtype=wp.uint64, device=self.device)
+        # the grid solve's side sums (three, and gamma per iteration where held) and barriers with their sums
+        # (kernels.grid.grid_total): three to start, then two per iteration (one where held, plus one)
+        self.totals = wp.zeros(3 + self.capacity, dtype=float, device=self.device)
+        self.words = wp.zeros(4 + 2 * self.capacity, dtype=wp.uint64, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         if self.device.is_cuda:
             # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
@@ -233,6 +234,10 @@ class CGSolver:
             and self.chunk <= OWN_CHUNK_ENTRIES
             and self.grid_threads >= len(rows)
         )
+        if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
+            self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
+            self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
+            self.m3 = wp.zeros(3 * n, dtype=wp.vec3, device=self.device)
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
 
@@ -304,27 +309,23 @@ class CGSolver:
                 device=dev,
                 record_cmd=True,
             )
+            shape = [threads, self.grid_blocks]
+            system = [self._matrix(values), self.pairs, diag_inv, self.free, b, direction, mass]
+            limits = [self.tolerance, self.max_iterations, self.words, self.totals]
+            stats = [self.counts, self.residual_max, self.stalled]
+            if self.held:
+                kernel = K.cg_solve_held
+                outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
+            else:
+                kernel = K.cg_solve
+                shape.append(0)
+                outputs = [*vectors, *stats]
             solve = wp.launch(
-                K.cg_solve,
+                kernel,
                 dim=threads,
                 block_dim=BLOCK if dev.is_cuda else 1,
-                inputs=[
-                    threads,
-                    self.grid_blocks,
-                    int(self.held),
-                    self._matrix(values),
-                    self.pairs,
-                    diag_inv,
-                    self.free,
-                    b,
-                    direction,
-                    mass,
-                    self.tolerance,
-                    self.max_iterations,
-                    self.words,
-                    self.totals,
-                ],
-                outputs=[*vectors, self.counts, self.residual_max, self.stalled],
+                inputs=[*shape, *system, *limits],
+                outputs=outputs,
                 device=dev,
                 record_cmd=True,
             )
