@@ -43,7 +43,6 @@ from warpfem.kernels.product import (
     pair_product,
     pair_terms,
     partial_product,
-    stored,
 )
 
 
@@ -719,12 +718,7 @@ def cg_solve_held(
             u1 = advanced_u(own.cols[1], n, j, a, beta, m3_out, q2_out, u2_out)
             u2 = advanced_u(own.cols[2], n, j, a, beta, m3_out, q2_out, u2_out)
             u3 = advanced_u(own.cols[3], n, j, a, beta, m3_out, q2_out, u2_out)
-            # the blocks are read again each phase, alongside u (registers are the scarce resource here)
-            a0 = matrix.values[stored(own.slots[0])]
-            a1 = matrix.values[stored(own.slots[1])]
-            a2 = matrix.values[stored(own.slots[2])]
-            a3 = matrix.values[stored(own.slots[3])]
-            acc = held_terms(own, a0, a1, a2, a3, u0, u1, u2, u3)
+            acc = held_terms(own, u0, u1, u2, u3)
             wp.atomic_add(m3_out, (j % 3) * n + row, D * acc)
             part[0] = wp.dot(u_row, acc)
             if owner:

@@ -403,28 +403,18 @@ def own_chunk_product(c: OwnChunk, u: wp.array(dtype=wp.vec3), w_out: wp.array(d
     if c.count == 0:
         return 0.0
     u0, u1, u2, u3, u_row = u[c.cols[0]], u[c.cols[1]], u[c.cols[2]], u[c.cols[3]], u[c.row]
-    acc = held_terms(c, c.a0, c.a1, c.a2, c.a3, u0, u1, u2, u3)
+    acc = held_terms(c, u0, u1, u2, u3)
     wp.atomic_add(w_out, c.row, acc)
     return wp.dot(u_row, acc)
 
 
 @wp.func
-def held_terms(
-    c: OwnChunk,
-    a0: wp.mat33,
-    a1: wp.mat33,
-    a2: wp.mat33,
-    a3: wp.mat33,
-    u0: wp.vec3,
-    u1: wp.vec3,
-    u2: wp.vec3,
-    u3: wp.vec3,
-) -> wp.vec3:
-    """A held chunk's share of its row of A u, given its four blocks and u at its four columns (unused ignored)."""
-    acc = entry_term(True, c.slots[0], a0, u0)
-    acc += entry_term(c.count > 1, c.slots[1], a1, u1)
-    acc += entry_term(c.count > 2, c.slots[2], a2, u2)
-    acc += entry_term(c.count > 3, c.slots[3], a3, u3)
+def held_terms(c: OwnChunk, u0: wp.vec3, u1: wp.vec3, u2: wp.vec3, u3: wp.vec3) -> wp.vec3:
+    """The held chunk's share of its row of A u, given u at its four columns (unused ones ignored)."""
+    acc = entry_term(True, c.slots[0], c.a0, u0)
+    acc += entry_term(c.count > 1, c.slots[1], c.a1, u1)
+    acc += entry_term(c.count > 2, c.slots[2], c.a2, u2)
+    acc += entry_term(c.count > 3, c.slots[3], c.a3, u3)
     return acc
 
 
