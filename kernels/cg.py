@@ -23,9 +23,12 @@ push nearly the answer. It costs one more product and one more reduction.
 grid-wide barriers (an arrival count in global memory, :func:`grid_total`) instead of at kernel boundaries, so an
 iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
 on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
-Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones), each
-thread keeps its chunk's columns and blocks, and its first contact pair, in registers for the whole solve,
-so an iteration's product loads only the vector (``held``). On the CPU the same kernel runs as a single thread.
+On the CPU the same kernel runs as a single thread.
+
+Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones),
+``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks, and its first contact pair,
+in registers for the whole solve, and the iteration meets at one barrier instead of two (the threads advance
+the rows they read themselves; see its docstring).
 """
 
 import warp as wp
@@ -437,7 +440,6 @@ def cg_solve(
     # inputs: launch shape
     threads: int,
     blocks: int,
-    held: int,
     # inputs: matrix
     matrix: BlockMatrix,
     pairs: Pairs,
@@ -469,18 +471,17 @@ def cg_solve(
     iteration, each also reducing a dot into its own slot of ``words``): no launch and no device-side loop
     node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
     reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
-    barriers vanish. Counts the solve like ``cg_finish``. With ``held`` set (every chunk has a thread of its
-    own), each thread loads its chunk and its first coupling pair once (``own_chunk``, ``own_pair``) and
-    every product of the solve reuses them.
+    barriers vanish. Counts the solve like ``cg_finish``. Where every chunk has a thread of its own,
+    :func:`cg_solve_held` runs instead.
     """
     lane = wp.tid()
     n = free.shape[0]
-    own = own_chunk(held, lane, matrix)
-    pair = own_pair(held, lane, threads, matrix.chunk_row.shape[0], pairs)
+    own = own_chunk(0, lane, matrix)
+    pair = own_pair(0, lane, threads, matrix.chunk_row.shape[0], pairs)
     partial_product(
         lane,
         threads,
-        held,
+        0,
         own,
         pair,
         matrix,
@@ -491,7 +492,7 @@ def cg_solve(
     partial_product(
         lane,
         threads,
-        held,
+        0,
         own,
         pair,
         matrix,
@@ -522,7 +523,7 @@ def cg_solve(
         part = partial_product(
             lane,
             threads,
-            held,
+            0,
             own,
             pair,
             matrix,

@@ -112,8 +112,9 @@ class CGSolver:
         product: "gather" or "scatter" (:data:`PRODUCTS`); None: gather on CUDA up to :data:`GATHER_MAX_ROWS`
             rows, else scatter.
         hold_chunks: Let a "grid" solve whose gathered product has a thread for every chunk keep each
-            chunk's columns and blocks in registers for the whole solve (the ``held`` attribute says whether
-            it does); False: read them every iteration (for tests of that path).
+            chunk's columns and blocks in registers for the whole solve and meet at one barrier per iteration
+            (``kernels.cg.cg_solve_held``; the ``held`` attribute says whether it does); False: the two-barrier
+            solve that reads them every iteration (for tests of that path).
     """
 
     def __init__(
@@ -226,7 +227,9 @@ class CGSolver:
         self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
         # each thread's chunk in registers for the whole grid solve where every chunk has a thread: on an H100
         # 5.57 against 6.67 us per iteration on paper scene A, 4.22 against 5.91 on C (one session,
-        # scripts/results/cg-held-chunks-cuda0-20261122T211605Z.json)
+        # scripts/results/cg-held-chunks-cuda0-20261122T211605Z.json); that solve (cg_solve_held) also meets at
+        # one barrier per iteration instead of two: paper scene C 1.10/1.09 against 1.33/1.32 ms per frame
+        # (scripts/results/ab-new-9edaa2c-*.json against ab-prev-38a8c9c-*.json)
         self.held = bool(
             hold_chunks
             and self.mode == "grid"
@@ -318,7 +321,6 @@ class CGSolver:
                 outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
             else:
                 kernel = K.cg_solve
-                shape.append(0)
                 outputs = [*vectors, *stats]
             solve = wp.launch(
                 kernel,
