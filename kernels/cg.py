@@ -35,6 +35,8 @@ import warp as wp
 from warpfem.kernels.grid import grid_total, load_coherent, warp_sum_add
 from warpfem.kernels.product import (
     BlockMatrix,
+    OwnChunk,
+    OwnPair,
     Pairs,
     chunk_product,
     first_pair,
@@ -435,6 +437,55 @@ def cg_solve_reset(
         words_out[i] = wp.uint64(0)
 
 
+@wp.func
+def solve_start(
+    lane: int,
+    threads: int,
+    blocks: int,
+    held: int,
+    own: OwnChunk,
+    pair: OwnPair,
+    matrix: BlockMatrix,
+    pairs: Pairs,
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    u_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+    stalled_out: wp.array(dtype=wp.int32),
+) -> wp.vec2:
+    """The start of a persistent solve: three grid barriers, (r.u, b.M^-1 b) returned.
+
+    A x and A d, the line step along d, then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`).
+    Uses words 0 to 2 and side sums 0 to 2.
+    """
+    n = free.shape[0]
+    partial_product(lane, threads, held, own, pair, matrix, pairs, x_out, w_out)
+    partial_product(lane, threads, held, own, pair, matrix, pairs, direction, s_out)
+    grid_total(0.0, words, 0, blocks, stalled_out)
+    proj = wp.vec3()
+    for i in range(lane, n, threads):
+        proj += project_row(i, free, b, direction, mass, w_out, s_out)
+    warp_sum_add(proj[0], totals, 1)
+    warp_sum_add(proj[1], totals, 2)
+    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
+    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
+    dots = wp.vec2()
+    for i in range(lane, n, threads):
+        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
+    warp_sum_add(dots[1], totals, 0)
+    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
+    return wp.vec2(gamma, load_coherent(totals, 0))
+
+
 @wp.kernel
 def cg_solve(
     # inputs: launch shape
@@ -478,42 +529,12 @@ def cg_solve(
     n = free.shape[0]
     own = own_chunk(0, lane, matrix)
     pair = own_pair(0, lane, threads, matrix.chunk_row.shape[0], pairs)
-    partial_product(
-        lane,
-        threads,
-        0,
-        own,
-        pair,
-        matrix,
-        pairs,
-        x_out,
-        w_out,
-    )
-    partial_product(
-        lane,
-        threads,
-        0,
-        own,
-        pair,
-        matrix,
-        pairs,
-        direction,
-        s_out,
-    )
-    grid_total(0.0, words, 0, blocks, stalled_out)
-    proj = wp.vec3()
-    for i in range(lane, n, threads):
-        proj += project_row(i, free, b, direction, mass, w_out, s_out)
-    warp_sum_add(proj[0], totals, 1)
-    warp_sum_add(proj[1], totals, 2)
-    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
-    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
-    dots = wp.vec2()
-    for i in range(lane, n, threads):
-        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    warp_sum_add(dots[1], totals, 0)
-    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
-    bz = load_coherent(totals, 0)
+    start = solve_start(
+        lane, threads, blocks, 0, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
+        x_out, r_out, u_out, p_out, s_out, w_out, stalled_out,
+    )  # fmt: skip
+    gamma = start[0]
+    bz = start[1]
     tol2 = tolerance[0] * tolerance[0]
     max_k = max_iterations[0]
     k = int(0)
@@ -661,35 +682,26 @@ def cg_solve_held(
     product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add)
     and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
     registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
-    (read, written, zeroed), so no phase reads what it writes. The start is ``cg_solve``'s.
+    (read, written, zeroed), so no phase reads what it writes. The start is :func:`solve_start`, as in ``cg_solve``.
     """
     lane = wp.tid()
     n = free.shape[0]
     n_chunks = matrix.chunk_row.shape[0]
     own = own_chunk(1, lane, matrix)
     pair = own_pair(1, lane, threads, n_chunks, pairs)
-    partial_product(lane, threads, 1, own, pair, matrix, pairs, x_out, w_out)
-    partial_product(lane, threads, 1, own, pair, matrix, pairs, direction, s_out)
-    grid_total(0.0, words, 0, blocks, stalled_out)
-    proj = wp.vec3()
-    for i in range(lane, n, threads):
-        proj += project_row(i, free, b, direction, mass, w_out, s_out)
-    warp_sum_add(proj[0], totals, 1)
-    warp_sum_add(proj[1], totals, 2)
-    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
-    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
-    dots = wp.vec2()
-    for i in range(lane, n, threads):
-        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u2_out, p_out, s_out)
+    for i in range(lane, n, threads):  # the loop's buffers (u's first is the start's u), before its barriers
         u2_out[n + i] = wp.vec3()
         q2_out[i] = wp.vec3()
         q2_out[n + i] = wp.vec3()
         m3_out[i] = wp.vec3()
         m3_out[n + i] = wp.vec3()
         m3_out[2 * n + i] = wp.vec3()
-    warp_sum_add(dots[1], totals, 0)
-    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
-    bz = load_coherent(totals, 0)
+    start = solve_start(
+        lane, threads, blocks, 1, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
+        x_out, r_out, u2_out, p_out, s_out, w_out, stalled_out,
+    )  # fmt: skip
+    gamma = start[0]
+    bz = start[1]
     row = own.row
     D = diag_inv[row]
     first = lane == 0
