@@ -18,6 +18,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 """
 
 import warp as wp
+from warpfem.kernels.distance import add_rotated_gradients, interpolate_directions
 from warpfem.kernels.embedding import interpolate
 from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
@@ -29,22 +30,12 @@ def accumulate_gradients(
     rest_grad: wp.array(dtype=wp.vec3),
     grad_out: wp.array(dtype=wp.vec3),
 ):
-    """grad[v] += R_t g0[v] for each corner v of each tet t (zero ``grad_out`` first)."""
+    """grad[v] += R_t g0[v] for each corner v of each tet t (zero ``grad_out`` first).
+
+    The step does this in the elastic kernel, which has R_t at hand (``kernels.fem.elastic_forces_and_stiffness``).
+    """
     e = wp.tid()
-    t = tets[e]
-    R = rotation[e]
-    for a in range(4):
-        wp.atomic_add(grad_out, t[a], R * rest_grad[t[a]])
-
-
-@wp.kernel
-def normalize_gradients(grad_out: wp.array(dtype=wp.vec3)):
-    """g = normalize(sum_k R_k g0) per tet vertex (Kondo & Kanai step 7)."""
-    i = wp.tid()
-    g = grad_out[i]
-    n = wp.length(g)
-    if n > 0.0:
-        grad_out[i] = g / n
+    add_rotated_gradients(tets[e], rotation[e], rest_grad, grad_out)
 
 
 @wp.func
@@ -296,7 +287,7 @@ def record_contact(
     else:
         # deep inside: the paper's interpolated distance field and rotated gradients
         d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-        g = interpolate(grad, t, w)
+        g = interpolate_directions(grad, t, w)
     if d <= 0.0 or wp.length(g) == 0.0:
         return False
     wp.atomic_max(stats_out, 0, d)

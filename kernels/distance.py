@@ -58,3 +58,33 @@ def unsigned_distance(
         distance_out[i] = wp.length(wp.mesh_eval_position(surface, hit.face, hit.u, hit.v) - p)
     else:
         distance_out[i] = -1.0
+
+
+@wp.func
+def add_rotated_gradients(
+    t: wp.vec4i, R: wp.mat33, rest_grad: wp.array(dtype=wp.vec3), grad_out: wp.array(dtype=wp.vec3)
+):
+    """grad[v] += R g0[v] for the four corners v of a tet turned by R (Kondo & Kanai step 7, unnormalised)."""
+    for a in range(4):
+        wp.atomic_add(grad_out, t[a], R * rest_grad[t[a]])
+
+
+@wp.func
+def direction_at(grad: wp.array(dtype=wp.vec3), v: int) -> wp.vec3:
+    """normalize(sum_k R_k g0) at tet vertex v from the accumulated sum (zero stays zero)."""
+    g = grad[v]
+    n = wp.length(g)
+    if n > 0.0:
+        return g / n
+    return g
+
+
+@wp.func
+def interpolate_directions(grad: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.vec4) -> wp.vec3:
+    """The rotated gradients of a tet's corners, each normalised, blended with barycentric weights w."""
+    return (
+        w[0] * direction_at(grad, tet[0])
+        + w[1] * direction_at(grad, tet[1])
+        + w[2] * direction_at(grad, tet[2])
+        + w[3] * direction_at(grad, tet[3])
+    )

@@ -9,6 +9,7 @@ which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block c
 """
 
 import warp as wp
+from warpfem.kernels.distance import add_rotated_gradients
 
 
 @wp.func
@@ -56,14 +57,20 @@ def elastic_forces_and_stiffness(
     tet_lambda: wp.array(dtype=float),
     tet_beta: wp.array(dtype=float),
     tet_slots: wp.array(dtype=wp.int32),
+    rest_grad: wp.array(dtype=wp.vec3),
     # inputs: step
     dt: float,
     # outputs
     rotation_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
+    grad_out: wp.array(dtype=wp.vec3),
 ):
-    """Per tet: rotation, corotational elastic force (N), (dt^2 + dt beta) R K_ab R^T into the upper triangle."""
+    """Per tet: rotation, corotational elastic force (N), (dt^2 + dt beta) R K_ab R^T into the upper triangle.
+
+    With a ``grad_out`` (scenes with collisions; empty otherwise), also the distance gradients turned by the
+    tet's rotation, summed at its corners (see ``kernels.distance.add_rotated_gradients``).
+    """
     e = wp.tid()
     t = tets[e]
     x0 = x[t[0]]
@@ -72,6 +79,8 @@ def elastic_forces_and_stiffness(
     F = ds * dmi
     R = rotation_of(F)
     rotation_out[e] = R
+    if grad_out.shape[0] > 0:
+        add_rotated_gradients(t, R, rest_grad, grad_out)
 
     vol = rest_volume[e]
     mu = tet_mu[e]

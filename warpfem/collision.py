@@ -248,10 +248,12 @@ class Collider:
             device=self.model.device,
         )
 
-    def respond(
-        self, x: wp.array, v: wp.array, rotation: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array
-    ) -> None:
-        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs."""
+    def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:
+        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
+
+        Reads the rotated distance gradients in ``grad``: in a step the elastic launch sums them at ``x``;
+        elsewhere call :meth:`rotate_gradients` first.
+        """
         m = self.model
         dev = m.device
         # collision points and their velocities: the tet fields interpolated like the dense mesh
@@ -263,7 +265,6 @@ class Collider:
             device=dev,
         )
         self._bound(x)
-        self._rotate_gradients(rotation)
         self._detect(
             x,
             v,
@@ -330,8 +331,11 @@ class Collider:
         if refit:
             self.body_bvh.refit()
 
-    def _rotate_gradients(self, rotation: wp.array) -> None:
-        """grad = normalize(sum over incident tets of R_t g0), per tet vertex."""
+    def rotate_gradients(self, rotation: wp.array) -> None:
+        """grad = sum over incident tets of R_t g0, per tet vertex (detection normalises it where it reads it).
+
+        The step gets this from the elastic launch; this is for :meth:`deepest` and callers outside a step.
+        """
         m = self.model
         self.grad.zero_()
         wp.launch(
@@ -341,7 +345,6 @@ class Collider:
             outputs=[self.grad],
             device=m.device,
         )
-        wp.launch(K.normalize_gradients, dim=m.vertex_count, inputs=[], outputs=[self.grad], device=m.device)
 
     def _detect(
         self,
@@ -408,7 +411,7 @@ class Collider:
         """
         m = self.model
         dev = m.device
-        self._rotate_gradients(rotation)
+        self.rotate_gradients(rotation)
         self._bound(x)
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
         deepest = wp.zeros(1, dtype=float, device=dev)

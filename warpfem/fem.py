@@ -10,13 +10,22 @@ from warpfem.model import Model
 
 
 def elastic_forces_and_stiffness(
-    model: Model, x: wp.array, dt: float, rotation_out: wp.array, force_out: wp.array, matrix_out: wp.array
+    model: Model,
+    x: wp.array,
+    dt: float,
+    rotation_out: wp.array,
+    force_out: wp.array,
+    matrix_out: wp.array,
+    grad_out: wp.array | None = None,
 ) -> None:
     """Add every tet's corotational elastic force (N) and (dt^2 + dt beta) R K R^T to the outputs.
 
     ``force_out`` and ``matrix_out`` are accumulated into (zero them first); ``rotation_out`` receives each
-    tet's rotation. One launch for all bodies.
+    tet's rotation. ``grad_out`` (zeroed first; None or empty where nothing collides) accumulates the distance
+    gradients turned by the tets' rotations, for contact detection. One launch for all bodies.
     """
+    if grad_out is None:
+        grad_out = wp.zeros(0, dtype=wp.vec3, device=model.device)
     wp.launch(
         K.elastic_forces_and_stiffness,
         dim=model.tet_count,
@@ -29,9 +38,10 @@ def elastic_forces_and_stiffness(
             model.tet_lambda,
             model.tet_beta,
             model.tet_slots,
+            model.vertex_grad,
             dt,
         ],
-        outputs=[rotation_out, force_out, matrix_out],
+        outputs=[rotation_out, force_out, matrix_out, grad_out],
         device=model.device,
     )
 

@@ -88,6 +88,8 @@ class Solver:
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         coupling = self.collider.coupling if self.collider is not None else None
+        # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
+        self.grad = self.collider.grad if self.collider is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
         mode, _, blocks = (cg_path or "").partition(":")
         if blocks and (mode != "grid" or not blocks.isdigit()):
             raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
@@ -115,10 +117,11 @@ class Solver:
         def elastic() -> None:
             self.force.zero_()
             self.matrix.zero_()
-            fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix)
+            self.grad.zero_()
+            fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix, self.grad)
 
         def collision() -> None:
-            self.collider.respond(state_in.x, state_in.v, self.rotation, dt, self.force, self.matrix)
+            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
 
         def solve() -> None:
             integrate.build_system(
