@@ -146,15 +146,13 @@ class Solver:
             return [("elastic", elastic), ("solve", solve)]
         return [("elastic", elastic), ("collision", collision), ("solve", solve)]
 
-    def step(self, state_in: State, state_out: State, dt: float, timer: PhaseTimer | None = None) -> None:
+    def step(self, state_in: State, state_out: State, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
 
-        With a ``timer`` the device is synchronised after each phase to time it (not capturable).
+        (A timed run laps each phase through ``phases``: see ``warpfem.simulate.Simulation.frame_phases``.)
         """
-        for name, phase in self.phases(state_in, state_out, dt):
+        for _, phase in self.phases(state_in, state_out, dt):
             phase()
-            if timer:
-                timer.lap(name)
 
     def first_bad_vertex(self) -> int | None:
         """The lowest tet vertex that became NaN/Inf since the last call, or None (one host synchronisation)."""
