@@ -410,11 +410,23 @@ def cg_finish(
 ):
     """Single thread: counts the solve and its iterations (counts[0], counts[1]); keeps the largest residual."""
     k = done[0]
+    record_solve(k, gamma[k], bz[0], counts_out, residual_max_out)
+
+
+@wp.func
+def record_solve(
+    k: int,
+    gamma: float,
+    bz: float,
+    counts_out: wp.array(dtype=wp.int32),
+    residual_max_out: wp.array(dtype=float),
+):
+    """Count a solve of k iterations (counts[0], counts[1]) and keep the largest residual sqrt(gamma / bz)."""
     counts_out[0] = counts_out[0] + 1
     counts_out[1] = counts_out[1] + k
     res = float(0.0)
-    if bz[0] > 0.0:
-        res = wp.sqrt(wp.max(gamma[k], 0.0) / bz[0])
+    if bz > 0.0:
+        res = wp.sqrt(wp.max(gamma, 0.0) / bz)
     residual_max_out[0] = wp.max(residual_max_out[0], res)
 
 
@@ -522,8 +534,8 @@ def cg_solve(
     iteration, each also reducing a dot into its own slot of ``words``): no launch and no device-side loop
     node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
     reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
-    barriers vanish. Counts the solve like ``cg_finish``. Where every chunk has a thread of its own,
-    :func:`cg_solve_held` runs instead.
+    barriers vanish. Counts the solve as ``cg_finish`` does (:func:`record_solve`). Where every chunk has a
+    thread of its own, :func:`cg_solve_held` runs instead.
     """
     lane = wp.tid()
     n = free.shape[0]
@@ -564,12 +576,7 @@ def cg_solve(
         gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
         k += 1
     if lane == 0:
-        counts_out[0] = counts_out[0] + 1
-        counts_out[1] = counts_out[1] + k
-        res = float(0.0)
-        if bz > 0.0:
-            res = wp.sqrt(wp.max(gamma, 0.0) / bz)
-        residual_max_out[0] = wp.max(residual_max_out[0], res)
+        record_solve(k, gamma, bz, counts_out, residual_max_out)
 
 
 @wp.func
@@ -768,9 +775,4 @@ def cg_solve_held(
     if owner:
         x_out[row] = x
     if lane == 0:
-        counts_out[0] = counts_out[0] + 1
-        counts_out[1] = counts_out[1] + k
-        res = float(0.0)
-        if bz > 0.0:
-            res = wp.sqrt(wp.max(gamma, 0.0) / bz)
-        residual_max_out[0] = wp.max(residual_max_out[0], res)
+        record_solve(k, gamma, bz, counts_out, residual_max_out)

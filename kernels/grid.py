@@ -7,13 +7,21 @@ launch is one thread and these reduce to plain operations.
 
 import warp as wp
 
-GRID_TOTAL = r"""
-#if defined(__CUDA_ARCH__)
-__shared__ float grid_total_shared;
-unsigned long long* word = (unsigned long long*)words.data + slot;
+WARP_SUM = r"""
 float v = value;
 for (int offset = 16; offset > 0; offset >>= 1)
     v += __shfl_down_sync(0xffffffffu, v, offset);
+"""
+"""CUDA: ``v``, the sum of ``value`` over the warp, in its lane 0 (register shuffles, no shared memory)."""
+
+GRID_TOTAL = (
+    r"""
+#if defined(__CUDA_ARCH__)
+__shared__ float grid_total_shared;
+unsigned long long* word = (unsigned long long*)words.data + slot;
+"""
+    + WARP_SUM
+    + r"""
 if ((threadIdx.x & 31) == 0)
     atomicAdd((float*)word, v);
 __syncthreads();
@@ -42,18 +50,21 @@ float* total = (float*)((unsigned long long*)words.data + slot);
 return *total;
 #endif
 """
+)
 
-WARP_SUM_ADD = r"""
+WARP_SUM_ADD = (
+    r"""
 #if defined(__CUDA_ARCH__)
-float v = value;
-for (int offset = 16; offset > 0; offset >>= 1)
-    v += __shfl_down_sync(0xffffffffu, v, offset);
+"""
+    + WARP_SUM
+    + r"""
 if ((threadIdx.x & 31) == 0)
     atomicAdd(totals.data + slot, v);
 #else
 totals.data[slot] += value;
 #endif
 """
+)
 
 LOAD_COHERENT = r"""
 #if defined(__CUDA_ARCH__)
