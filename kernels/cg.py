@@ -32,7 +32,7 @@ the rows they read themselves; see its docstring).
 """
 
 import warp as wp
-from warpfem.kernels.grid import grid_total, load_coherent, warp_sum_add
+from warpfem.kernels.grid import grid_total, grid_totals
 from warpfem.kernels.product import (
     BlockMatrix,
     OwnChunk,
@@ -146,6 +146,7 @@ def cg_reset(
 @wp.kernel
 def cg_project(
     n: int,
+    diag_inv: wp.array(dtype=wp.mat33),
     free: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
@@ -153,15 +154,35 @@ def cg_project(
     w: wp.array(dtype=wp.vec3),
     s: wp.array(dtype=wp.vec3),
     project_out: wp.array(dtype=float),
+    bz_out: wp.array(dtype=float),
 ):
-    """d.(b - A x), d.A d and d.M d into project[0:3] (A x in w, A d in s)."""
+    """d.(b - A x), d.A d and d.M d into project[0:3] (A x in w, A d in s), b.M^-1 b into bz[0]."""
     i = wp.tid()
-    dots = wp.vec3()
+    dots = wp.vec2()
+    fixed = wp.vec2()
     if i < n:
-        dots = project_row(i, free, b, direction, mass, w, s)
+        dots = project_row(i, free, b, direction, w, s)
+        fixed = fixed_row(i, diag_inv, free, b, direction, mass)
     block_sum(dots[0], project_out, 0)
     block_sum(dots[1], project_out, 1)
-    block_sum(dots[2], project_out, 2)
+    block_sum(fixed[0], project_out, 2)
+    block_sum(fixed[1], bz_out, 0)
+
+
+@wp.func
+def fixed_row(
+    i: int,
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+) -> wp.vec2:
+    """Row i's share of the start's sums that need no product: (d.M d, b.M^-1 b)."""
+    d, b_i, m, D = direction[i], b[i], mass[i], diag_inv[i]
+    if free[i] == 0:
+        return wp.vec2()
+    return wp.vec2(m * wp.dot(d, d), wp.dot(b_i, D * b_i))
 
 
 @wp.func
@@ -170,16 +191,15 @@ def project_row(
     free: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
     w: wp.array(dtype=wp.vec3),
     s: wp.array(dtype=wp.vec3),
-) -> wp.vec3:
-    """Row i's share of (d.(b - A x), d.A d, d.M d), with A x in w and A d in s (d: the start's direction)."""
+) -> wp.vec2:
+    """Row i's share of (d.(b - A x), d.A d), with A x in w and A d in s (d: the start's direction)."""
     d = direction[i]
-    b_i, w_i, s_i, m = b[i], w[i], s[i], mass[i]
+    b_i, w_i, s_i = b[i], w[i], s[i]
     if free[i] == 0:
-        return wp.vec3()
-    return wp.vec3(wp.dot(d, b_i - w_i), wp.dot(d, s_i), m * wp.dot(d, d))
+        return wp.vec2()
+    return wp.vec2(wp.dot(d, b_i - w_i), wp.dot(d, s_i))
 
 
 SMOOTH = 2.0
@@ -214,25 +234,23 @@ def init_row(
     u_out: wp.array(dtype=wp.vec3),
     p_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
-) -> wp.vec2:
+) -> float:
     """Row i of the start: x += theta d, r = b - A x (A x in w, A d in s), u = M^-1 r, p = s = w = 0.
 
-    Returns (r.u, b.M^-1 b).
+    Returns r.u.
     """
     r = wp.vec3()
     u = wp.vec3()
-    bz = float(0.0)
     if free[i] != 0:
         x_out[i] = x_out[i] + theta * direction[i]
         r = b[i] - w_out[i] - theta * s_out[i]
         u = diag_inv[i] * r
-        bz = wp.dot(b[i], diag_inv[i] * b[i])
     r_out[i] = r
     u_out[i] = u
     p_out[i] = wp.vec3()
     s_out[i] = wp.vec3()
     w_out[i] = wp.vec3()
-    return wp.vec2(wp.dot(r, u), bz)
+    return wp.dot(r, u)
 
 
 @wp.func
@@ -289,16 +307,14 @@ def cg_init(
     p_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
     gamma_out: wp.array(dtype=float),
-    bz_out: wp.array(dtype=float),
 ):
-    """x += theta d, r = b - A x, u = M^-1 r, p = s = w = 0; r.u into gamma[0], b.M^-1 b into bz[0]."""
+    """x += theta d, r = b - A x, u = M^-1 r, p = s = w = 0; r.u into gamma[0]."""
     i = wp.tid()
     theta = line_step(project[0], project[1], project[2])
-    dots = wp.vec2()
+    ru = float(0.0)
     if i < n:
-        dots = init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    block_sum(dots[0], gamma_out, 0)
-    block_sum(dots[1], bz_out, 0)
+        ru = init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
+    block_sum(ru, gamma_out, 0)
 
 
 @wp.func
@@ -435,18 +451,20 @@ def cg_solve_reset(
     n: int,
     w_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
-    totals_out: wp.array(dtype=float),
     words_out: wp.array(dtype=wp.uint64),
 ):
-    """Zero w and s (n rows), the side sums and the barrier words of a persistent solve."""
+    """Zero w and s (n rows) and the barrier words of a persistent solve."""
     i = wp.tid()
     if i < n:
         w_out[i] = wp.vec3()
         s_out[i] = wp.vec3()
-    if i < totals_out.shape[0]:
-        totals_out[i] = 0.0
     if i < words_out.shape[0]:
         words_out[i] = wp.uint64(0)
+
+
+START_WORDS = 6
+"""Barrier words the start of a persistent solve uses (:func:`solve_start`; the iterations' come after, two
+per iteration, in aligned pairs where held: :func:`kernels.grid.grid_totals` reads a pair at once)."""
 
 
 @wp.func
@@ -465,7 +483,6 @@ def solve_start(
     direction: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     words: wp.array(dtype=wp.uint64),
-    totals: wp.array(dtype=float),
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
     u_out: wp.array(dtype=wp.vec3),
@@ -476,26 +493,27 @@ def solve_start(
 ) -> wp.vec2:
     """The start of a persistent solve: three grid barriers, (r.u, b.M^-1 b) returned.
 
-    A x and A d, the line step along d, then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`).
-    Uses words 0 to 2 and side sums 0 to 2.
+    A x and A d (with d.M d and b.M^-1 b at the barrier), the line step along d (d.(b - A x) and d.A d at the
+    second), then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`; r.u at the third). Uses
+    words 0 to 4 (:data:`START_WORDS`).
     """
     n = free.shape[0]
     partial_product(lane, threads, held, own, pair, matrix, pairs, x_out, w_out)
     partial_product(lane, threads, held, own, pair, matrix, pairs, direction, s_out)
-    grid_total(0.0, words, 0, blocks, stalled_out)
-    proj = wp.vec3()
+    fixed = wp.vec2()  # d.M d and b.M^-1 b need no product: they ride on the first barrier
     for i in range(lane, n, threads):
-        proj += project_row(i, free, b, direction, mass, w_out, s_out)
-    warp_sum_add(proj[0], totals, 1)
-    warp_sum_add(proj[1], totals, 2)
-    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
-    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
-    dots = wp.vec2()
+        fixed += fixed_row(i, diag_inv, free, b, direction, mass)
+    fixed = grid_totals(fixed, words, 0, blocks, stalled_out)
+    proj = wp.vec2()
     for i in range(lane, n, threads):
-        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    warp_sum_add(dots[1], totals, 0)
-    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
-    return wp.vec2(gamma, load_coherent(totals, 0))
+        proj += project_row(i, free, b, direction, w_out, s_out)
+    proj = grid_totals(proj, words, 2, blocks, stalled_out)
+    theta = line_step(proj[0], proj[1], fixed[0])
+    gamma = float(0.0)
+    for i in range(lane, n, threads):
+        gamma += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
+    gamma = grid_total(gamma, words, 4, blocks, stalled_out)
+    return wp.vec2(gamma, fixed[1])
 
 
 @wp.kernel
@@ -516,7 +534,6 @@ def cg_solve(
     max_iterations: wp.array(dtype=wp.int32),
     # synchronisation (zeroed by cg_solve_reset, as are w and s)
     words: wp.array(dtype=wp.uint64),
-    totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
@@ -542,7 +559,7 @@ def cg_solve(
     own = own_chunk(0, lane, matrix)
     pair = own_pair(0, lane, threads, matrix.chunk_row.shape[0], pairs)
     start = solve_start(
-        lane, threads, blocks, 0, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
+        lane, threads, blocks, 0, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words,
         x_out, r_out, u_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -564,7 +581,7 @@ def cg_solve(
             u_out,
             w_out,
         )
-        delta = grid_total(part, words, 3 + 2 * k, blocks, stalled_out)
+        delta = grid_total(part, words, START_WORDS + 2 * k, blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:
             break
@@ -573,7 +590,7 @@ def cg_solve(
             ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
         gamma_prev = gamma
         a_prev = a
-        gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
+        gamma = grid_total(ru, words, START_WORDS + 1 + 2 * k, blocks, stalled_out)
         k += 1
     if lane == 0:
         record_solve(k, gamma, bz, counts_out, residual_max_out)
@@ -666,7 +683,6 @@ def cg_solve_held(
     max_iterations: wp.array(dtype=wp.int32),
     # synchronisation (zeroed by cg_solve_reset, as are w and s)
     words: wp.array(dtype=wp.uint64),
-    totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
@@ -704,7 +720,7 @@ def cg_solve_held(
         m3_out[n + i] = wp.vec3()
         m3_out[2 * n + i] = wp.vec3()
     start = solve_start(
-        lane, threads, blocks, 1, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
+        lane, threads, blocks, 1, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words,
         x_out, r_out, u2_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -758,13 +774,12 @@ def cg_solve_held(
                 pairs.verts_a[c], pairs.weights_a[c], pairs.verts_b[c], pairs.weights_b[c], pairs.matrix[c], n,
                 j, a, beta, diag_inv, m3_out, q2_out, u2_out,
             )  # fmt: skip
-        if j > 0:
-            warp_sum_add(part[1], totals, 2 + j)
-        delta = grid_total(part[0], words, 3 + j, blocks, stalled_out)
+        sums = grid_totals(part, words, START_WORDS + 2 * j, blocks, stalled_out)
+        delta = sums[0]
         if j > 0:
             gamma_prev = gamma
             a_prev = a
-            gamma = load_coherent(totals, 2 + j)
+            gamma = sums[1]
             k += 1
         if not (k < max_k and gamma > 0.0 and gamma > tol2 * bz):
             break
