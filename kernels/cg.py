@@ -26,27 +26,24 @@ on small, latency-bound systems and, since the barrier uses release/acquire oper
 On the CPU the same kernel runs as a single thread.
 
 Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones),
-``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks, and its first contact pair,
-in registers for the whole solve, and the iteration meets at one barrier instead of two (the threads advance
-the rows they read themselves; see its docstring).
+``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks (or a corner of its first
+contact pair) in registers for the whole solve, and the iteration meets at one barrier instead of two (the
+threads advance the rows they read themselves; see its docstring).
 """
 
 import warp as wp
-from warpfem.kernels.grid import grid_total, grid_totals
+from warpfem.kernels.grid import grid_total, grid_totals, quad_sum
 from warpfem.kernels.product import (
+    PAIR_LANES,
     BlockMatrix,
     OwnChunk,
-    OwnPair,
     Pairs,
     chunk_product,
-    first_pair,
     held_terms,
     live_pairs,
-    mat43,
     own_chunk,
-    own_pair,
+    pair_corner,
     pair_product,
-    pair_terms,
     partial_product,
 )
 
@@ -474,7 +471,6 @@ def solve_start(
     blocks: int,
     held: int,
     own: OwnChunk,
-    pair: OwnPair,
     matrix: BlockMatrix,
     pairs: Pairs,
     diag_inv: wp.array(dtype=wp.mat33),
@@ -498,8 +494,8 @@ def solve_start(
     words 0 to 4 (:data:`START_WORDS`).
     """
     n = free.shape[0]
-    partial_product(lane, threads, held, own, pair, matrix, pairs, x_out, w_out)
-    partial_product(lane, threads, held, own, pair, matrix, pairs, direction, s_out)
+    partial_product(lane, threads, held, own, matrix, pairs, x_out, w_out)
+    partial_product(lane, threads, held, own, matrix, pairs, direction, s_out)
     fixed = wp.vec2()  # d.M d and b.M^-1 b need no product: they ride on the first barrier
     for i in range(lane, n, threads):
         fixed += fixed_row(i, diag_inv, free, b, direction, mass)
@@ -557,9 +553,8 @@ def cg_solve(
     lane = wp.tid()
     n = free.shape[0]
     own = own_chunk(0, lane, matrix)
-    pair = own_pair(0, lane, threads, matrix.chunk_row.shape[0], pairs)
     start = solve_start(
-        lane, threads, blocks, 0, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words,
+        lane, threads, blocks, 0, own, matrix, pairs, diag_inv, free, b, direction, mass, words,
         x_out, r_out, u_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -570,17 +565,7 @@ def cg_solve(
     gamma_prev = float(0.0)
     a_prev = float(0.0)
     while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
-        part = partial_product(
-            lane,
-            threads,
-            0,
-            own,
-            pair,
-            matrix,
-            pairs,
-            u_out,
-            w_out,
-        )
+        part = partial_product(lane, threads, 0, own, matrix, pairs, u_out, w_out)
         delta = grid_total(part, words, START_WORDS + 2 * k, blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:
@@ -636,11 +621,11 @@ def advanced_u(
 
 
 @wp.func
-def held_pair_phase(
-    va: wp.vec4i,
-    wa: wp.vec4,
-    vb: wp.vec4i,
-    wb: wp.vec4,
+def held_corner_phase(
+    vert_a: int,
+    weight_a: float,
+    vert_b: int,
+    weight_b: float,
     C: wp.mat33,
     n: int,
     j: int,
@@ -651,18 +636,21 @@ def held_pair_phase(
     q2: wp.array(dtype=wp.vec3),
     u2: wp.array(dtype=wp.vec3),
 ) -> float:
-    """One coupling pair at phase j: m_j += M^-1 (pair's A u_j) at its eight vertices; returns its u.A u."""
-    Ua = mat43()
-    Ub = mat43()
-    for k in range(4):
-        Ua[k] = advanced_u(va[k], n, j, a, beta, m3, q2, u2)
-        Ub[k] = advanced_u(vb[k], n, j, a, beta, m3, q2, u2)
-    Da, Db, dot = pair_terms(Ua, Ub, wa, wb, C)
+    """One corner of a coupling pair at phase j (see :class:`kernels.product.PairCorner`), by its group's lane.
+
+    The four lanes sum the pair's relative value s = J u_j (:func:`kernels.grid.quad_sum`); each adds
+    M^-1 (J^T C J less its diagonal blocks) u_j at its two vertices into m_j, as ``kernels.product.pair_terms``
+    does for a whole pair, and returns its share of u.A u.
+    """
+    ua = advanced_u(vert_a, n, j, a, beta, m3, q2, u2)
+    ub = advanced_u(vert_b, n, j, a, beta, m3, q2, u2)
+    s = quad_sum(weight_a * ua + weight_b * ub)
+    da = weight_a * (C * (s - weight_a * ua))
+    db = weight_b * (C * (s - weight_b * ub))
     out = (j % 3) * n
-    for k in range(4):
-        wp.atomic_add(m3, out + va[k], diag_inv[va[k]] * Da[k])
-        wp.atomic_add(m3, out + vb[k], diag_inv[vb[k]] * Db[k])
-    return dot
+    wp.atomic_add(m3, out + vert_a, diag_inv[vert_a] * da)
+    wp.atomic_add(m3, out + vert_b, diag_inv[vert_b] * db)
+    return wp.dot(ua, da) + wp.dot(ub, db)
 
 
 @wp.kernel
@@ -670,6 +658,7 @@ def cg_solve_held(
     # inputs: launch shape
     threads: int,
     blocks: int,
+    pair_lanes: int,
     # inputs: matrix
     matrix: BlockMatrix,
     pairs: Pairs,
@@ -702,7 +691,8 @@ def cg_solve_held(
     m = M^-1 A u: q_k = m_k + beta q_{k-1}, u_{k+1} = u_k - alpha q_k, and gamma = u.M u, so the update of a
     row needs only that row. Each thread holding a chunk (or a coupling pair) computes u_{k+1} of the rows
     it reads itself, right after the barrier that delivers gamma_k and delta_k, and goes straight on to the
-    product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add)
+    product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add;
+    the coupling pairs go to the last ``pair_lanes`` lanes, :data:`PAIR_LANES` to a pair, one corner each)
     and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
     registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
     (read, written, zeroed), so no phase reads what it writes. The start is :func:`solve_start`, as in ``cg_solve``.
@@ -711,7 +701,11 @@ def cg_solve_held(
     n = free.shape[0]
     n_chunks = matrix.chunk_row.shape[0]
     own = own_chunk(1, lane, matrix)
-    pair = own_pair(1, lane, threads, n_chunks, pairs)
+    pair0 = threads - pair_lanes  # the pair blocks, at the end of the grid: a group of PAIR_LANES lanes per pair
+    group = (lane - pair0) // PAIR_LANES
+    groups = pair_lanes // PAIR_LANES
+    live = live_pairs(pairs)
+    corner = pair_corner(group, lane % PAIR_LANES, pairs)  # the group's first pair, held for the solve
     for i in range(lane, n, threads):  # the loop's buffers (u's first is the start's u), before its barriers
         u2_out[n + i] = wp.vec3()
         q2_out[i] = wp.vec3()
@@ -720,7 +714,7 @@ def cg_solve_held(
         m3_out[n + i] = wp.vec3()
         m3_out[2 * n + i] = wp.vec3()
     start = solve_start(
-        lane, threads, blocks, 1, own, pair, matrix, pairs, diag_inv, free, b, direction, mass, words,
+        lane, threads, blocks, 1, own, matrix, pairs, diag_inv, free, b, direction, mass, words,
         x_out, r_out, u2_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -764,16 +758,19 @@ def cg_solve_held(
                 p = u_old + beta * p
                 x = x + a * p
                 part[1] = wp.dot(u_row, A_ii * u_row)
-        if pair.count != 0:
-            part[0] += held_pair_phase(
-                pair.verts_a, pair.weights_a, pair.verts_b, pair.weights_b, pair.C, n, j, a, beta, diag_inv,
-                m3_out, q2_out, u2_out,
-            )  # fmt: skip
-        for c in range(first_pair(lane, threads, n_chunks) + threads, pair.live, threads):
-            part[0] += held_pair_phase(
-                pairs.verts_a[c], pairs.weights_a[c], pairs.verts_b[c], pairs.weights_b[c], pairs.matrix[c], n,
-                j, a, beta, diag_inv, m3_out, q2_out, u2_out,
-            )  # fmt: skip
+        if lane >= pair0:  # whole blocks: the branch keeps every warp together
+            for c in range(group, live, groups):
+                if c == group:
+                    part[0] += held_corner_phase(
+                        corner.vert_a, corner.weight_a, corner.vert_b, corner.weight_b, corner.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
+                    )  # fmt: skip
+                else:
+                    other = pair_corner(c, lane % PAIR_LANES, pairs)
+                    part[0] += held_corner_phase(
+                        other.vert_a, other.weight_a, other.vert_b, other.weight_b, other.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
+                    )  # fmt: skip
         sums = grid_totals(part, words, START_WORDS + 2 * j, blocks, stalled_out)
         delta = sums[0]
         if j > 0:

@@ -62,9 +62,8 @@ if (threadIdx.x == 0) {
     unsigned long long seen_v = 0, seen_w = 0;
     if (gridDim.x > 1) {
         int spins = 0;
-        asm volatile("fence.acq_rel.gpu;" ::: "memory");
-        asm volatile("red.relaxed.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 1), "r"(1) : "memory");
-        asm volatile("red.relaxed.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 3), "r"(1) : "memory");
+        asm volatile("red.release.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 1), "r"(1) : "memory");
+        asm volatile("red.release.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 3), "r"(1) : "memory");
         do {
             asm volatile("ld.acquire.gpu.global.v2.b64 {%0, %1}, [%2];"
                          : "=l"(seen_v), "=l"(seen_w) : "l"(word) : "memory");
@@ -121,6 +120,34 @@ def grid_totals(
     The two warp sums interleave their shuffles, and the arrival poll reads both words with one 128-bit
     load with acquire semantics (each word carries its own count: a word whose count is complete holds its
     whole sum), so the second sum costs no round trip to memory after the barrier. Each block arrives
-    with one release fence and two relaxed adds.
+    with an atomic add with release semantics on each count.
+    """
+    ...
+
+
+QUAD_SUM = r"""
+#if defined(__CUDA_ARCH__)
+unsigned int group = 0xfu << (threadIdx.x & 28);
+float x = value.c[0];
+float y = value.c[1];
+float z = value.c[2];
+for (int offset = 2; offset > 0; offset >>= 1) {
+    x += __shfl_xor_sync(group, x, offset);
+    y += __shfl_xor_sync(group, y, offset);
+    z += __shfl_xor_sync(group, z, offset);
+}
+return wp::vec3(x, y, z);
+#else
+return value;
+#endif
+"""
+
+
+@wp.func_native(QUAD_SUM)
+def quad_sum(value: wp.vec3) -> wp.vec3:
+    """The sum of ``value`` over the caller's group of four lanes (lanes 4g to 4g + 3 of its warp), to each.
+
+    Register shuffles; the four lanes must reach it together (the others of the warp need not). The block
+    size must be a multiple of 32. On the CPU, where a launch is one thread, it returns ``value``.
     """
     ...

@@ -263,49 +263,39 @@ def first_pair(lane: int, threads: int, n_chunks: int) -> int:
     return ((lane - n_chunks) % threads + threads) % threads
 
 
+PAIR_LANES = 4
+"""Threads per coupling pair in the held solve (``kernels.cg.cg_solve_held``): lane k of a pair's group takes
+corner k of both its points, and the group sums the pair's relative value with register shuffles."""
+
+
 @wp.struct
-class OwnPair:
-    """A thread's first coupling pair, in registers for a whole solve (the pairs do not change during it).
+class PairCorner:
+    """Corner k of a coupling pair: what lane k of the pair's group needs (see :data:`PAIR_LANES`).
 
     Attributes:
-        verts_a: Point a's vertices. weights_a: Their weights.
-        verts_b: Point b's vertices. weights_b: Their weights.
+        vert_a: Point a's k-th vertex. weight_a: Its weight.
+        vert_b: Point b's k-th vertex. weight_b: Its weight, negated (J u = sum of weight u over the corners).
         C: The pair's 3x3 matrix.
-        count: 1 if the thread has a pair, else 0.
-        live: The live pairs of the solve (read once).
     """
 
-    verts_a: wp.vec4i
-    weights_a: wp.vec4
-    verts_b: wp.vec4i
-    weights_b: wp.vec4
+    vert_a: int
+    weight_a: float
+    vert_b: int
+    weight_b: float
     C: wp.mat33
-    count: int
-    live: int
 
 
 @wp.func
-def own_pair(
-    held: int,
-    lane: int,
-    threads: int,
-    n_chunks: int,
-    pairs: Pairs,
-) -> OwnPair:
-    """The thread's first pair (:func:`first_pair`) and the live count, loaded once per solve where ``held``."""
-    h = OwnPair()
-    if held == 0:
-        return h
-    h.live = live_pairs(pairs)
-    c = first_pair(lane, threads, n_chunks)
-    if c < h.live:
-        h.verts_a = pairs.verts_a[c]
-        h.weights_a = pairs.weights_a[c]
-        h.verts_b = pairs.verts_b[c]
-        h.weights_b = pairs.weights_b[c]
-        h.C = pairs.matrix[c]
-        h.count = 1
-    return h
+def pair_corner(c: int, k: int, pairs: Pairs) -> PairCorner:
+    """Corner ``k`` (0..3) of coupling pair ``c``; zero weights (it adds nothing) where ``c`` is not live."""
+    corner = PairCorner()
+    if c >= 0 and c < live_pairs(pairs):
+        corner.vert_a = pairs.verts_a[c][k]
+        corner.weight_a = pairs.weights_a[c][k]
+        corner.vert_b = pairs.verts_b[c][k]
+        corner.weight_b = -pairs.weights_b[c][k]
+        corner.C = pairs.matrix[c]
+    return corner
 
 
 @wp.func
@@ -313,28 +303,13 @@ def pair_share(
     lane: int,
     threads: int,
     n_chunks: int,
-    held: int,
-    own: OwnPair,
     pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
 ) -> float:
-    """The calling thread's share of the pairs' w += A u and u.w (pairs strided over ``threads`` threads).
-
-    With ``held`` set the first pair and the live count come from ``own`` (:func:`own_pair`), so that pair
-    costs one round trip to memory (u at its vertices) instead of three (the count, the pair, then u); the
-    pairs past one per thread are read as without.
-    """
+    """The calling thread's share of the pairs' w += A u and u.w (pairs strided over ``threads`` threads)."""
     dot = float(0.0)
-    first = first_pair(lane, threads, n_chunks)
-    live = own.live
-    if held != 0:
-        if own.count != 0:
-            dot += embedded_product(own.verts_a, own.weights_a, own.verts_b, own.weights_b, own.C, u, w_out)
-        first += threads
-    else:
-        live = live_pairs(pairs)
-    for c in range(first, live, threads):
+    for c in range(first_pair(lane, threads, n_chunks), live_pairs(pairs), threads):
         dot += pair_product(c, pairs, u, w_out)
     return dot
 
@@ -424,7 +399,6 @@ def partial_product(
     threads: int,
     held: int,
     held_chunk: OwnChunk,
-    held_pair: OwnPair,
     matrix: BlockMatrix,
     pairs: Pairs,
     u: wp.array(dtype=wp.vec3),
@@ -432,9 +406,8 @@ def partial_product(
 ) -> float:
     """The calling thread's share of w += A u and of u.w (w zeroed before; chunks and pairs strided over threads).
 
-    With ``held`` set, every chunk has a thread of its own: ``held_chunk`` is this thread's (:func:`own_chunk`)
-    and ``held_pair`` its first pair (:func:`own_pair`). Else the thread walks chunks ``lane``,
-    ``lane + threads``, ... reading their entries and blocks.
+    With ``held`` set, every chunk has a thread of its own: ``held_chunk`` is this thread's (:func:`own_chunk`).
+    Else the thread walks chunks ``lane``, ``lane + threads``, ... reading their entries and blocks.
     """
     n_chunks = matrix.chunk_row.shape[0]
     dot = float(0.0)
@@ -443,4 +416,4 @@ def partial_product(
     else:
         for i in range(lane, n_chunks, threads):
             dot += chunk_product(i, matrix, u, w_out)
-    return dot + pair_share(lane, threads, n_chunks, held, held_pair, pairs, u, w_out)
+    return dot + pair_share(lane, threads, n_chunks, pairs, u, w_out)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import warp as wp
+from warpfem.kernels.product import PAIR_LANES
 
 from warpfem import cg as cg_module
 from warpfem.cg import CGSolver, Coupling
@@ -147,10 +148,15 @@ def test_coupling_pairs_enter_every_product(device, unroll, path, monkeypatch):
 
 
 def test_pairs_beyond_one_per_thread(device):
-    """More pairs than the persistent launch has threads (one block of 256 on CUDA): the held first pair of
-    each thread and the ones it reads past it both enter the product."""
-    cg = _check_coupled_solve(device, 300, 320, dict(mode="grid", grid_blocks=1))
-    assert cg.held == wp.get_device(device).is_cuda
+    """More pairs than the held solve's pair lanes take at once (``HELD_PAIR_BLOCKS`` blocks, ``PAIR_LANES``
+    lanes a pair, on CUDA) or than one block has threads (256, with grid_blocks=1): the group's held first
+    pair and the ones it reads past it both enter the product."""
+    on_cuda = wp.get_device(device).is_cuda
+    cg = _check_coupled_solve(device, 300, 320, dict(mode="grid"))
+    assert cg.held == on_cuda
+    if on_cuda:
+        assert cg.pair_lanes // PAIR_LANES < 300 <= cg.grid_threads
+    assert not _check_coupled_solve(device, 300, 320, dict(mode="grid", grid_blocks=1)).held  # no room for pairs
 
 
 def _check_coupled_solve(device, pairs: int, capacity: int, options: dict) -> CGSolver:

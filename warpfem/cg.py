@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels.product import OWN_CHUNK_ENTRIES, BlockMatrix, Pairs
+from warpfem.kernels.product import OWN_CHUNK_ENTRIES, PAIR_LANES, BlockMatrix, Pairs
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
@@ -31,6 +31,10 @@ MODES = ("grid", "launches")
 PRODUCTS = ("gather", "scatter")
 """How the matrix product runs: each row gathers its blocks and their mirrors (no atomic per block), or
 each stored block also scatters its transpose into another row with an atomic add (half the reads)."""
+
+HELD_PAIR_BLOCKS = 4
+"""The most blocks the held solve gives its coupling pairs (:data:`kernels.product.PAIR_LANES` lanes a pair:
+256 pairs at once; more take turns)."""
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU (one
@@ -216,26 +220,32 @@ class CGSolver:
         # iteration (one pair where held, for the phases 0..capacity)
         self.words = wp.zeros(K.START_WORDS + 2 * (self.capacity + 1), dtype=wp.uint64, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
-        if self.device.is_cuda:
-            # a thread per row or chunk, and a block more for the coupling pairs (they start past the chunks)
-            pair_block = 1 if coupling.matrix.shape[0] > 0 else 0
-            wanted = grid_blocks if grid_blocks is not None else -(-max(n, len(rows), 1) // BLOCK) + pair_block
-            self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
-        else:
-            self.grid_blocks = 1
-        self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
         # each thread's chunk in registers for the whole grid solve where every chunk has a thread: on an H100
         # 5.57 against 6.67 us per iteration on paper scene A, 4.22 against 5.91 on C (one session,
         # scripts/results/cg-held-chunks-cuda0-20261122T211605Z.json); that solve (cg_solve_held) also meets at
         # one barrier per iteration instead of two: paper scene C 1.10/1.09 against 1.33/1.32 ms per frame
         # (scripts/results/ab-new-9edaa2c-*.json against ab-prev-38a8c9c-*.json)
-        self.held = bool(
+        holdable = (
             hold_chunks
+            and self.device.is_cuda
             and self.mode == "grid"
             and self.product == "gather"
             and self.chunk <= OWN_CHUNK_ENTRIES
-            and self.grid_threads >= len(rows)
         )
+        # the held solve's coupling pairs take blocks of their own at the end of the grid, PAIR_LANES lanes a pair
+        pairs_capacity = coupling.matrix.shape[0]
+        pair_blocks = min(HELD_PAIR_BLOCKS, -(-pairs_capacity * PAIR_LANES // BLOCK)) if holdable else 0
+        if self.device.is_cuda:
+            # a thread per row or chunk, and the pair blocks (else one block more, the pairs start past the chunks)
+            chunk_blocks = -(-max(n, len(rows), 1) // BLOCK)
+            extra = pair_blocks if holdable else int(pairs_capacity > 0)
+            wanted = grid_blocks if grid_blocks is not None else chunk_blocks + extra
+            self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
+        else:
+            self.grid_blocks = 1
+        self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
+        self.held = bool(holdable and (self.grid_blocks - pair_blocks) * BLOCK >= len(rows))
+        self.pair_lanes = pair_blocks * BLOCK if self.held else 0
         if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
             self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
@@ -317,6 +327,7 @@ class CGSolver:
             stats = [self.counts, self.residual_max, self.stalled]
             if self.held:
                 kernel = K.cg_solve_held
+                shape.append(self.pair_lanes)
                 outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
             else:
                 kernel = K.cg_solve
