@@ -32,7 +32,7 @@ threads advance the rows they read themselves; see its docstring).
 """
 
 import warp as wp
-from warpfem.kernels.grid import grid_total, grid_totals, quad_sum
+from warpfem.kernels.grid import grid_total, load_coherent, quad_sum, warp_sum_add
 from warpfem.kernels.product import (
     PAIR_LANES,
     BlockMatrix,
@@ -143,7 +143,6 @@ def cg_reset(
 @wp.kernel
 def cg_project(
     n: int,
-    diag_inv: wp.array(dtype=wp.mat33),
     free: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
@@ -151,35 +150,15 @@ def cg_project(
     w: wp.array(dtype=wp.vec3),
     s: wp.array(dtype=wp.vec3),
     project_out: wp.array(dtype=float),
-    bz_out: wp.array(dtype=float),
 ):
-    """d.(b - A x), d.A d and d.M d into project[0:3] (A x in w, A d in s), b.M^-1 b into bz[0]."""
+    """d.(b - A x), d.A d and d.M d into project[0:3] (A x in w, A d in s)."""
     i = wp.tid()
-    dots = wp.vec2()
-    fixed = wp.vec2()
+    dots = wp.vec3()
     if i < n:
-        dots = project_row(i, free, b, direction, w, s)
-        fixed = fixed_row(i, diag_inv, free, b, direction, mass)
+        dots = project_row(i, free, b, direction, mass, w, s)
     block_sum(dots[0], project_out, 0)
     block_sum(dots[1], project_out, 1)
-    block_sum(fixed[0], project_out, 2)
-    block_sum(fixed[1], bz_out, 0)
-
-
-@wp.func
-def fixed_row(
-    i: int,
-    diag_inv: wp.array(dtype=wp.mat33),
-    free: wp.array(dtype=wp.int32),
-    b: wp.array(dtype=wp.vec3),
-    direction: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-) -> wp.vec2:
-    """Row i's share of the start's sums that need no product: (d.M d, b.M^-1 b)."""
-    d, b_i, m, D = direction[i], b[i], mass[i], diag_inv[i]
-    if free[i] == 0:
-        return wp.vec2()
-    return wp.vec2(m * wp.dot(d, d), wp.dot(b_i, D * b_i))
+    block_sum(dots[2], project_out, 2)
 
 
 @wp.func
@@ -188,15 +167,16 @@ def project_row(
     free: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
     w: wp.array(dtype=wp.vec3),
     s: wp.array(dtype=wp.vec3),
-) -> wp.vec2:
-    """Row i's share of (d.(b - A x), d.A d), with A x in w and A d in s (d: the start's direction)."""
+) -> wp.vec3:
+    """Row i's share of (d.(b - A x), d.A d, d.M d), with A x in w and A d in s (d: the start's direction)."""
     d = direction[i]
-    b_i, w_i, s_i = b[i], w[i], s[i]
+    b_i, w_i, s_i, m = b[i], w[i], s[i], mass[i]
     if free[i] == 0:
-        return wp.vec2()
-    return wp.vec2(wp.dot(d, b_i - w_i), wp.dot(d, s_i))
+        return wp.vec3()
+    return wp.vec3(wp.dot(d, b_i - w_i), wp.dot(d, s_i), m * wp.dot(d, d))
 
 
 SMOOTH = 2.0
@@ -231,23 +211,25 @@ def init_row(
     u_out: wp.array(dtype=wp.vec3),
     p_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
-) -> float:
+) -> wp.vec2:
     """Row i of the start: x += theta d, r = b - A x (A x in w, A d in s), u = M^-1 r, p = s = w = 0.
 
-    Returns r.u.
+    Returns (r.u, b.M^-1 b).
     """
     r = wp.vec3()
     u = wp.vec3()
+    bz = float(0.0)
     if free[i] != 0:
         x_out[i] = x_out[i] + theta * direction[i]
         r = b[i] - w_out[i] - theta * s_out[i]
         u = diag_inv[i] * r
+        bz = wp.dot(b[i], diag_inv[i] * b[i])
     r_out[i] = r
     u_out[i] = u
     p_out[i] = wp.vec3()
     s_out[i] = wp.vec3()
     w_out[i] = wp.vec3()
-    return wp.dot(r, u)
+    return wp.vec2(wp.dot(r, u), bz)
 
 
 @wp.func
@@ -304,14 +286,16 @@ def cg_init(
     p_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
     gamma_out: wp.array(dtype=float),
+    bz_out: wp.array(dtype=float),
 ):
-    """x += theta d, r = b - A x, u = M^-1 r, p = s = w = 0; r.u into gamma[0]."""
+    """x += theta d, r = b - A x, u = M^-1 r, p = s = w = 0; r.u into gamma[0], b.M^-1 b into bz[0]."""
     i = wp.tid()
     theta = line_step(project[0], project[1], project[2])
-    ru = float(0.0)
+    dots = wp.vec2()
     if i < n:
-        ru = init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    block_sum(ru, gamma_out, 0)
+        dots = init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
+    block_sum(dots[0], gamma_out, 0)
+    block_sum(dots[1], bz_out, 0)
 
 
 @wp.func
@@ -448,20 +432,18 @@ def cg_solve_reset(
     n: int,
     w_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
+    totals_out: wp.array(dtype=float),
     words_out: wp.array(dtype=wp.uint64),
 ):
-    """Zero w and s (n rows) and the barrier words of a persistent solve."""
+    """Zero w and s (n rows), the side sums and the barrier words of a persistent solve."""
     i = wp.tid()
     if i < n:
         w_out[i] = wp.vec3()
         s_out[i] = wp.vec3()
+    if i < totals_out.shape[0]:
+        totals_out[i] = 0.0
     if i < words_out.shape[0]:
         words_out[i] = wp.uint64(0)
-
-
-START_WORDS = 6
-"""Barrier words the start of a persistent solve uses (:func:`solve_start`; the iterations' come after, two
-per iteration, in aligned pairs where held: :func:`kernels.grid.grid_totals` reads a pair at once)."""
 
 
 @wp.func
@@ -479,6 +461,7 @@ def solve_start(
     direction: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
     u_out: wp.array(dtype=wp.vec3),
@@ -489,27 +472,26 @@ def solve_start(
 ) -> wp.vec2:
     """The start of a persistent solve: three grid barriers, (r.u, b.M^-1 b) returned.
 
-    A x and A d (with d.M d and b.M^-1 b at the barrier), the line step along d (d.(b - A x) and d.A d at the
-    second), then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`; r.u at the third). Uses
-    words 0 to 4 (:data:`START_WORDS`).
+    A x and A d, the line step along d, then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`).
+    Uses words 0 to 2 and side sums 0 to 2.
     """
     n = free.shape[0]
     partial_product(lane, threads, held, own, matrix, pairs, x_out, w_out)
     partial_product(lane, threads, held, own, matrix, pairs, direction, s_out)
-    fixed = wp.vec2()  # d.M d and b.M^-1 b need no product: they ride on the first barrier
+    grid_total(0.0, words, 0, blocks, stalled_out)
+    proj = wp.vec3()
     for i in range(lane, n, threads):
-        fixed += fixed_row(i, diag_inv, free, b, direction, mass)
-    fixed = grid_totals(fixed, words, 0, blocks, stalled_out)
-    proj = wp.vec2()
+        proj += project_row(i, free, b, direction, mass, w_out, s_out)
+    warp_sum_add(proj[0], totals, 1)
+    warp_sum_add(proj[1], totals, 2)
+    dmd = grid_total(proj[2], words, 1, blocks, stalled_out)
+    theta = line_step(load_coherent(totals, 1), load_coherent(totals, 2), dmd)
+    dots = wp.vec2()
     for i in range(lane, n, threads):
-        proj += project_row(i, free, b, direction, w_out, s_out)
-    proj = grid_totals(proj, words, 2, blocks, stalled_out)
-    theta = line_step(proj[0], proj[1], fixed[0])
-    gamma = float(0.0)
-    for i in range(lane, n, threads):
-        gamma += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
-    gamma = grid_total(gamma, words, 4, blocks, stalled_out)
-    return wp.vec2(gamma, fixed[1])
+        dots += init_row(i, theta, diag_inv, free, b, direction, x_out, w_out, r_out, u_out, p_out, s_out)
+    warp_sum_add(dots[1], totals, 0)
+    gamma = grid_total(dots[0], words, 2, blocks, stalled_out)
+    return wp.vec2(gamma, load_coherent(totals, 0))
 
 
 @wp.kernel
@@ -530,6 +512,7 @@ def cg_solve(
     max_iterations: wp.array(dtype=wp.int32),
     # synchronisation (zeroed by cg_solve_reset, as are w and s)
     words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
@@ -554,7 +537,7 @@ def cg_solve(
     n = free.shape[0]
     own = own_chunk(0, lane, matrix)
     start = solve_start(
-        lane, threads, blocks, 0, own, matrix, pairs, diag_inv, free, b, direction, mass, words,
+        lane, threads, blocks, 0, own, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
         x_out, r_out, u_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -566,7 +549,7 @@ def cg_solve(
     a_prev = float(0.0)
     while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
         part = partial_product(lane, threads, 0, own, matrix, pairs, u_out, w_out)
-        delta = grid_total(part, words, START_WORDS + 2 * k, blocks, stalled_out)
+        delta = grid_total(part, words, 3 + 2 * k, blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:
             break
@@ -575,7 +558,7 @@ def cg_solve(
             ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
         gamma_prev = gamma
         a_prev = a
-        gamma = grid_total(ru, words, START_WORDS + 1 + 2 * k, blocks, stalled_out)
+        gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
         k += 1
     if lane == 0:
         record_solve(k, gamma, bz, counts_out, residual_max_out)
@@ -672,6 +655,7 @@ def cg_solve_held(
     max_iterations: wp.array(dtype=wp.int32),
     # synchronisation (zeroed by cg_solve_reset, as are w and s)
     words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     r_out: wp.array(dtype=wp.vec3),
@@ -714,7 +698,7 @@ def cg_solve_held(
         m3_out[n + i] = wp.vec3()
         m3_out[2 * n + i] = wp.vec3()
     start = solve_start(
-        lane, threads, blocks, 1, own, matrix, pairs, diag_inv, free, b, direction, mass, words,
+        lane, threads, blocks, 1, own, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
         x_out, r_out, u2_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
@@ -771,12 +755,13 @@ def cg_solve_held(
                         other.vert_a, other.weight_a, other.vert_b, other.weight_b, other.C, n, j, a, beta,
                         diag_inv, m3_out, q2_out, u2_out,
                     )  # fmt: skip
-        sums = grid_totals(part, words, START_WORDS + 2 * j, blocks, stalled_out)
-        delta = sums[0]
+        if j > 0:
+            warp_sum_add(part[1], totals, 2 + j)
+        delta = grid_total(part[0], words, 3 + j, blocks, stalled_out)
         if j > 0:
             gamma_prev = gamma
             a_prev = a
-            gamma = sums[1]
+            gamma = load_coherent(totals, 2 + j)
             k += 1
         if not (k < max_k and gamma > 0.0 and gamma > tol2 * bz):
             break

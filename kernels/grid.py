@@ -1,4 +1,4 @@
-"""Device-wide synchronisation for persistent launches: grid barriers that also sum one or two values.
+"""Device-wide synchronisation for persistent launches: a grid barrier, warp sums and coherent loads.
 
 A persistent launch keeps at most one block per SM resident for its whole life, and its blocks meet at
 :func:`grid_total` instead of at kernel boundaries (see ``warpfem.kernels.cg.cg_solve``). On the CPU a
@@ -7,13 +7,21 @@ launch is one thread and these reduce to plain operations.
 
 import warp as wp
 
-GRID_TOTAL = r"""
+WARP_SUM = r"""
+float v = value;
+for (int offset = 16; offset > 0; offset >>= 1)
+    v += __shfl_down_sync(0xffffffffu, v, offset);
+"""
+"""CUDA: ``v``, the sum of ``value`` over the warp, in its lane 0 (register shuffles, no shared memory)."""
+
+GRID_TOTAL = (
+    r"""
 #if defined(__CUDA_ARCH__)
 __shared__ float grid_total_shared;
 unsigned long long* word = (unsigned long long*)words.data + slot;
-float v = value;  // the warp's sum in its lane 0: register shuffles, no shared memory
-for (int offset = 16; offset > 0; offset >>= 1)
-    v += __shfl_down_sync(0xffffffffu, v, offset);
+"""
+    + WARP_SUM
+    + r"""
 if ((threadIdx.x & 31) == 0)
     atomicAdd((float*)word, v);
 __syncthreads();
@@ -42,54 +50,45 @@ float* total = (float*)((unsigned long long*)words.data + slot);
 return *total;
 #endif
 """
+)
 
-GRID_TOTALS = r"""
+WARP_SUM_ADD = (
+    r"""
 #if defined(__CUDA_ARCH__)
-__shared__ float grid_totals_shared[2];
-unsigned long long* word = (unsigned long long*)words.data + slot;
-float v = value.c[0];
-float w = value.c[1];
-for (int offset = 16; offset > 0; offset >>= 1) {
-    v += __shfl_down_sync(0xffffffffu, v, offset);
-    w += __shfl_down_sync(0xffffffffu, w, offset);
-}
-if ((threadIdx.x & 31) == 0) {
-    atomicAdd((float*)word, v);
-    atomicAdd((float*)(word + 1), w);
-}
-__syncthreads();
-if (threadIdx.x == 0) {
-    unsigned long long seen_v = 0, seen_w = 0;
-    if (gridDim.x > 1) {
-        int spins = 0;
-        asm volatile("red.release.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 1), "r"(1) : "memory");
-        asm volatile("red.release.gpu.global.add.u32 [%0], %1;" :: "l"((unsigned int*)word + 3), "r"(1) : "memory");
-        do {
-            asm volatile("ld.acquire.gpu.global.v2.b64 {%0, %1}, [%2];"
-                         : "=l"(seen_v), "=l"(seen_w) : "l"(word) : "memory");
-            if (++spins > (1 << 24)) {
-                atomicExch(stalled.data, 1);
-                break;
-            }
-        } while ((unsigned int)(seen_v >> 32) < (unsigned int)blocks
-                 || (unsigned int)(seen_w >> 32) < (unsigned int)blocks);
-    } else {
-        seen_v = ((volatile unsigned long long*)word)[0];
-        seen_w = ((volatile unsigned long long*)word)[1];
-    }
-    grid_totals_shared[0] = __uint_as_float((unsigned int)(seen_v & 0xffffffffull));
-    grid_totals_shared[1] = __uint_as_float((unsigned int)(seen_w & 0xffffffffull));
-}
-__syncthreads();
-return wp::vec2(grid_totals_shared[0], grid_totals_shared[1]);
+"""
+    + WARP_SUM
+    + r"""
+if ((threadIdx.x & 31) == 0)
+    atomicAdd(totals.data + slot, v);
 #else
-float* total = (float*)((unsigned long long*)words.data + slot);
-float* other = (float*)((unsigned long long*)words.data + slot + 1);
-*total += value.c[0];
-*other += value.c[1];
-return wp::vec2(*total, *other);
+totals.data[slot] += value;
 #endif
 """
+)
+
+LOAD_COHERENT = r"""
+#if defined(__CUDA_ARCH__)
+return *((volatile float*)values.data + index);
+#else
+return values.data[index];
+#endif
+"""
+
+
+@wp.func_native(WARP_SUM_ADD)
+def warp_sum_add(value: float, totals: wp.array(dtype=float), slot: int):
+    """Add ``value`` of every thread into ``totals[slot]``, one atomic per warp of 32.
+
+    A register shuffle sum per warp (no shared memory, no block barrier). Every thread of the warp must
+    reach it.
+    """
+    ...
+
+
+@wp.func_native(LOAD_COHERENT)
+def load_coherent(values: wp.array(dtype=float), index: int) -> float:
+    """``values[index]`` read from the device's shared cache (not a stale per-SM copy), after a barrier."""
+    ...
 
 
 @wp.func_native(GRID_TOTAL)
@@ -107,20 +106,6 @@ def grid_total(
     (the host launches at most one block per SM); a launch of one block needs only the block barrier. A
     barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather than hang the
     device. On the CPU, where a launch is one thread, it adds ``value`` to the slot and returns it.
-    """
-    ...
-
-
-@wp.func_native(GRID_TOTALS)
-def grid_totals(
-    value: wp.vec2, words: wp.array(dtype=wp.uint64), slot: int, blocks: int, stalled: wp.array(dtype=wp.int32)
-) -> wp.vec2:
-    """:func:`grid_total` of two values at once, in ``words[slot]`` and ``words[slot + 1]`` (``slot`` even).
-
-    The two warp sums interleave their shuffles, and the arrival poll reads both words with one 128-bit
-    load with acquire semantics (each word carries its own count: a word whose count is complete holds its
-    whole sum), so the second sum costs no round trip to memory after the barrier. Each block arrives
-    with an atomic add with release semantics on each count.
     """
     ...
 

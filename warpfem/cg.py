@@ -216,9 +216,10 @@ class CGSolver:
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
-        # the grid solve's barrier words, each with its sum (kernels.grid.grid_total): the start's, then two per
-        # iteration (one pair where held, for the phases 0..capacity)
-        self.words = wp.zeros(K.START_WORDS + 2 * (self.capacity + 1), dtype=wp.uint64, device=self.device)
+        # the grid solve's side sums (three, and gamma per iteration where held) and barriers with their sums
+        # (kernels.grid.grid_total): three to start, then two per iteration (one where held, plus one)
+        self.totals = wp.zeros(3 + self.capacity, dtype=float, device=self.device)
+        self.words = wp.zeros(4 + 2 * self.capacity, dtype=wp.uint64, device=self.device)
         self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
         # each thread's chunk in registers for the whole grid solve where every chunk has a thread: on an H100
         # 5.57 against 6.67 us per iteration on paper scene A, 4.22 against 5.91 on C (one session,
@@ -317,13 +318,13 @@ class CGSolver:
                 K.cg_solve_reset,
                 dim=max(n, self.words.shape[0]),
                 inputs=[n],
-                outputs=[self.w, self.s, self.words],
+                outputs=[self.w, self.s, self.totals, self.words],
                 device=dev,
                 record_cmd=True,
             )
             shape = [threads, self.grid_blocks]
             system = [self._matrix(values), self.pairs, diag_inv, self.free, b, direction, mass]
-            limits = [self.tolerance, self.max_iterations, self.words]
+            limits = [self.tolerance, self.max_iterations, self.words, self.totals]
             stats = [self.counts, self.residual_max, self.stalled]
             if self.held:
                 kernel = K.cg_solve_held
@@ -368,8 +369,8 @@ class CGSolver:
                 K.cg_project,
                 dim=self.padded,
                 block_dim=BLOCK,
-                inputs=[n, diag_inv, self.free, b, direction, mass, self.w, self.s],
-                outputs=[self.project, self.bz],
+                inputs=[n, self.free, b, direction, mass, self.w, self.s],
+                outputs=[self.project],
                 device=dev,
                 record_cmd=True,
             ),
@@ -378,7 +379,7 @@ class CGSolver:
                 dim=self.padded,
                 block_dim=BLOCK,
                 inputs=[n, diag_inv, self.free, b, direction, self.project],
-                outputs=[x, self.w, self.r, self.u, self.p, self.s, self.gamma],
+                outputs=[x, self.w, self.r, self.u, self.p, self.s, self.gamma, self.bz],
                 device=dev,
                 record_cmd=True,
             ),
