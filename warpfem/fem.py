@@ -6,6 +6,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import fem as K
+from warpfem.launch import spread_block_dim
 from warpfem.model import Model
 
 
@@ -43,6 +44,7 @@ def elastic_forces_and_stiffness(
         ],
         outputs=[rotation_out, force_out, matrix_out, grad_out],
         device=model.device,
+        block_dim=spread_block_dim(model.tet_count, model.device),
     )
 
 

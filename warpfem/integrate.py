@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
+from warpfem.launch import spread_block_dim
 from warpfem.model import Model, State
 
 
@@ -126,6 +127,7 @@ def build_system(
         ],
         outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out],
         device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
     )
 
 
@@ -149,4 +151,5 @@ def advance_positions(
         inputs=[x, v, v_new, dt],
         outputs=[x_out, dv_out, bad_vertex_out],
         device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
     )
