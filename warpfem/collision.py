@@ -23,7 +23,6 @@ import warp as wp
 
 from warpfem.cg import Coupling
 from warpfem.kernels import collision as K
-from warpfem.launch import spread_block_dim
 
 
 @dataclass(frozen=True)
@@ -264,7 +263,6 @@ class Collider:
             inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
             outputs=[self.points, self.point_velocity, self.speed_max],
             device=dev,
-            block_dim=spread_block_dim(self.points.shape[0], dev),
         )
         self._bound(x)
         self._detect(
@@ -309,7 +307,6 @@ class Collider:
                 self.contacts_total,
             ],
             device=dev,
-            block_dim=spread_block_dim(self.capacity, dev),
         )
 
     def _bound(self, x: wp.array, refit: bool = True) -> None:
@@ -405,7 +402,6 @@ class Collider:
                 depth_max_out,
             ],
             device=m.device,
-            block_dim=spread_block_dim(points.shape[0] * lanes, m.device),
         )
 
     def deepest(self, x: wp.array, rotation: wp.array, points: np.ndarray, point_body: np.ndarray) -> float:

@@ -17,6 +17,9 @@ def spread_block_dim(count: int, device) -> int:
     In blocks of 256, a small launch (a paper scene's ~1,400 tets) runs on a handful of SMs, and their issue
     of its loads and atomic adds, not the memory, sets its time; smaller blocks put a block on every SM
     where the count allows. A launch of 256 or more threads per SM keeps the default. The CPU ignores it.
+    For launches whose threads issue many atomic adds or loads of their own (elastic forces and blocks, the
+    system's rows); not for tree walks, whose threads read the same nodes and gain from sharing an SM's
+    cache (contact detection took 38 against 21 us per step on paper scene C in blocks of 32, ncu).
 
     Args:
         count: Threads of the launch.
