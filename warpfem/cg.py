@@ -34,7 +34,9 @@ each stored block also scatters its transpose into another row with an atomic ad
 
 HELD_PAIR_BLOCKS = 4
 """The most blocks the held solve gives its coupling pairs (:data:`kernels.product.PAIR_LANES` lanes a pair:
-256 pairs at once; more take turns)."""
+256 pairs at once; more take turns). On an H100 in one session (two interleaved rounds,
+scripts/results/ab-tune-*-20261123T04*.json): 2 blocks within the spread of 4, 1 block slower on scene B
+(3.88/4.21 against 3.43/3.26 ms per frame)."""
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU (one

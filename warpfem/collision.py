@@ -46,7 +46,8 @@ DEFAULT_COLLISION = CollisionSettings()
 
 DETECT_LANES = 4
 """Threads per collision point of contact detection on CUDA, each walking every fourth of the bodies whose
-boxes hold the point (one thread on the CPU, where parallel lanes buy nothing)."""
+boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Two lanes measured within the
+spread on the paper scenes and slightly behind on piles of 4 and 16 (H100, scripts/results/ab-tune-*.json)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
