@@ -20,6 +20,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 import warp as wp
 from warpfem.kernels.distance import add_rotated_gradients, interpolate_directions
 from warpfem.kernels.embedding import interpolate
+from warpfem.kernels.grid import warp_max_at
 from warpfem.kernels.integrate import FRICTION_SPEED_EPS
 
 
@@ -93,8 +94,8 @@ def collision_points(
 ):
     """Collision point positions and velocities (interpolated like the dense mesh); per body the top speed.
 
-    The speed is an atomic max per body, attempted only when above the value already there (few attempts
-    once the maximum is in).
+    The speed is an atomic max per body, one per warp where the warp's points are one body's (the points are
+    stored body after body), attempted only when above the value already there (:func:`kernels.grid.warp_max_at`).
     """
     i = wp.tid()
     t = tets[point_tet[i]]
@@ -103,9 +104,7 @@ def collision_points(
     u = interpolate(v, t, w)
     point_velocity_out[i] = u
     speed = wp.length(u)
-    body = point_body[i]
-    if speed > speed_max_out[body]:
-        wp.atomic_max(speed_max_out, body, speed)
+    warp_max_at(speed, point_body[i], speed_max_out)
 
 
 BLOCK_SYNC = r"""

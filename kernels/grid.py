@@ -136,3 +136,32 @@ def quad_sum(value: wp.vec3) -> wp.vec3:
     size must be a multiple of 32. On the CPU, where a launch is one thread, it returns ``value``.
     """
     ...
+
+
+WARP_MAX_AT = r"""
+float* slot = wp::address(maxima, key);
+#if defined(__CUDA_ARCH__)
+unsigned int lanes = __activemask();
+if (lanes == 0xffffffffu && __all_sync(lanes, key == __shfl_sync(lanes, key, 0))) {
+    float m = value;
+    for (int offset = 16; offset > 0; offset >>= 1)
+        m = fmaxf(m, __shfl_xor_sync(lanes, m, offset));
+    if ((threadIdx.x & 31) == 0 && m > *slot)
+        wp::atomic_max(slot, m);
+    return;
+}
+#endif
+if (value > *slot)
+    wp::atomic_max(slot, value);
+"""
+
+
+@wp.func_native(WARP_MAX_AT)
+def warp_max_at(value: float, key: int, maxima: wp.array(dtype=float)):
+    """``maxima[key] = max(maxima[key], value)``, one atomic per warp where the whole warp shares ``key``.
+
+    A full warp of one key takes its maximum with register shuffles and its lane 0 alone reads the slot and
+    adds (a launch's threads hammering a few slots serialise there); other warps, and the CPU, do it per
+    thread, each only when its value is above what the slot already holds.
+    """
+    ...
