@@ -1,4 +1,4 @@
-"""Device-wide synchronisation for persistent launches: a grid barrier, warp sums and coherent loads.
+"""Synchronisation and reductions across threads: grid barriers, warp and lane-group sums, warp maxima.
 
 A persistent launch keeps at most one block per SM resident for its whole life, and its blocks meet at
 :func:`grid_total` instead of at kernel boundaries (see ``warpfem.kernels.cg.cg_solve``). On the CPU a

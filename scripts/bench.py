@@ -37,8 +37,14 @@ from warpfem.embedding import map_dense  # noqa: E402
 from warpfem.model import ModelBuilder, State  # noqa: E402
 from warpfem.preprocess import prepare  # noqa: E402
 from warpfem.scene import ObjectConfig, load_scene  # noqa: E402
-from warpfem.simulate import Contacts, Simulation, add_prepared_body, dense_penetration, solver_of  # noqa: E402
-from warpfem.solver import PhaseTimer  # noqa: E402
+from warpfem.simulate import (  # noqa: E402
+    Contacts,
+    PhaseTimer,
+    Simulation,
+    add_prepared_body,
+    dense_penetration,
+    solver_of,
+)
 
 PILES = (1, 4, 16, 64, 256, 1024)
 

@@ -19,7 +19,7 @@ from warpfem.integrate import Box, Ground, Sphere
 from warpfem.model import Model, ModelBuilder
 from warpfem.preprocess import PreparedBody, prepare
 from warpfem.scene import ObjectConfig, SceneConfig
-from warpfem.solver import PhaseTimer, Solver
+from warpfem.solver import Solver
 
 FAST_TURN = 0.03
 """Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
@@ -154,6 +154,27 @@ def solver_of(scene: SceneConfig, model: Model, cg_path: str | None = None) -> S
         collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
         cg_path=cg_path,
     )
+
+
+class PhaseTimer:
+    """Wall time per phase (s), measured by synchronising the device at each phase boundary."""
+
+    def __init__(self, device) -> None:
+        self.device = device
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def start(self) -> None:
+        """Synchronise and start timing the next phase."""
+        wp.synchronize_device(self.device)
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        """Synchronise and add the time since the last lap (or start) to ``phase``."""
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
+        self._last = now
 
 
 class Simulation:

@@ -8,7 +8,6 @@ replays.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -23,27 +22,6 @@ from warpfem.model import Model, State
 DEFAULT_GROUND = Ground()
 
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
-
-
-class PhaseTimer:
-    """Wall time per phase (s), measured by synchronising the device at each phase boundary."""
-
-    def __init__(self, device) -> None:
-        self.device = device
-        self.seconds: dict[str, float] = {}
-        self._last = time.perf_counter()
-
-    def start(self) -> None:
-        """Synchronise and start timing the next phase."""
-        wp.synchronize_device(self.device)
-        self._last = time.perf_counter()
-
-    def lap(self, phase: str) -> None:
-        """Synchronise and add the time since the last lap (or start) to ``phase``."""
-        wp.synchronize_device(self.device)
-        now = time.perf_counter()
-        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
-        self._last = now
 
 
 class Solver:
