@@ -254,7 +254,7 @@ def phase_split(sim: Simulation, start: State, frames: int, device) -> dict:
     sim.states[0].assign(start)
     model = sim.model
     work = [
-        *sim.frame_phases(),
+        *sim.frame_phases(overlap=False),  # each phase its own graph: the collision stage's prepare in its own
         ("map", lambda: map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)),
     ]
     if device.is_cuda:

@@ -249,23 +249,32 @@ class Collider:
             device=self.model.device,
         )
 
-    def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:
-        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
+    def prepare(self, x: wp.array, v: wp.array) -> None:
+        """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
 
-        Reads the rotated distance gradients in ``grad``: in a step the elastic launch sums them at ``x``;
-        elsewhere call :meth:`rotate_gradients` first.
+        The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
+        inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
+        another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
         """
         m = self.model
-        dev = m.device
-        # collision points and their velocities: the tet fields interpolated like the dense mesh
         wp.launch(
             K.collision_points,
             dim=self.points.shape[0],
             inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
             outputs=[self.points, self.point_velocity, self.speed_max],
-            device=dev,
+            device=m.device,
         )
         self._bound(x)
+
+    def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:
+        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
+
+        Needs :meth:`prepare` at the same ``x`` and ``v`` first. Reads the rotated distance gradients in
+        ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
+        first.
+        """
+        m = self.model
+        dev = m.device
         self._detect(
             x,
             v,

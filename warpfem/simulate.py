@@ -190,17 +190,17 @@ class Simulation:
         self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
         self._graph = None
 
-    def frame_phases(self) -> list[tuple[str, Callable[[], None]]]:
+    def frame_phases(self, overlap: bool = True) -> list[tuple[str, Callable[[], None]]]:
         """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
 
         The states alternate between substeps; after an odd count the last one is copied back into
-        ``states[0]`` as part of the last "solve".
+        ``states[0]`` as part of the last "solve". ``overlap``: see ``Solver.phases``.
         """
         a, b = self.states
         out = []
         for i in range(self.substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            out += self.solver.phases(src, dst, self.dt)
+            out += self.solver.phases(src, dst, self.dt, overlap)
         if self.substeps % 2 == 1:
             out.append(("solve", lambda: a.assign(b)))
         return out
@@ -208,7 +208,7 @@ class Simulation:
     def _substeps(self, timer: PhaseTimer | None = None) -> None:
         if timer:
             timer.start()
-        for name, phase in self.frame_phases():
+        for name, phase in self.frame_phases(overlap=timer is None):
             phase()
             if timer:
                 timer.lap(name)

@@ -65,6 +65,8 @@ class Solver:
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
+        # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
+        self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
         # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
         self.grad = self.collider.grad if self.collider is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
@@ -88,17 +90,34 @@ class Solver:
         """Set gravity (m/s^2); takes effect in captured graphs too."""
         self.gravity.assign(np.array([gravity], dtype=np.float32))
 
-    def phases(self, state_in: State, state_out: State, dt: float) -> list[tuple[str, Callable[[], None]]]:
-        """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve."""
+    def phases(
+        self, state_in: State, state_out: State, dt: float, overlap: bool = True
+    ) -> list[tuple[str, Callable[[], None]]]:
+        """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve.
+
+        With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: collision points,
+        tet inverses, trees, none of which the elastic launch touches) runs on a side stream alongside the
+        elastic launch, forked in "elastic" and joined in "collision" (in a captured graph, two branches);
+        without it, in order (what a timer that synchronises at each phase boundary needs).
+        """
         model = self.model
+        side = self._side if overlap and self.collider is not None else None
 
         def elastic() -> None:
+            if side is not None:
+                side.wait_stream(wp.get_stream(model.device))
+                with wp.ScopedStream(side, sync_enter=False):
+                    self.collider.prepare(state_in.x, state_in.v)
             self.force.zero_()
             self.matrix.zero_()
             self.grad.zero_()
             fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix, self.grad)
 
         def collision() -> None:
+            if side is not None:
+                wp.get_stream(model.device).wait_stream(side)
+            else:
+                self.collider.prepare(state_in.x, state_in.v)
             self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
 
         def solve() -> None:
