@@ -219,9 +219,10 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     assert not collision_kernels & set(_count_launches(monkeypatch, Solver(model, collision=None), model))
 
 
-def test_overlapped_captured_steps_match_serial_direct_ones(device):
+def test_overlapped_captured_step_matches_a_serial_direct_one(device):
     """On CUDA the collision stage's preparation runs on a side stream beside the elastic launch, forked and
-    joined inside the captured graph: replays give what the phases run one after another give."""
+    joined inside the captured graph: from the same state, a replayed step prepares bit for bit what the
+    phases run one after another prepare, finds the same contacts and lands where that step lands."""
     if not wp.get_device(device).is_cuda:
         pytest.skip("streams and graph capture need a CUDA device")
     b = ModelBuilder()
@@ -229,23 +230,32 @@ def test_overlapped_captured_steps_match_serial_direct_ones(device):
     b.add_body("b", *_box((0.02, 0.21, 0.03), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, velocity=(0, -2, 0))
     model = b.finalize(device)
     solver = Solver(model, ground=Ground(), cg_iterations=100, cg_tolerance=1e-6)
+    c = solver.collider
     dt = 1 / 240
-    serial = [model.state(), model.state()]
-    for i in range(20):
-        for _, phase in solver.phases(serial[i % 2], serial[1 - i % 2], dt, overlap=False):
-            phase()
-    contacts_serial = solver.collider.read_stats()[0]
-    s0, s1 = model.state(), model.state()
+    start = _run(solver, model, 8, dt)  # b has landed on a: contacts in every step from here
+
+    def prepared_and_found():
+        n = int(c.count.numpy()[0])
+        assert n > 0
+        contacts = set(zip(c.contact_point.numpy()[:n].tolist(), c.contact_tet.numpy()[:n].tolist(), strict=True))
+        buffers = [c.points, c.point_velocity, c.tet_inverse, c.tet_origin, c.node_lower, c.node_upper]
+        return [a.numpy().copy() for a in buffers], contacts
+
+    out = model.state()
+    for _, phase in solver.phases(start, out, dt, overlap=False):
+        phase()
+    serial_buffers, serial_contacts = prepared_and_found()
+    serial_x = out.x.numpy().copy()
+    c.points.zero_()  # what the replay prepares must be its own
+    c.tet_inverse.zero_()
     with wp.ScopedCapture(device=device) as capture:
-        solver.step(s0, s1, dt)
-        solver.step(s1, s0, dt)
-    for _ in range(10):
-        wp.capture_launch(capture.graph)
-    assert contacts_serial > 0  # the bodies touch: detection and response ran in every step
-    # the same contacts (up to a point at a tet's face that float atomics, summed in another order, tip over)
-    assert abs(solver.collider.read_stats()[0] - contacts_serial) <= 0.01 * contacts_serial
-    np.testing.assert_allclose(s0.x.numpy(), serial[0].x.numpy(), atol=1e-5)
-    np.testing.assert_allclose(s0.v.numpy(), serial[0].v.numpy(), atol=1e-3)
+        solver.step(start, out, dt)
+    wp.capture_launch(capture.graph)
+    buffers, contacts = prepared_and_found()
+    for got, want in zip(buffers, serial_buffers, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert contacts == serial_contacts
+    np.testing.assert_allclose(out.x.numpy(), serial_x, atol=1e-6)
 
 
 def test_contact_buffer_overflow_is_reported(device):
