@@ -217,6 +217,7 @@ def time_scene(
         "fps": 1000.0 / ms,
         "phase_ms": {**phase_ms, "output": output_ms(sim)},
         "phase_rerun_gap_m": rerun_gap,
+        "collision_prepare_overlapped": solver.overlapped,
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "cg_path": solver.cg.mode,

@@ -16,11 +16,17 @@ PEER_HOURS = 12
 def split_text(runs: list[dict]) -> str:
     """How the runs' phase split was measured (runs before the trajectory split have no rerun gap)."""
     if all("phase_rerun_gap_m" in r for r in runs):
-        return (
+        text = (
             "the timed frames run again from their start, each phase of a frame its own captured graph, timed"
             " on the device by events between them, so the parts add up to about the whole (on the GPU the rerun"
             " drifts from the timed run, as float atomics add in another order: `phase_rerun_gap_m` in the JSON)."
         )
+        if any(r.get("collision_prepare_overlapped") for r in runs):
+            text += (
+                " A timed frame runs the collision stage's preparation beside the elastic launch; the split runs"
+                " them one after the other, so where bodies collide its parts add up to a little more than the whole."
+            )
+        return text
     return (
         "each phase of a step captured as its own graph and replayed at the state the timed frames ended in"
         " (approximate: the parts need not add up to the whole)."

@@ -143,6 +143,11 @@ class Solver:
             return [("elastic", elastic), ("solve", solve)]
         return [("elastic", elastic), ("collision", collision), ("solve", solve)]
 
+    @property
+    def overlapped(self) -> bool:
+        """Whether a step runs the collision stage's preparation beside the elastic launch (see ``phases``)."""
+        return self._side is not None
+
     def step(self, state_in: State, state_out: State, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
 
