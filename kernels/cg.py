@@ -564,56 +564,51 @@ def cg_solve(
         record_solve(k, gamma, bz, counts_out, residual_max_out)
 
 
-@wp.struct
-class RowAt:
-    """What phase j of :func:`cg_solve_held` reads of a row: m_{j-1}, q_{j-2} and u_{j-1} (:func:`row_at`)."""
-
-    m: wp.vec3
-    q: wp.vec3
-    u: wp.vec3
-
-
 @wp.func
-def row_at(
-    c: int, n: int, j: int, m3: wp.array(dtype=wp.vec3), q2: wp.array(dtype=wp.vec3), u2: wp.array(dtype=wp.vec3)
-) -> RowAt:
-    """Row c's m_{j-1}, q_{j-2} and u_{j-1} from the buffers (all written before the barrier ending phase j - 1).
-
-    Read right after that barrier, before the iteration's scalars arrive, so the two round trips to memory
-    overlap (see :func:`cg_solve_held`).
-    """
-    r = RowAt()
-    r.m = m3[((j + 2) % 3) * n + c]
-    r.q = q2[(j % 2) * n + c]
-    r.u = u2[(j % 2) * n + c]
-    return r
-
-
-@wp.func
-def advanced(r: RowAt, a: float, beta: float):
-    """A row's (u_j, q_{j-1}, u_{j-1}) at phase j from what :func:`row_at` read of it.
+def advanced(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+):
+    """Row c at phase j of :func:`cg_solve_held`: (u_{j}, q_{j-1}, u_{j-1}) from the buffers.
 
     q_{j-1} = m_{j-1} + beta q_{j-2} and u_j = u_{j-1} - a q_{j-1}, with m = M^-1 A u; every thread that
     needs row c computes it the same way, so no barrier separates the update from the product.
     """
-    q = r.m + beta * r.q
-    return r.u - a * q, q, r.u
+    m = m3[((j + 2) % 3) * n + c]
+    q_old = q2[(j % 2) * n + c]
+    u_old = u2[(j % 2) * n + c]
+    q = m + beta * q_old
+    return u_old - a * q, q, u_old
 
 
 @wp.func
-def advanced_u(r: RowAt, a: float, beta: float) -> wp.vec3:
-    """u_j of a row (see :func:`advanced`)."""
-    return r.u - a * (r.m + beta * r.q)
+def advanced_u(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """u_j of row c (see :func:`advanced`)."""
+    u, q, u_old = advanced(c, n, j, a, beta, m3, q2, u2)
+    return u
 
 
 @wp.func
 def held_corner_phase(
     vert_a: int,
     weight_a: float,
-    at_a: RowAt,
     vert_b: int,
     weight_b: float,
-    at_b: RowAt,
     C: wp.mat33,
     n: int,
     j: int,
@@ -621,16 +616,17 @@ def held_corner_phase(
     beta: float,
     diag_inv: wp.array(dtype=wp.mat33),
     m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
 ) -> float:
     """One corner of a coupling pair at phase j (see :class:`kernels.product.PairCorner`), by its group's lane.
 
-    ``at_a`` and ``at_b`` are what :func:`row_at` read of its two vertices. The four lanes sum the pair's
-    relative value s = J u_j (:func:`kernels.grid.quad_sum`); each adds M^-1 (J^T C J less its diagonal
-    blocks) u_j at its two vertices into m_j, as ``kernels.product.pair_terms`` does for a whole pair, and
-    returns its share of u.A u.
+    The four lanes sum the pair's relative value s = J u_j (:func:`kernels.grid.quad_sum`); each adds
+    M^-1 (J^T C J less its diagonal blocks) u_j at its two vertices into m_j, as ``kernels.product.pair_terms``
+    does for a whole pair, and returns its share of u.A u.
     """
-    ua = advanced_u(at_a, a, beta)
-    ub = advanced_u(at_b, a, beta)
+    ua = advanced_u(vert_a, n, j, a, beta, m3, q2, u2)
+    ub = advanced_u(vert_b, n, j, a, beta, m3, q2, u2)
     s = quad_sum(weight_a * ua + weight_b * ub)
     da = weight_a * (C * (s - weight_a * ua))
     db = weight_b * (C * (s - weight_b * ub))
@@ -678,9 +674,8 @@ def cg_solve_held(
     The same Chronopoulos-Gear iteration, with the preconditioned vectors u = M^-1 r, q = M^-1 s and
     m = M^-1 A u: q_k = m_k + beta q_{k-1}, u_{k+1} = u_k - alpha q_k, and gamma = u.M u, so the update of a
     row needs only that row. Each thread holding a chunk (or a coupling pair) computes u_{k+1} of the rows
-    it reads itself, right after the barrier that delivers delta_k (it reads the rows' buffers first and
-    gamma_k's side sum after, so the two round trips to memory overlap: :func:`row_at`), and goes straight
-    on to the product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add;
+    it reads itself, right after the barrier that delivers gamma_k and delta_k, and goes straight on to the
+    product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add;
     the coupling pairs go to the last ``pair_lanes`` lanes, :data:`PAIR_LANES` to a pair, one corner each)
     and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
     registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
@@ -730,36 +725,14 @@ def cg_solve_held(
     a_prev = float(0.0)
     delta = float(0.0)
     while True:
-        # what the phase reads of the rows this thread's chunk needs (every lane reads five, valid ones where
-        # it holds no chunk); a pair lane's first two are its held corner's vertices
-        col_0 = own.cols[0]
-        col_1 = own.cols[1]
-        if lane >= pair0:
-            col_0 = corner.vert_a
-            col_1 = corner.vert_b
-        at_row = row_at(row, n, j, m3_out, q2_out, u2_out)
-        at_0 = row_at(col_0, n, j, m3_out, q2_out, u2_out)
-        at_1 = row_at(col_1, n, j, m3_out, q2_out, u2_out)
-        at_2 = row_at(own.cols[2], n, j, m3_out, q2_out, u2_out)
-        at_3 = row_at(own.cols[3], n, j, m3_out, q2_out, u2_out)
-        if j > 0:  # the barrier that ended phase j - 1 delivered delta; after phase 0 gamma is the start's
-            if j > 1:
-                gamma_prev = gamma
-                a_prev = a
-                gamma = load_coherent(totals, 1 + j)
-                k += 1
-            if not (k < max_k and gamma > 0.0 and gamma > tol2 * bz):
-                break
-            a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
-            if a <= 0.0:
-                break
         part = wp.vec2()
         if own.count > 0:
-            u_row, q_row, u_old = advanced(at_row, a, beta)
-            acc = held_terms(
-                own, advanced_u(at_0, a, beta), advanced_u(at_1, a, beta), advanced_u(at_2, a, beta),
-                advanced_u(at_3, a, beta),
-            )  # fmt: skip
+            u_row, q_row, u_old = advanced(row, n, j, a, beta, m3_out, q2_out, u2_out)
+            u0 = advanced_u(own.cols[0], n, j, a, beta, m3_out, q2_out, u2_out)
+            u1 = advanced_u(own.cols[1], n, j, a, beta, m3_out, q2_out, u2_out)
+            u2 = advanced_u(own.cols[2], n, j, a, beta, m3_out, q2_out, u2_out)
+            u3 = advanced_u(own.cols[3], n, j, a, beta, m3_out, q2_out, u2_out)
+            acc = held_terms(own, u0, u1, u2, u3)
             wp.atomic_add(m3_out, (j % 3) * n + row, D * acc)
             part[0] = wp.dot(u_row, acc)
             if owner:
@@ -773,20 +746,29 @@ def cg_solve_held(
             for c in range(group, live, groups):
                 if c == group:
                     part[0] += held_corner_phase(
-                        corner.vert_a, corner.weight_a, at_0, corner.vert_b, corner.weight_b, at_1, corner.C,
-                        n, j, a, beta, diag_inv, m3_out,
+                        corner.vert_a, corner.weight_a, corner.vert_b, corner.weight_b, corner.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
                     )  # fmt: skip
                 else:
                     other = pair_corner(c, lane % PAIR_LANES, pairs)
                     part[0] += held_corner_phase(
-                        other.vert_a, other.weight_a, row_at(other.vert_a, n, j, m3_out, q2_out, u2_out),
-                        other.vert_b, other.weight_b, row_at(other.vert_b, n, j, m3_out, q2_out, u2_out),
-                        other.C, n, j, a, beta, diag_inv, m3_out,
+                        other.vert_a, other.weight_a, other.vert_b, other.weight_b, other.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
                     )  # fmt: skip
         if j > 0:
             warp_sum_add(part[1], totals, 2 + j)
         delta = grid_total(part[0], words, 3 + j, blocks, stalled_out)
-        j += 1
+        if j > 0:
+            gamma_prev = gamma
+            a_prev = a
+            gamma = load_coherent(totals, 2 + j)
+            k += 1
+        if not (k < max_k and gamma > 0.0 and gamma > tol2 * bz):
+            break
+        a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
+        if a <= 0.0:
+            break
+        j = k + 1
     if owner:
         x_out[row] = x
     if lane == 0:
