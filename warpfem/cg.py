@@ -36,7 +36,9 @@ HELD_PAIR_BLOCKS = 4
 """The most blocks the held solve gives its coupling pairs (:data:`kernels.product.PAIR_LANES` lanes a pair:
 256 pairs at once; more take turns). On an H100 in one session (two interleaved rounds,
 scripts/results/ab-tune-*-20261123T04*.json): 2 blocks within the spread of 4, 1 block slower on scene B
-(3.88/4.21 against 3.43/3.26 ms per frame)."""
+(3.88/4.21 against 3.43/3.26 ms per frame). 8 and 16 blocks (room for all of B's up to ~320 pairs at once)
+were within the spread of 4 too, three rounds (ab-tune-pairblocks-*.json): B 3.36/2.93/3.05 and
+3.13/3.12/3.18 against 3.06/3.08/3.03, whose CG iterations per step vary more from run to run (75-91)."""
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU (one
