@@ -47,7 +47,11 @@ DEFAULT_COLLISION = CollisionSettings()
 DETECT_LANES = 4
 """Threads per collision point of contact detection on CUDA, each walking every fourth of the bodies whose
 boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Two lanes measured within the
-spread on the paper scenes and slightly behind on piles of 4 and 16 (H100, scripts/results/ab-tune-*.json)."""
+spread on the paper scenes and slightly behind on piles of 4 and 16 (H100, scripts/results/ab-tune-*.json).
+The detection kernel uses 122 registers (two blocks of 256 per SM); capping them at 80 or 64 (launch bounds of
+3 or 4 blocks per SM) spilled and made it slower on scene A, 70 and 77 against 62 us per step under ncu
+(kernel-durations-paper-a-detectbounds*-ncu.csv; A 1.34-1.39 against 1.30-1.35 ms per frame,
+ab-tune-detectbounds-*.json)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
