@@ -497,7 +497,6 @@ def contact_forces(
     friction: wp.array(dtype=float),
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
-    threads: int,
     # outputs
     pair_verts_a_out: wp.array(dtype=wp.vec4i),
     pair_weights_a_out: wp.array(dtype=wp.vec4),
@@ -514,39 +513,38 @@ def contact_forces(
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
     friction across it, with c = mu a d / max(|u_t|, eps) from the step's start velocity. C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
-    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix. The launch's ``threads`` threads stride
-    over the live contacts (the buffer's capacity is far above what a step finds). Thread 0 also adds the
-    step's contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
+    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
+    contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
     """
-    tid = wp.tid()
-    live = wp.min(count[0], contact_point.shape[0])
-    if tid == 0:
+    i = wp.tid()
+    if i == 0:
         totals_out[0] = totals_out[0] + count[0]
         totals_out[1] = wp.max(totals_out[1], count[0])
-    for i in range(tid, live, threads):
-        p = contact_point[i]
-        a = point_stiffness[p]
-        g = contact_normal[i]
-        f = a * contact_depth[i] * g
-        tp = tets[point_tet[p]]
-        w_p = point_bary[p]
-        tt = tets[contact_tet[i]]
-        w_t = contact_bary[i]
-        u = relative(v, tp, w_p, tt, w_t)
-        ut = u - wp.dot(u, g) * g
-        c = friction[0] * a * contact_depth[i] / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
-        gg = wp.outer(g, g)
-        C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
-        contact_matrix_out[i] = C
-        pair_verts_a_out[i] = tp
-        pair_weights_a_out[i] = w_p
-        pair_verts_b_out[i] = tt
-        pair_weights_b_out[i] = w_t
-        for k in range(4):
-            wp.atomic_add(force_out, tp[k], w_p[k] * f)
-            wp.atomic_add(force_out, tt[k], -w_t[k] * f)
-            wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
-            wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
+    if i >= wp.min(count[0], contact_point.shape[0]):
+        return
+    p = contact_point[i]
+    a = point_stiffness[p]
+    g = contact_normal[i]
+    f = a * contact_depth[i] * g
+    tp = tets[point_tet[p]]
+    w_p = point_bary[p]
+    tt = tets[contact_tet[i]]
+    w_t = contact_bary[i]
+    u = relative(v, tp, w_p, tt, w_t)
+    ut = u - wp.dot(u, g) * g
+    c = friction[0] * a * contact_depth[i] / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
+    gg = wp.outer(g, g)
+    C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
+    contact_matrix_out[i] = C
+    pair_verts_a_out[i] = tp
+    pair_weights_a_out[i] = w_p
+    pair_verts_b_out[i] = tt
+    pair_weights_b_out[i] = w_t
+    for k in range(4):
+        wp.atomic_add(force_out, tp[k], w_p[k] * f)
+        wp.atomic_add(force_out, tt[k], -w_t[k] * f)
+        wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
+        wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
 
 
 @wp.kernel

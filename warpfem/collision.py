@@ -53,11 +53,6 @@ The detection kernel uses 122 registers (two blocks of 256 per SM); capping them
 (kernel-durations-paper-a-detectbounds*-ncu.csv; A 1.34-1.39 against 1.30-1.35 ms per frame,
 ab-tune-detectbounds-*.json)."""
 
-CONTACT_THREADS = 4096
-"""Threads of the contact response on CUDA, striding over the step's contacts (hundreds in the paper scenes,
-about a thousand in a pile of 256): a thread per slot of the buffer launched 69,000 on scene A and tens of
-millions on the largest piles, nearly all of them only to find no contact."""
-
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
@@ -284,7 +279,6 @@ class Collider:
         """
         m = self.model
         dev = m.device
-        threads = min(self.capacity, CONTACT_THREADS if dev.is_cuda else 1)
         self._detect(
             x,
             v,
@@ -299,7 +293,7 @@ class Collider:
         )
         wp.launch(
             K.contact_forces,
-            dim=threads,
+            dim=self.capacity,
             inputs=[
                 self.count,
                 self.contact_point,
@@ -315,7 +309,6 @@ class Collider:
                 self.friction,
                 m.diag_slot,
                 dt,
-                threads,
             ],
             outputs=[
                 self.coupling.verts_a,
