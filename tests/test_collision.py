@@ -220,7 +220,7 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
 
 
 def test_overlapped_captured_step_matches_a_serial_direct_one(device):
-    """On CUDA the collision stage's preparation runs on two side streams beside the elastic launch, forked and
+    """On CUDA the collision stage's preparation runs on a side stream beside the elastic launch, forked and
     joined inside the captured graph: from the same state, a replayed step prepares bit for bit what the
     phases run one after another prepare, finds the same contacts and lands where that step lands."""
     if not wp.get_device(device).is_cuda:

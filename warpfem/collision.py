@@ -256,15 +256,10 @@ class Collider:
     def prepare(self, x: wp.array, v: wp.array) -> None:
         """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
 
-        :meth:`prepare_points` and :meth:`prepare_bounds`, which do not depend on each other: a step may run
-        them alongside the elastic launch, each on a stream of its own (see ``Solver.phases``). :meth:`respond`
-        needs both done first.
+        The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
+        inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
+        another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
         """
-        self.prepare_points(x, v)
-        self.prepare_bounds(x)
-
-    def prepare_points(self, x: wp.array, v: wp.array) -> None:
-        """The collision points and their velocities: the tet fields interpolated like the dense mesh."""
         m = self.model
         wp.launch(
             K.collision_points,
@@ -273,9 +268,6 @@ class Collider:
             outputs=[self.points, self.point_velocity, self.speed_max],
             device=m.device,
         )
-
-    def prepare_bounds(self, x: wp.array) -> None:
-        """At positions ``x``: the tet inverses and first corners, the body trees and boxes, the body BVH."""
         self._bound(x)
 
     def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:

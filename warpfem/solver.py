@@ -65,8 +65,8 @@ class Solver:
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
-        # the streams the collision stage's preparation runs on alongside the elastic launch (see phases)
-        self._sides = (wp.Stream(dev), wp.Stream(dev)) if dev.is_cuda and self.collider is not None else ()
+        # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
+        self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
         # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
         self.grad = self.collider.grad if self.collider is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
@@ -95,33 +95,28 @@ class Solver:
     ) -> list[tuple[str, Callable[[], None]]]:
         """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve.
 
-        With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: the collision
-        points on one side stream, the tet inverses, trees and body boxes on another, none of which the
-        elastic launch touches) runs alongside the elastic launch, forked in "elastic" and joined in
-        "collision" (in a captured graph, three branches); without it, in order (what a timer that
-        synchronises at each phase boundary needs).
+        With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: collision points,
+        tet inverses, trees, none of which the elastic launch touches) runs on a side stream alongside the
+        elastic launch, forked in "elastic" and joined in "collision" (in a captured graph, two branches);
+        without it, in order (what a timer that synchronises at each phase boundary needs).
         """
         model = self.model
-        sides = self._sides if overlap else ()
+        side = self._side if overlap and self.collider is not None else None
 
         def elastic() -> None:
-            if sides:
-                x, v = state_in.x, state_in.v
-                main = wp.get_stream(model.device)
-                works = (lambda: self.collider.prepare_points(x, v), lambda: self.collider.prepare_bounds(x))
-                for side, work in zip(sides, works, strict=True):
-                    side.wait_stream(main)
-                    with wp.ScopedStream(side, sync_enter=False):
-                        work()
+            if side is not None:
+                side.wait_stream(wp.get_stream(model.device))
+                with wp.ScopedStream(side, sync_enter=False):
+                    self.collider.prepare(state_in.x, state_in.v)
             self.force.zero_()
             self.matrix.zero_()
             self.grad.zero_()
             fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix, self.grad)
 
         def collision() -> None:
-            for side in sides:
+            if side is not None:
                 wp.get_stream(model.device).wait_stream(side)
-            if not sides:
+            else:
                 self.collider.prepare(state_in.x, state_in.v)
             self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
 
@@ -151,7 +146,7 @@ class Solver:
     @property
     def overlapped(self) -> bool:
         """Whether a step runs the collision stage's preparation beside the elastic launch (see ``phases``)."""
-        return bool(self._sides)
+        return self._side is not None
 
     def step(self, state_in: State, state_out: State, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
