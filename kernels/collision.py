@@ -335,6 +335,107 @@ WALK_STRIDE = wp.constant(3)
 """Tree levels a walk descends at a time: it tests 2^3 = 8 boxes at once (the grandchildren's children)."""
 
 
+@wp.func
+def walk_tree(
+    p: int,
+    q: wp.vec3,
+    body: int,
+    same: bool,
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    node_lower: wp.array(dtype=wp.vec3),
+    node_upper: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    tets: wp.array(dtype=wp.vec4i),
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    point_velocity: wp.array(dtype=wp.vec3),
+    point_anchor: wp.array(dtype=wp.vec3i),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    capacity: int,
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+):
+    """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`)."""
+    ns = node_start[body]
+    ls = leaf_start[body]
+    leaves = leaf_start[body + 1] - ls
+    leaf_level = int(0)
+    while (1 << leaf_level) < leaves:
+        leaf_level += 1
+    top = wp.where(leaf_level == 0, 0, leaf_level - WALK_STRIDE * ((leaf_level - 1) // WALK_STRIDE))
+    level = top  # tree level of the group of boxes being walked
+    base = (1 << top) - 1  # its first node
+    mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
+    stack = wp.int64(0)
+    found = bool(False)
+    while not found and (mask != 0 or level > top):
+        if mask == 0:
+            # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
+            # top level, which has at most 8 nodes), and what was left of it
+            parent = ((base + 1) >> WALK_STRIDE) - 1
+            level -= WALK_STRIDE
+            first = (1 << level) - 1
+            base = first + (((parent - first) >> WALK_STRIDE) << WALK_STRIDE)
+            mask = int(stack & wp.int64(255))
+            stack = stack >> wp.int64(8)
+        else:
+            node = base + lowest_bit(mask)
+            mask = mask & (mask - 1)
+            if level == leaf_level:
+                leaf = leaf_tets[ls + node - (leaves - 1)]
+                inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
+                while inside != 0 and not found:
+                    k = lowest_bit(inside)
+                    inside = inside & (inside - 1)
+                    e = leaf[k]
+                    found = record_contact(
+                        p,
+                        q,
+                        e,
+                        tet_weights(q, tet_inverse[e], tet_origin[e]),
+                        same,
+                        x,
+                        v,
+                        dt,
+                        tets,
+                        tet_face_start,
+                        tet_faces,
+                        point_velocity,
+                        point_anchor,
+                        row_start,
+                        cols,
+                        depth,
+                        grad,
+                        capacity,
+                        count_out,
+                        contact_point_out,
+                        contact_tet_out,
+                        contact_bary_out,
+                        contact_normal_out,
+                        contact_depth_out,
+                        stats_out,
+                    )
+            else:
+                stack = (stack << wp.int64(8)) | wp.int64(mask)
+                level += WALK_STRIDE
+                base = ((node + 1) << WALK_STRIDE) - 1
+                mask = group_holds(q, node_lower, node_upper, ns + base, 8)
+
+
 @wp.kernel
 def detect_contacts(
     # inputs: geometry
@@ -404,70 +505,75 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        ns = node_start[body]
-        ls = leaf_start[body]
-        leaves = leaf_start[body + 1] - ls
-        leaf_level = int(0)
-        while (1 << leaf_level) < leaves:
-            leaf_level += 1
-        top = wp.where(leaf_level == 0, 0, leaf_level - WALK_STRIDE * ((leaf_level - 1) // WALK_STRIDE))
-        level = top  # tree level of the group of boxes being walked
-        base = (1 << top) - 1  # its first node
-        mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
-        stack = wp.int64(0)
-        found = bool(False)
-        while not found and (mask != 0 or level > top):
-            if mask == 0:
-                # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
-                # top level, which has at most 8 nodes), and what was left of it
-                parent = ((base + 1) >> WALK_STRIDE) - 1
-                level -= WALK_STRIDE
-                first = (1 << level) - 1
-                base = first + (((parent - first) >> WALK_STRIDE) << WALK_STRIDE)
-                mask = int(stack & wp.int64(255))
-                stack = stack >> wp.int64(8)
-            else:
-                node = base + lowest_bit(mask)
-                mask = mask & (mask - 1)
-                if level == leaf_level:
-                    leaf = leaf_tets[ls + node - (leaves - 1)]
-                    inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
-                    while inside != 0 and not found:
-                        k = lowest_bit(inside)
-                        inside = inside & (inside - 1)
-                        e = leaf[k]
-                        found = record_contact(
-                            p,
-                            q,
-                            e,
-                            tet_weights(q, tet_inverse[e], tet_origin[e]),
-                            same,
-                            x,
-                            v,
-                            dt,
-                            tets,
-                            tet_face_start,
-                            tet_faces,
-                            point_velocity,
-                            point_anchor,
-                            row_start,
-                            cols,
-                            depth,
-                            grad,
-                            capacity,
-                            count_out,
-                            contact_point_out,
-                            contact_tet_out,
-                            contact_bary_out,
-                            contact_normal_out,
-                            contact_depth_out,
-                            stats_out,
-                        )
-                else:
-                    stack = (stack << wp.int64(8)) | wp.int64(mask)
-                    level += WALK_STRIDE
-                    base = ((node + 1) << WALK_STRIDE) - 1
-                    mask = group_holds(q, node_lower, node_upper, ns + base, 8)
+        walk_tree(
+                p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+                tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
+                depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
+                contact_normal_out, contact_depth_out, stats_out,
+            )  # fmt: skip
+
+
+@wp.kernel
+def detect_contacts_direct(
+    # inputs: geometry
+    body_lower: wp.array(dtype=wp.vec3),
+    body_upper: wp.array(dtype=wp.vec3),
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    node_lower: wp.array(dtype=wp.vec3),
+    node_upper: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    tets: wp.array(dtype=wp.vec4i),
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    points: wp.array(dtype=wp.vec3),
+    point_velocity: wp.array(dtype=wp.vec3),
+    point_body: wp.array(dtype=wp.int32),
+    point_anchor: wp.array(dtype=wp.vec3i),
+    body_self: wp.array(dtype=wp.int32),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    capacity: int,
+    lanes: int,
+    # outputs
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+):
+    """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
+
+    No body BVH to refit or query (its traversal stack alone took 33.8 KB of shared memory per block of 256);
+    the candidates are the bodies in index order, shared among ``lanes`` threads as there.
+    """
+    tid = wp.tid()
+    p = tid // lanes
+    lane = tid - p * lanes
+    q = points[p]
+    body_p = point_body[p]
+    self_ok = body_self[body_p] != 0
+    candidate = int(-1)
+    for body in range(body_lower.shape[0]):
+        if overlaps(q, body_lower[body], body_upper[body]):
+            candidate += 1
+            same = body == body_p
+            if candidate % lanes == lane and (self_ok or not same):
+                walk_tree(
+                    p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
+                    depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
+                    contact_normal_out, contact_depth_out, stats_out,
+                )  # fmt: skip
 
 
 @wp.func

@@ -185,10 +185,12 @@ def _count_launches(monkeypatch, solver, model):
 def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     collision_kernels = {
         "detect_contacts",
+        "detect_contacts_direct",
         "contact_forces",
         "collision_points",
         "refit_trees",
     }
+    detection = {"detect_contacts", "detect_contacts_direct"}  # through a BVH of the body boxes, or directly
     single = ModelBuilder()
     single.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
     model = single.finalize(device)
@@ -214,7 +216,8 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     pair.add_body("two", *_box((0, 0.9, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
     model = pair.finalize(device)
     colliding = Solver(model, cg_iterations=10, cg_tolerance=0.0)
-    assert collision_kernels <= set(_count_launches(monkeypatch, colliding, model))
+    launched = set(_count_launches(monkeypatch, colliding, model))
+    assert collision_kernels - detection <= launched and len(launched & detection) == 1
     assert colliding.grad.shape[0] == model.vertex_count
     assert not collision_kernels & set(_count_launches(monkeypatch, Solver(model, collision=None), model))
 
@@ -330,10 +333,13 @@ def test_tet_trees_refuse_a_body_deeper_than_the_walk_can_keep(monkeypatch):
         collision.tet_trees(tets, x, [(0, 33)])
 
 
+@pytest.mark.parametrize("bodies", ["direct", "bvh"])
 @pytest.mark.parametrize("cells", [(1, 1, 1), (3, 4, 3), (5, 4, 5)])
 @pytest.mark.parametrize("lanes", [1, 2, 4])
-def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells):
+def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells, bodies, monkeypatch):
     """Against a NumPy barycentric test of every collision point against every tet it may collide with.
+
+    With the bodies' boxes tested directly (few bodies) and through a BVH of them (many: forced here).
 
     Two convex boxes, rotated and interpenetrating, a third body colliding with itself: two boxes of one
     mesh crossing each other (their points lie in each other's tets, far from their one-rings), which also
@@ -357,7 +363,9 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
     b.add_body("tet", lone, np.array([[0, 1, 2, 3]]), 1e5, 0.3, 1000.0, collision_spacing=0.04)
     model = b.finalize(device)
     x = model.rest_x.numpy()
+    monkeypatch.setattr("warpfem.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
     solver = Solver(model, ground=None)
+    assert solver.collider.direct == (bodies == "direct")
     xs = wp.array(x, dtype=wp.vec3, device=device)
     v = wp.zeros_like(xs)
     rotation = wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device)

@@ -53,6 +53,11 @@ The detection kernel uses 122 registers (two blocks of 256 per SM); capping them
 (kernel-durations-paper-a-detectbounds*-ncu.csv; A 1.34-1.39 against 1.30-1.35 ms per frame,
 ab-tune-detectbounds-*.json)."""
 
+DIRECT_BODIES = 16
+"""Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
+a ``wp.Bvh`` of them (whose traversal stack took 33.8 KB of shared memory per block of the detection launch,
+and whose refit was a launch of its own each step)."""
+
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
@@ -235,9 +240,13 @@ class Collider:
         self.node_upper = wp.zeros_like(self.node_lower)
         self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
-        self._bound(model.rest_x, refit=False)  # the body boxes the BVH is built from
-        # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
-        self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
+        self.direct = len(model.bodies) <= DIRECT_BODIES
+        """Whether detection tests every body's box itself rather than querying a BVH of them."""
+        self.body_bvh = None
+        if not self.direct:
+            self._bound(model.rest_x)  # the body boxes the BVH is built from
+            # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
+            self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.lanes = DETECT_LANES if dev.is_cuda else 1
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
@@ -323,8 +332,8 @@ class Collider:
             device=dev,
         )
 
-    def _bound(self, x: wp.array, refit: bool = True) -> None:
-        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH refitted."""
+    def _bound(self, x: wp.array) -> None:
+        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH (if any) refitted."""
         m = self.model
         threads = BODY_BLOCK if m.device.is_cuda else 1
         wp.launch_tiled(
@@ -342,7 +351,7 @@ class Collider:
             block_dim=threads,
             device=m.device,
         )
-        if refit:
+        if self.body_bvh is not None:
             self.body_bvh.refit()
 
     def rotate_gradients(self, rotation: wp.array) -> None:
@@ -376,11 +385,12 @@ class Collider:
         m = self.model
         self.count.zero_()
         lanes = self.lanes
+        bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
-            K.detect_contacts,
+            K.detect_contacts_direct if self.direct else K.detect_contacts,
             dim=points.shape[0] * lanes,
             inputs=[
-                self.body_bvh.id,
+                *bodies,
                 self.node_start,
                 self.leaf_start,
                 self.leaf_tets,
