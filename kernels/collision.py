@@ -506,11 +506,11 @@ def detect_contacts(
         if candidate % lanes != lane or (same and not self_ok):
             continue
         walk_tree(
-                p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
-                depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
-                contact_normal_out, contact_depth_out, stats_out,
-            )  # fmt: skip
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+            tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
+            depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
+            contact_normal_out, contact_depth_out, stats_out,
+        )  # fmt: skip
 
 
 @wp.kernel

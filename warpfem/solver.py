@@ -101,7 +101,7 @@ class Solver:
         without it, in order (what a timer that synchronises at each phase boundary needs).
         """
         model = self.model
-        side = self._side if overlap and self.collider is not None else None
+        side = self._side if overlap else None  # None without collisions, or off CUDA
 
         def elastic() -> None:
             if side is not None:
