@@ -113,6 +113,17 @@ def int_list(text: str) -> list[int]:
     return values
 
 
+def tolerance_list(text: str) -> list[float]:
+    """An argparse type: comma-separated CG tolerances in (0, 1) ('' for none)."""
+    try:
+        values = [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = [0.0]
+    if any(not 0.0 < v < 1.0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated tolerances between 0 and 1, got '{text}'")
+    return values
+
+
 def end_gap(a: np.ndarray, b: np.ndarray) -> dict:
     """Largest and root-mean-square distance (m) between two runs' final positions, point by point."""
     gap = np.linalg.norm(a - b, axis=1)
@@ -159,11 +170,7 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int, cg_pa
     Converged: 4x the substeps and CG to a relative residual of 1e-6. Both run ``frames`` frames from the
     same start; a settled pile that ends where the converged one does was not bought with accuracy.
     """
-    converged = dataclasses.replace(
-        scene,
-        substeps=4 * scene.substeps,
-        solver=dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=1e-6, cg_iterations=1000),
-    )
+    converged = converged_cg(scene, 4 * scene.substeps)
     ends = []
     for settings in (scene, converged):
         sim = build(settings, objects, device, cache_dir, cg_path)
@@ -173,15 +180,53 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int, cg_pa
     return {
         "frames": frames,
         "converged_substeps": converged.substeps,
-        "converged_cg_tolerance": 1e-6,
+        "converged_cg_tolerance": CONVERGED_CG,
         **end_gap(*ends),
     }
 
 
+CONVERGED_CG = 1.0e-6
+"""Relative CG tolerance of the converged runs the accuracy figures compare against."""
+
+
+def converged_cg(scene, substeps: int):
+    """``scene`` with CG run to :data:`CONVERGED_CG` (at most 1,000 iterations) at ``substeps`` per frame."""
+    solver = dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=CONVERGED_CG, cg_iterations=1000)
+    return dataclasses.replace(scene, substeps=substeps, solver=solver)
+
+
+def frame_error(sim: Simulation, scene, objects, device, cache_dir: Path, cg_path: str | None = None) -> dict:
+    """How far one frame from ``sim``'s current state ends from the same frame with CG converged (tet vertices, m).
+
+    Same state, same substeps, so this is the error of the bench's CG settings alone, one frame's worth:
+    unlike a whole run's end (``settle_deviation``), it does not grow with how chaotic the scene is. ``sim``
+    is left at the state it started from.
+    """
+    start = snapshot(sim)
+    sim.advance()
+    ours = sim.states[0].x.numpy().copy()  # on the CPU numpy() is a view of the array the next line overwrites
+    sim.states[0].assign(start)
+    reference = build(converged_cg(scene, scene.substeps), objects, device, cache_dir, cg_path)
+    reference.states[0].assign(start)
+    reference.advance()
+    return {"converged_cg_tolerance": CONVERGED_CG, **end_gap(ours, reference.states[0].x.numpy())}
+
+
 def time_scene(
-    scene, objects, device, cache_dir: Path, frames: int, warmup: int = 2, cg_path: str | None = None
+    scene,
+    objects,
+    device,
+    cache_dir: Path,
+    frames: int,
+    warmup: int = 2,
+    cg_path: str | None = None,
+    accuracy: bool = False,
 ) -> dict:
-    """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures."""
+    """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures.
+
+    With ``accuracy``, also the error of one frame from where the timed frames end against converged CG
+    (:func:`frame_error`).
+    """
     sim = build(scene, objects, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
 
@@ -207,9 +252,10 @@ def time_scene(
     points = [dense[b.dense_start : b.dense_start + b.dense_count] for b in model.bodies]
     penetration = dense_penetration(sim, points)
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
-    end = sim.states[0].x.numpy()
+    end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
+    error = frame_error(sim, scene, objects, device, cache_dir, cg_path) if accuracy else None
     # the kernel profile where the timed frames ended (bodies in contact, not in the air)
     kernels = kernel_profile(lambda: frame(PhaseTimer(device))) if device.is_cuda else None
     return {
@@ -221,6 +267,8 @@ def time_scene(
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "cg_path": solver.cg.mode,
+        "cg_tolerance": scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
+        **({"frame_error": error} if error else {}),
         "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
         "bodies": len(model.bodies),
@@ -425,6 +473,13 @@ def main(argv=None) -> int:
         default="",
         help="comma list: also run each paper scene at these substeps per frame (the speed/accuracy trade)",
     )
+    parser.add_argument(
+        "--paper-tolerances",
+        type=tolerance_list,
+        default="",
+        help="comma list: also run each paper scene with CG to these relative tolerances (the speed/accuracy "
+        "trade; every paper run reports its one-frame error against converged CG)",
+    )
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
@@ -451,6 +506,11 @@ def main(argv=None) -> int:
                     if k != scene.substeps:
                         variant = dataclasses.replace(scene, substeps=k)
                         work.append((name, len(scene.objects), scene.objects, variant))
+                for tolerance in args.paper_tolerances:
+                    if (scene.solver.cg_mode, scene.solver.cg_tolerance) != ("tolerance", tolerance):
+                        solver = dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=tolerance)
+                        variant = dataclasses.replace(scene, solver=solver)
+                        work.append((name, len(scene.objects), scene.objects, variant))
         if "piles" not in skip:
             for n in args.piles:
                 work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))
@@ -465,7 +525,8 @@ def main(argv=None) -> int:
     for (kind, n, objs, scene), cg_path in itertools.product(work, cg_paths):
         t0 = time.perf_counter()
         path = None if cg_path == "auto" else cg_path
-        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=path)
+        measured = kind != "pile" or n in args.deviation
+        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
             run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames, path)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
@@ -473,7 +534,8 @@ def main(argv=None) -> int:
         print(
             f"{kind:28s} N={n:5d} {cg_path:8s} sub={run['substeps']} tets={run['tets']:8d} "
             f"dense tris={run['dense_triangles']:10d} "
-            f"{run['ms_per_frame']:9.2f} ms/frame  CG it/step {run['cg_iterations_per_step']:6.1f}  "
+            f"{run['ms_per_frame']:9.2f} ms/frame  CG to {run['cg_tolerance']:g}: "
+            f"{run['cg_iterations_per_step']:6.1f} it/step  "
             f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
             flush=True,
         )

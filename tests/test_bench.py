@@ -1,13 +1,20 @@
 """The benchmark harness itself, in its quick CPU mode (the figures come from the GPU machine)."""
 
+import dataclasses
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import bench  # noqa: E402
+
+from warpfem.scene import load_scene  # noqa: E402
 
 
 def test_quick_benchmark_writes_a_complete_json(tmp_path):
@@ -36,6 +43,10 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         # the phase split re-ran the timed frames from their start: on the CPU it ends where they ended
         assert run["phase_rerun_gap_m"] == 0.0
     assert "collision" in runs[1]["phase_ms"] and "collision" not in runs[0]["phase_ms"]
+    assert all(run["cg_tolerance"] == 1e-4 for run in runs)  # the default scene's
+    error = runs[0]["frame_error"]  # one frame against converged CG, from the same state
+    assert error["converged_cg_tolerance"] == 1e-6 and 0.0 <= error["rms_m"] <= error["max_m"] < 1e-3
+    assert "frame_error" not in runs[1]  # pile 2 is not in --deviation's default list
     deviation = runs[0]["settle_deviation"]  # one bunny against its converged run: close, not identical
     assert deviation["converged_substeps"] == 4 * runs[0]["substeps"]
     assert 0.0 < deviation["rms_m"] <= deviation["max_m"] < 0.05
@@ -52,6 +63,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--piles", "4,x"], "--piles"),
         ("bench.py", ["--paper-substeps", "0"], "--paper-substeps"),
         ("bench.py", ["--deviation", "-1"], "--deviation"),
+        ("bench.py", ["--paper-tolerances", "1e-3,1"], "--paper-tolerances"),
         ("bench.py", ["--skip", "pile"], "--skip"),
         ("bench.py", ["--cg-paths", "grid:0"], "--cg-paths"),
         ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
@@ -65,3 +77,20 @@ def test_bad_arguments_are_one_line_errors_and_write_nothing(tmp_path, script, a
     errors = [line for line in done.stderr.splitlines() if "error:" in line]
     assert len(errors) == 1 and named in errors[0] and "Traceback" not in done.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_frame_error_is_the_cg_error_of_one_frame_and_leaves_the_state(tmp_path):
+    scene = load_scene(ROOT / "scenes" / "default.toml")
+    bunnies = bench.pile_objects(2, "builtin:bunny", 300, scale=0.5)
+    errors = {}
+    for tolerance in (1e-1, 1e-4, bench.CONVERGED_CG):
+        settings = dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, cg_tolerance=tolerance))
+        sim = bench.build(settings, bunnies, "cpu", tmp_path)
+        for _ in range(30):  # landed and touching: CG has work to do
+            sim.advance()
+        before = sim.states[0].x.numpy().copy()
+        errors[tolerance] = bench.frame_error(sim, settings, bunnies, "cpu", tmp_path)["max_m"]
+        np.testing.assert_array_equal(sim.states[0].x.numpy(), before)
+    # against itself the converged run differs by nothing: the figure isolates CG from everything else
+    assert errors[bench.CONVERGED_CG] == 0.0
+    assert 0.0 < errors[1e-4] < 1e-2 * errors[1e-1]
