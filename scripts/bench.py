@@ -102,26 +102,25 @@ def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[O
     return objects
 
 
+def comma_list(text: str, convert, valid, expected: str) -> list:
+    """Comma-separated values of ``text`` ('' for none), each ``convert``-ed and ``valid``; else an argparse error."""
+    try:
+        values = [convert(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = None
+    if values is None or not all(valid(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated {expected}, got '{text}'")
+    return values
+
+
 def int_list(text: str) -> list[int]:
     """An argparse type: comma-separated positive integers ('' for none)."""
-    try:
-        values = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        values = [0]
-    if any(v <= 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got '{text}'")
-    return values
+    return comma_list(text, int, lambda v: v > 0, "positive integers")
 
 
 def tolerance_list(text: str) -> list[float]:
     """An argparse type: comma-separated CG tolerances in (0, 1) ('' for none)."""
-    try:
-        values = [float(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        values = [0.0]
-    if any(not 0.0 < v < 1.0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated tolerances between 0 and 1, got '{text}'")
-    return values
+    return comma_list(text, float, lambda v: 0.0 < v < 1.0, "tolerances between 0 and 1")
 
 
 def end_gap(a: np.ndarray, b: np.ndarray) -> dict:
@@ -189,10 +188,15 @@ CONVERGED_CG = 1.0e-6
 """Relative CG tolerance of the converged runs the accuracy figures compare against."""
 
 
+def cg_to(scene, tolerance: float, **solver):
+    """``scene`` with CG run to the relative ``tolerance`` (and any other ``SolverConfig`` fields given)."""
+    config = dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=tolerance, **solver)
+    return dataclasses.replace(scene, solver=config)
+
+
 def converged_cg(scene, substeps: int):
     """``scene`` with CG run to :data:`CONVERGED_CG` (at most 1,000 iterations) at ``substeps`` per frame."""
-    solver = dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=CONVERGED_CG, cg_iterations=1000)
-    return dataclasses.replace(scene, substeps=substeps, solver=solver)
+    return dataclasses.replace(cg_to(scene, CONVERGED_CG, cg_iterations=1000), substeps=substeps)
 
 
 def frame_error(sim: Simulation, scene, objects, device, cache_dir: Path, cg_path: str | None = None) -> dict:
@@ -267,7 +271,7 @@ def time_scene(
         **({"kernel_ms": kernels} if kernels else {}),
         "frames_timed": frames,
         "cg_path": solver.cg.mode,
-        "cg_tolerance": scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
+        "cg_tolerance": scene.solver.stop_tolerance,
         **({"frame_error": error} if error else {}),
         "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
@@ -507,10 +511,8 @@ def main(argv=None) -> int:
                         variant = dataclasses.replace(scene, substeps=k)
                         work.append((name, len(scene.objects), scene.objects, variant))
                 for tolerance in args.paper_tolerances:
-                    if (scene.solver.cg_mode, scene.solver.cg_tolerance) != ("tolerance", tolerance):
-                        solver = dataclasses.replace(scene.solver, cg_mode="tolerance", cg_tolerance=tolerance)
-                        variant = dataclasses.replace(scene, solver=solver)
-                        work.append((name, len(scene.objects), scene.objects, variant))
+                    if scene.solver.stop_tolerance != tolerance:
+                        work.append((name, len(scene.objects), scene.objects, cg_to(scene, tolerance)))
         if "piles" not in skip:
             for n in args.piles:
                 work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))

@@ -170,6 +170,11 @@ class SolverConfig:
     cg_tolerance: float = 1e-4
     quality: str | None = None
 
+    @property
+    def stop_tolerance(self) -> float:
+        """The relative tolerance CG is given: ``cg_tolerance`` in tolerance mode, 0 (no early stop) in fixed mode."""
+        return self.cg_tolerance if self.cg_mode == "tolerance" else 0.0
+
     def validate(self, origin: str = "<scene>") -> None:
         """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
         err = _table(origin, "solver")

@@ -150,7 +150,7 @@ def solver_of(scene: SceneConfig, model: Model, cg_path: str | None = None) -> S
         ground=ground_of(scene),
         obstacles=obstacles_of(scene),
         cg_iterations=scene.solver.cg_iterations,
-        cg_tolerance=scene.solver.cg_tolerance if scene.solver.cg_mode == "tolerance" else 0.0,
+        cg_tolerance=scene.solver.stop_tolerance,
         collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
         cg_path=cg_path,
     )
