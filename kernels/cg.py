@@ -564,41 +564,43 @@ def cg_solve(
         record_solve(k, gamma, bz, counts_out, residual_max_out)
 
 
-ROW_SLOTS = wp.constant(8)
-"""vec4 slots per row in the held solve's record (128 bytes, one cache line): m in slots 0-2 (three phases),
-q in 3-4 and u in 5-6 (two phases each), 7 unused. A row's m, q and u come in one line, each in one 16-byte load."""
-
-
 @wp.func
-def advanced(c: int, j: int, a: float, beta: float, rows: wp.array(dtype=wp.vec4)):
-    """Row c at phase j of :func:`cg_solve_held`: (u_{j}, q_{j-1}, u_{j-1}) from its record.
+def advanced(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+):
+    """Row c at phase j of :func:`cg_solve_held`: (u_{j}, q_{j-1}, u_{j-1}) from the buffers.
 
     q_{j-1} = m_{j-1} + beta q_{j-2} and u_j = u_{j-1} - a q_{j-1}, with m = M^-1 A u; every thread that
     needs row c computes it the same way, so no barrier separates the update from the product.
     """
-    base = ROW_SLOTS * c
-    m4 = rows[base + (j + 2) % 3]
-    q4 = rows[base + 3 + j % 2]
-    u4 = rows[base + 5 + j % 2]
-    q = wp.vec3(m4[0], m4[1], m4[2]) + beta * wp.vec3(q4[0], q4[1], q4[2])
-    u_old = wp.vec3(u4[0], u4[1], u4[2])
+    m = m3[((j + 2) % 3) * n + c]
+    q_old = q2[(j % 2) * n + c]
+    u_old = u2[(j % 2) * n + c]
+    q = m + beta * q_old
     return u_old - a * q, q, u_old
 
 
 @wp.func
-def advanced_u(c: int, j: int, a: float, beta: float, rows: wp.array(dtype=wp.vec4)) -> wp.vec3:
+def advanced_u(
+    c: int,
+    n: int,
+    j: int,
+    a: float,
+    beta: float,
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
     """u_j of row c (see :func:`advanced`)."""
-    u, q, u_old = advanced(c, j, a, beta, rows)
+    u, q, u_old = advanced(c, n, j, a, beta, m3, q2, u2)
     return u
-
-
-@wp.func
-def add_m(c: int, j: int, value: wp.vec3, rows_flat: wp.array(dtype=float)):
-    """m_j of row c += value (three atomic adds into its record, seen as floats)."""
-    at = (ROW_SLOTS * c + j % 3) * 4
-    wp.atomic_add(rows_flat, at, value[0])
-    wp.atomic_add(rows_flat, at + 1, value[1])
-    wp.atomic_add(rows_flat, at + 2, value[2])
 
 
 @wp.func
@@ -608,12 +610,14 @@ def held_corner_phase(
     vert_b: int,
     weight_b: float,
     C: wp.mat33,
+    n: int,
     j: int,
     a: float,
     beta: float,
     diag_inv: wp.array(dtype=wp.mat33),
-    rows: wp.array(dtype=wp.vec4),
-    rows_flat: wp.array(dtype=float),
+    m3: wp.array(dtype=wp.vec3),
+    q2: wp.array(dtype=wp.vec3),
+    u2: wp.array(dtype=wp.vec3),
 ) -> float:
     """One corner of a coupling pair at phase j (see :class:`kernels.product.PairCorner`), by its group's lane.
 
@@ -621,13 +625,14 @@ def held_corner_phase(
     M^-1 (J^T C J less its diagonal blocks) u_j at its two vertices into m_j, as ``kernels.product.pair_terms``
     does for a whole pair, and returns its share of u.A u.
     """
-    ua = advanced_u(vert_a, j, a, beta, rows)
-    ub = advanced_u(vert_b, j, a, beta, rows)
+    ua = advanced_u(vert_a, n, j, a, beta, m3, q2, u2)
+    ub = advanced_u(vert_b, n, j, a, beta, m3, q2, u2)
     s = quad_sum(weight_a * ua + weight_b * ub)
     da = weight_a * (C * (s - weight_a * ua))
     db = weight_b * (C * (s - weight_b * ub))
-    add_m(vert_a, j, diag_inv[vert_a] * da, rows_flat)
-    add_m(vert_b, j, diag_inv[vert_b] * db, rows_flat)
+    out = (j % 3) * n
+    wp.atomic_add(m3, out + vert_a, diag_inv[vert_a] * da)
+    wp.atomic_add(m3, out + vert_b, diag_inv[vert_b] * db)
     return wp.dot(ua, da) + wp.dot(ub, db)
 
 
@@ -657,9 +662,9 @@ def cg_solve_held(
     p_out: wp.array(dtype=wp.vec3),
     s_out: wp.array(dtype=wp.vec3),
     w_out: wp.array(dtype=wp.vec3),
-    rows_out: wp.array(dtype=wp.vec4),
-    rows_flat_out: wp.array(dtype=float),
-    u_start_out: wp.array(dtype=wp.vec3),
+    u2_out: wp.array(dtype=wp.vec3),
+    q2_out: wp.array(dtype=wp.vec3),
+    m3_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
     residual_max_out: wp.array(dtype=float),
     stalled_out: wp.array(dtype=wp.int32),
@@ -673,11 +678,8 @@ def cg_solve_held(
     product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add;
     the coupling pairs go to the last ``pair_lanes`` lanes, :data:`PAIR_LANES` to a pair, one corner each)
     and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
-    registers and writes its u and q for the next phase. u and q alternate between two slots, m among three
-    (read, written, zeroed), so no phase reads what it writes; a row's slots share one record (:data:`ROW_SLOTS`),
-    seen as vec4 (``rows_out``) for loads and as floats (``rows_flat_out``) for atomic adds. The start is
-    :func:`solve_start`, as in ``cg_solve``; it writes u_0 through ``u_start_out``, a strided view of the records'
-    slot 5.
+    registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
+    (read, written, zeroed), so no phase reads what it writes. The start is :func:`solve_start`, as in ``cg_solve``.
     """
     lane = wp.tid()
     n = free.shape[0]
@@ -688,11 +690,16 @@ def cg_solve_held(
     groups = pair_lanes // PAIR_LANES
     live = live_pairs(pairs)
     corner = pair_corner(group, lane % PAIR_LANES, pairs)  # the group's first pair, held for the solve
-    for i in range(lane, n * ROW_SLOTS, threads):  # the records (u's first slot is the start's u), before its barriers
-        rows_out[i] = wp.vec4()
+    for i in range(lane, n, threads):  # the loop's buffers (u's first is the start's u), before its barriers
+        u2_out[n + i] = wp.vec3()
+        q2_out[i] = wp.vec3()
+        q2_out[n + i] = wp.vec3()
+        m3_out[i] = wp.vec3()
+        m3_out[n + i] = wp.vec3()
+        m3_out[2 * n + i] = wp.vec3()
     start = solve_start(
         lane, threads, blocks, 1, own, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
-        x_out, r_out, u_start_out, p_out, s_out, w_out, stalled_out,
+        x_out, r_out, u2_out, p_out, s_out, w_out, stalled_out,
     )  # fmt: skip
     gamma = start[0]
     bz = start[1]
@@ -720,19 +727,18 @@ def cg_solve_held(
     while True:
         part = wp.vec2()
         if own.count > 0:
-            u_row, q_row, u_old = advanced(row, j, a, beta, rows_out)
-            u0 = advanced_u(own.cols[0], j, a, beta, rows_out)
-            u1 = advanced_u(own.cols[1], j, a, beta, rows_out)
-            u2 = advanced_u(own.cols[2], j, a, beta, rows_out)
-            u3 = advanced_u(own.cols[3], j, a, beta, rows_out)
+            u_row, q_row, u_old = advanced(row, n, j, a, beta, m3_out, q2_out, u2_out)
+            u0 = advanced_u(own.cols[0], n, j, a, beta, m3_out, q2_out, u2_out)
+            u1 = advanced_u(own.cols[1], n, j, a, beta, m3_out, q2_out, u2_out)
+            u2 = advanced_u(own.cols[2], n, j, a, beta, m3_out, q2_out, u2_out)
+            u3 = advanced_u(own.cols[3], n, j, a, beta, m3_out, q2_out, u2_out)
             acc = held_terms(own, u0, u1, u2, u3)
-            add_m(row, j, D * acc, rows_flat_out)
+            wp.atomic_add(m3_out, (j % 3) * n + row, D * acc)
             part[0] = wp.dot(u_row, acc)
             if owner:
-                base = ROW_SLOTS * row
-                rows_out[base + 5 + (j + 1) % 2] = wp.vec4(u_row[0], u_row[1], u_row[2], 0.0)
-                rows_out[base + 3 + (j + 1) % 2] = wp.vec4(q_row[0], q_row[1], q_row[2], 0.0)
-                rows_out[base + (j + 1) % 3] = wp.vec4()
+                u2_out[((j + 1) % 2) * n + row] = u_row
+                q2_out[((j + 1) % 2) * n + row] = q_row
+                m3_out[((j + 1) % 3) * n + row] = wp.vec3()
                 p = u_old + beta * p
                 x = x + a * p
                 part[1] = wp.dot(u_row, A_ii * u_row)
@@ -740,14 +746,14 @@ def cg_solve_held(
             for c in range(group, live, groups):
                 if c == group:
                     part[0] += held_corner_phase(
-                        corner.vert_a, corner.weight_a, corner.vert_b, corner.weight_b, corner.C, j, a, beta,
-                        diag_inv, rows_out, rows_flat_out,
+                        corner.vert_a, corner.weight_a, corner.vert_b, corner.weight_b, corner.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
                     )  # fmt: skip
                 else:
                     other = pair_corner(c, lane % PAIR_LANES, pairs)
                     part[0] += held_corner_phase(
-                        other.vert_a, other.weight_a, other.vert_b, other.weight_b, other.C, j, a, beta,
-                        diag_inv, rows_out, rows_flat_out,
+                        other.vert_a, other.weight_a, other.vert_b, other.weight_b, other.C, n, j, a, beta,
+                        diag_inv, m3_out, q2_out, u2_out,
                     )  # fmt: skip
         if j > 0:
             warp_sum_add(part[1], totals, 2 + j)

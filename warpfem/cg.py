@@ -251,13 +251,10 @@ class CGSolver:
         self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
         self.held = bool(holdable and (self.grid_blocks - pair_blocks) * BLOCK >= len(rows))
         self.pair_lanes = pair_blocks * BLOCK if self.held else 0
-        if self.held:  # the one-barrier iteration's vectors u, q = M^-1 s and m = M^-1 A u: a record per row
-            self.rows = wp.zeros(n * K.ROW_SLOTS, dtype=wp.vec4, device=self.device)
-            # the same memory seen as floats (the atomic adds) and as the start's u (slot 5 of each record)
-            self.rows_flat = wp.array(ptr=self.rows.ptr, dtype=float, shape=(4 * n * K.ROW_SLOTS,), device=self.device)
-            self.u_start = wp.array(
-                ptr=self.rows.ptr + 5 * 16, dtype=wp.vec3, shape=(n,), strides=(16 * K.ROW_SLOTS,), device=self.device
-            )
+        if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
+            self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
+            self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
+            self.m3 = wp.zeros(3 * n, dtype=wp.vec3, device=self.device)
         self._plans: dict[tuple, tuple[list, list, list]] = {}
         self.configure(max_iterations, 0.0)
 
@@ -336,7 +333,7 @@ class CGSolver:
             if self.held:
                 kernel = K.cg_solve_held
                 shape.append(self.pair_lanes)
-                outputs = [x, self.r, self.p, self.s, self.w, self.rows, self.rows_flat, self.u_start, *stats]
+                outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
             else:
                 kernel = K.cg_solve
                 outputs = [*vectors, *stats]
