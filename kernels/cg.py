@@ -21,9 +21,9 @@ push nearly the answer. It costs one more product and one more reduction.
 
 ``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
 grid-wide barriers (an arrival count in global memory, :func:`grid_total`) instead of at kernel boundaries, so an
-iteration costs two barriers rather than two launches. It is the default (``warpfem.cg.DEFAULT_MODE``): ahead
-on small, latency-bound systems and, since the barrier uses release/acquire operations, at 1 M tets too.
-On the CPU the same kernel runs as a single thread.
+iteration costs two barriers rather than two launches. It is the default (``warpfem.sim.cg.DEFAULT_MODE``): a
+barrier is cheaper than a launch, which matters most on small, latency-bound systems. On the CPU the same
+kernel runs as a single thread.
 
 Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones),
 ``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks (or a corner of its first
@@ -32,8 +32,9 @@ threads advance the rows they read themselves; see its docstring).
 """
 
 import warp as wp
-from warpfem.kernels.grid import grid_total, load_coherent, quad_sum, warp_sum_add
-from warpfem.kernels.product import (
+
+from .grid import grid_total, load_coherent, quad_sum, warp_sum_add
+from .product import (
     PAIR_LANES,
     BlockMatrix,
     OwnChunk,
@@ -182,7 +183,7 @@ def project_row(
 SMOOTH = 2.0
 """The largest d.A d / d.M d of a direction the start moves along: a smooth motion (a fall, a push: kinetic
 energy, little strain) has about 1; a direction in the stiff modes (the last step's oscillation or rounding
-at float32's limit) is not extrapolated (it fed energy into a 1 GPa cube at dt = 1/24 s)."""
+at float32's limit) is not extrapolated, since moving along it feeds energy into a stiff body at large steps."""
 
 
 @wp.func
@@ -526,12 +527,10 @@ def cg_solve(
 ):
     """The whole solve in one persistent launch of ``blocks`` resident blocks (``threads`` threads in all).
 
-    The same iteration as ``cg_update`` + ``cg_apply``, with grid barriers between the phases (two per
-    iteration, each also reducing a dot into its own slot of ``words``): no launch and no device-side loop
-    node per iteration. The start takes three: A x and A d (one barrier), the line step along d (the
-    reduction of ``cg_project``), r.u (that of ``cg_init``). On the CPU the launch is one thread and the
-    barriers vanish. Counts the solve as ``cg_finish`` does (:func:`record_solve`). Where every chunk has a
-    thread of its own, :func:`cg_solve_held` runs instead.
+    The same iteration as ``cg_update`` + ``cg_apply``, with two grid barriers per iteration (each also
+    reducing a dot into its own slot of ``words``) instead of launches; the start takes three
+    (:func:`solve_start`). On the CPU the launch is one thread and the barriers vanish. Counts the solve as
+    ``cg_finish`` does (:func:`record_solve`). Where every chunk has a thread, :func:`cg_solve_held` runs instead.
     """
     lane = wp.tid()
     n = free.shape[0]
@@ -671,15 +670,13 @@ def cg_solve_held(
 ):
     """``cg_solve`` with one grid barrier per iteration, where every chunk of the product has a thread.
 
-    The same Chronopoulos-Gear iteration, with the preconditioned vectors u = M^-1 r, q = M^-1 s and
-    m = M^-1 A u: q_k = m_k + beta q_{k-1}, u_{k+1} = u_k - alpha q_k, and gamma = u.M u, so the update of a
-    row needs only that row. Each thread holding a chunk (or a coupling pair) computes u_{k+1} of the rows
-    it reads itself, right after the barrier that delivers gamma_k and delta_k, and goes straight on to the
-    product: m_{k+1} = M^-1 A u_{k+1} (each chunk's share multiplied by its row's M^-1 before its atomic add;
-    the coupling pairs go to the last ``pair_lanes`` lanes, :data:`PAIR_LANES` to a pair, one corner each)
-    and its share of delta_{k+1} = u.A u. The thread of a row's first chunk keeps the row's x and p in
-    registers and writes its u and q for the next phase. u and q alternate between two buffers, m among three
-    (read, written, zeroed), so no phase reads what it writes. The start is :func:`solve_start`, as in ``cg_solve``.
+    The iteration runs on u = M^-1 r, q = M^-1 s and m = M^-1 A u (q_k = m_k + beta q_{k-1},
+    u_{k+1} = u_k - alpha q_k, gamma = u.M u), so a row's update needs only that row: after the barrier
+    that delivers gamma_k and delta_k, each thread advances the rows it reads itself (:func:`advanced`) and
+    goes straight on to its share of m_{k+1} and delta_{k+1} = u.A u. Coupling pairs take the last
+    ``pair_lanes`` lanes, :data:`PAIR_LANES` to a pair. The thread of a row's first chunk keeps its x and p in
+    registers and writes its u and q; u and q alternate between two buffers and m among three (read, written,
+    zeroed), so no phase reads what it writes.
     """
     lane = wp.tid()
     n = free.shape[0]

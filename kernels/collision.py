@@ -18,10 +18,11 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 """
 
 import warp as wp
-from warpfem.kernels.distance import add_rotated_gradients, interpolate_directions
-from warpfem.kernels.embedding import interpolate
-from warpfem.kernels.grid import warp_max_at
-from warpfem.kernels.integrate import FRICTION_SPEED_EPS
+
+from .distance import add_rotated_gradients, interpolate_directions
+from .embedding import interpolate
+from .grid import warp_max_at
+from .integrate import FRICTION_SPEED_EPS
 
 
 @wp.kernel
@@ -369,7 +370,14 @@ def walk_tree(
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
 ):
-    """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`)."""
+    """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
+
+    Depth first, left to right, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box
+    that holds the point are tested together (one round trip to memory instead of one per node), the bits of
+    those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
+    levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
+    hold the point in leaf order; the first that gives a positive depth answers.
+    """
     ns = node_start[body]
     ls = leaf_start[body]
     leaves = leaf_start[body + 1] - ls
@@ -475,21 +483,13 @@ def detect_contacts(
 ):
     """Per collision point and body whose box holds it: that body's tet tree, at most one contact.
 
-    Two levels: the body BVH gives the bodies the point may collide with (another body, or its own if that
-    collides with itself), and only their trees are walked (see ``refit_trees``), so a point never walks
-    its own body's tets, which it lies among, unless the body collides with itself. ``lanes`` threads share
-    a point, each walking every ``lanes``-th of its bodies (a point in a pile lies in the boxes of up to
-    five others: one thread walking them all was the launch's long pole).
-
-    The walk is depth first, left to right, ``WALK_STRIDE`` levels at a time: the 8 boxes three levels
-    below a box that holds the point are tested together (one round trip to memory instead of one per
-    node on the way), the bits of those that hold it kept on a stack packed 8 to a level in an int64; the
-    first step down from the root takes the 1 to 3 levels that leave the rest a multiple of three. At a
-    leaf, its four tets are tested together, then those that hold the point in leaf order. In each body
-    the first tet (left to right) that holds the point and gives it a positive depth answers it: a contact
-    with the point, the tet, the point's barycentric weights in the tet, the unit direction and the depth
-    (m). ``stats_out[0]`` keeps the largest depth. ``count_out[0]`` counts every contact found; those past
-    ``capacity`` are dropped (the host sees the overflow as count > capacity).
+    The body BVH gives the bodies the point may collide with (another body, or its own if that collides
+    with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
+    own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
+    each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
+    A contact records the point, the tet, the weights, the unit direction and the depth (m);
+    ``stats_out[0]`` keeps the largest depth, ``count_out[0]`` counts every contact found, and those past
+    ``capacity`` are dropped (the host sees count > capacity).
     """
     tid = wp.tid()
     p = tid // lanes
@@ -553,8 +553,8 @@ def detect_contacts_direct(
 ):
     """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
 
-    No body BVH to refit or query (its traversal stack alone took 33.8 KB of shared memory per block of 256);
-    the candidates are the bodies in index order, shared among ``lanes`` threads as there.
+    No body BVH to refit or query (whose traversal stack takes shared memory in every block); the candidates
+    are the bodies in index order, shared among ``lanes`` threads as there.
     """
     tid = wp.tid()
     p = tid // lanes
@@ -619,7 +619,7 @@ def contact_forces(
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
     friction across it, with c = mu a d / max(|u_t|, eps) from the step's start velocity. C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
-    (:class:`warpfem.cg.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
+    (:class:`warpfem.sim.contacts.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
     contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
     """
     i = wp.tid()

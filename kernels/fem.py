@@ -9,7 +9,8 @@ which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block c
 """
 
 import warp as wp
-from warpfem.kernels.distance import add_rotated_gradients
+
+from .distance import add_rotated_gradients
 
 
 @wp.func

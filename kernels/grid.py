@@ -98,14 +98,12 @@ def grid_total(
     """The sum of ``value`` over every thread of a persistent launch of ``blocks`` blocks, returned to all.
 
     Also the grid barrier: it returns once every block has arrived, and what a block wrote before it is
-    visible after it. ``words[slot]`` (zeroed before; one slot per call) holds the sum in its low 32 bits (a
-    float: one atomic add per warp of 32) and the blocks arrived in its high 32 bits. Each block's thread 0
-    arrives with an atomic add with release semantics (the block's writes and sums before the block barrier
-    are visible before it) and spins on 64-bit loads with acquire semantics that read the count and the sum
-    at once: the sum costs no round trip to memory after the barrier. All blocks must be resident at once
-    (the host launches at most one block per SM); a launch of one block needs only the block barrier. A
-    barrier that waits for ~2^24 polls sets ``stalled[0]`` and lets its block go on rather than hang the
-    device. On the CPU, where a launch is one thread, it adds ``value`` to the slot and returns it.
+    visible after it. ``words[slot]`` (zeroed before; one slot per call) holds the float sum in its low 32
+    bits (one atomic add per warp) and the arrival count in its high 32; each block's thread 0 arrives with a
+    release add and spins on acquire loads that read count and sum at once, so the sum costs no extra round
+    trip. All blocks must be resident (at most one per SM; one block needs only the block barrier). After
+    ~2^24 polls it sets ``stalled[0]`` and goes on rather than hang the device. On the CPU it adds ``value``
+    to the slot and returns it.
     """
     ...
 

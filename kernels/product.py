@@ -3,7 +3,7 @@
 The matrix is stored as its upper triangle. A chunk is at most a few entries of one row; the product either
 gathers (a row's entries are its stored blocks and the mirrors of those above it: one atomic add per chunk
 into its own row) or scatters (each stored block also adds its transpose into another row: an atomic per
-block, half the reads), see ``warpfem.cg.GATHER_MAX_ROWS``. A coupling term (pairs of points embedded in the
+block, half the reads), see ``warpfem.sim.cg.GATHER_MAX_ROWS``. A coupling term (pairs of points embedded in the
 mesh, such as contacts) is applied by extra threads. A persistent solve whose every chunk has a thread of its
 own keeps that chunk's columns and blocks in registers for the whole solve (:class:`OwnChunk`): an iteration
 then loads only the vector.
@@ -56,8 +56,8 @@ def embedded_product(
     """w += (J^T C J less its diagonal blocks) u for one pair (see :func:`pair_terms`); returns its u.w.
 
     The eight values of u are loaded once, before any atomic add: a load after an atomic add to a buffer
-    that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop made a chain
-    of eight dependent round trips to memory.
+    that may alias ``u`` cannot be issued ahead of it, so reloading them in the scatter loop would chain
+    eight dependent round trips to memory.
     """
     Ua = wp.matrix_from_rows(u[verts_a[0]], u[verts_a[1]], u[verts_a[2]], u[verts_a[3]])
     Ub = wp.matrix_from_rows(u[verts_b[0]], u[verts_b[1]], u[verts_b[2]], u[verts_b[3]])
@@ -116,13 +116,12 @@ def chunk_gather(
 ) -> float:
     """w[row] += chunk i's share of row ``row`` of A u, gathered: one atomic add; returns its share of u.w.
 
-    The product of systems up to ``warpfem.cg.GATHER_MAX_ROWS`` rows.
+    The product of systems up to ``warpfem.sim.cg.GATHER_MAX_ROWS`` rows.
 
     A row's entries are its stored blocks (the upper triangle, ``slot >= 0``) and the mirrors of the blocks
     stored in the rows above that have it as a column (``slot = -stored - 1``, applied transposed), so a
-    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows (the
-    scatter of transposed blocks was 2/3 of the product's atomics). Loads go in groups of :data:`GROUP`:
-    columns and slots, then blocks and u at the columns.
+    chunk reads what it needs and adds once to its own row: no atomic add per block into other rows. Loads
+    go in groups of :data:`GROUP`: columns and slots, then blocks and u at the columns.
     """
     row = matrix.chunk_row[i]
     first = matrix.chunk_start[i]
@@ -170,10 +169,10 @@ def chunk_scatter(
     """w += chunk i's stored blocks times u and their transposes (scattered with atomics); returns its u.w.
 
     The product of larger systems: each stored block is read once (half the traffic of the gather, which
-    reads each off-diagonal block twice), at the cost of an atomic add per block into another row: ahead
-    once the matrix outgrows the L2 cache (1.1 M tets: 72 against 98 us per iteration on an H100). A chunk
-    holds consecutive stored blocks of its row; loads go in groups of :data:`GROUP` ahead of the atomics (a
-    load after an atomic add to a buffer that may alias ``u`` waits for it in program order).
+    reads each off-diagonal block twice), at the cost of an atomic add per block into another row, which
+    pays once the matrix outgrows the L2 cache. A chunk holds consecutive stored blocks of its row; loads go
+    in groups of :data:`GROUP` ahead of the atomics (a load after an atomic add to a buffer that may alias
+    ``u`` waits for it in program order).
     """
     row = matrix.chunk_row[i]
     first = matrix.chunk_start[i]
@@ -220,7 +219,7 @@ def chunk_product(
 
 @wp.struct
 class Pairs:
-    """The coupling pairs of a product: ``warpfem.cg.Coupling`` as one kernel argument.
+    """The coupling pairs of a product: ``warpfem.sim.contacts.Coupling`` as one kernel argument.
 
     Pair c ties the point ``sum_k weights_a[c][k] x[verts_a[c][k]]`` to the point of ``verts_b`` and
     ``weights_b`` through ``matrix[c]``; the first ``count[0]`` (capped at the capacity) are live.

@@ -33,18 +33,9 @@ import warp as wp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from warpfem.embedding import map_dense  # noqa: E402
-from warpfem.model import ModelBuilder, State  # noqa: E402
-from warpfem.preprocess import prepare  # noqa: E402
-from warpfem.scene import ObjectConfig, load_scene  # noqa: E402
-from warpfem.simulate import (  # noqa: E402
-    Contacts,
-    PhaseTimer,
-    Simulation,
-    add_prepared_body,
-    dense_penetration,
-    solver_of,
-)
+import warpfem  # noqa: E402
+from warpfem.scene import ObjectConfig  # noqa: E402
+from warpfem.simulation import PhaseTimer  # noqa: E402
 
 PILES = (1, 4, 16, 64, 256, 1024)
 
@@ -77,8 +68,8 @@ def environment(device) -> dict:
     }
 
 
-def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[ObjectConfig]:
-    """N 1 m armadillos (or any mesh) in layers of a 4x4 grid, each turned about y, dropped onto the ground."""
+def pile(scene: warpfem.Scene, n: int, mesh: str, faces: int, scale: float = 0.0066) -> warpfem.Scene:
+    """``scene`` with N 1 m armadillos (or any mesh) in layers of a 4x4 grid, each turned about y, dropped."""
     rng = np.random.default_rng(n)
     side = min(4, math.ceil(math.sqrt(n)))
     objects = []
@@ -99,7 +90,7 @@ def pile_objects(n: int, mesh: str, faces: int, scale: float = 0.0066) -> list[O
                 damping_stiffness=0.005,
             )
         )
-    return objects
+    return dataclasses.replace(scene, objects=objects)
 
 
 def comma_list(text: str, convert, valid, expected: str) -> list:
@@ -129,22 +120,12 @@ def end_gap(a: np.ndarray, b: np.ndarray) -> dict:
     return {"max_m": float(gap.max()), "rms_m": float(np.sqrt(np.mean(gap**2)))}
 
 
-def build(scene, objects, device, cache_dir: Path, cg_path: str | None = None) -> Simulation:
-    """The simulation of ``objects`` with ``scene``'s solver settings (``cg_path``: see ``Solver``)."""
-    prepared = {}
-    builder = ModelBuilder()
-    for obj in objects:
-        key = (obj.mesh, obj.faces, obj.subdivide, obj.maxh)
-        if key not in prepared:
-            prepared[key] = prepare(
-                obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir
-            )
-        add_prepared_body(builder, obj, prepared[key])
-    model = builder.finalize(device)
-    return Simulation(model, solver_of(scene, model, cg_path), scene.substeps, scene.dt)
+def build(scene, device, cache_dir: Path, cg_path: str | None = None) -> warpfem.Simulation:
+    """The simulation of ``scene`` (``cg_path``: see ``Solver``)."""
+    return warpfem.Simulation(scene, device=device, cache_dir=cache_dir, cg_path=cg_path)
 
 
-def output_ms(sim: Simulation, frames: int = 30) -> float:
+def output_ms(sim: warpfem.Simulation, frames: int = 30) -> float:
     """Milliseconds per frame to write the dense meshes (file output, outside the frame time).
 
     Copy to the host, a USD time sample per body, and the .usdc file written at the end (amortised over
@@ -152,7 +133,7 @@ def output_ms(sim: Simulation, frames: int = 30) -> float:
     """
     import tempfile
 
-    from warpfem.usd_out import UsdWriter
+    from warpfem.io.usd import UsdWriter
 
     bodies = [(b.name, b.dense_faces) for b in sim.model.bodies]
     with tempfile.TemporaryDirectory() as folder:
@@ -163,7 +144,7 @@ def output_ms(sim: Simulation, frames: int = 30) -> float:
         return 1000.0 * (time.perf_counter() - t0) / frames
 
 
-def settle_deviation(scene, objects, device, cache_dir: Path, frames: int, cg_path: str | None = None) -> dict:
+def settle_deviation(scene, device, cache_dir: Path, frames: int, cg_path: str | None = None) -> dict:
     """How far the bench settings end from a converged run of the same scene (tet vertices, m).
 
     Converged: 4x the substeps and CG to a relative residual of 1e-6. Both run ``frames`` frames from the
@@ -172,7 +153,7 @@ def settle_deviation(scene, objects, device, cache_dir: Path, frames: int, cg_pa
     converged = converged_cg(scene, 4 * scene.substeps)
     ends = []
     for settings in (scene, converged):
-        sim = build(settings, objects, device, cache_dir, cg_path)
+        sim = build(settings, device, cache_dir, cg_path)
         for _ in range(frames):
             sim.advance()
         ends.append(sim.states[0].x.numpy())
@@ -199,7 +180,7 @@ def converged_cg(scene, substeps: int):
     return dataclasses.replace(cg_to(scene, CONVERGED_CG, cg_iterations=1000), substeps=substeps)
 
 
-def frame_error(sim: Simulation, scene, objects, device, cache_dir: Path, cg_path: str | None = None) -> dict:
+def frame_error(sim: warpfem.Simulation, scene, device, cache_dir: Path, cg_path: str | None = None) -> dict:
     """How far one frame from ``sim``'s current state ends from the same frame with CG converged (tet vertices, m).
 
     Same state, same substeps, so this is the error of the bench's CG settings alone, one frame's worth:
@@ -210,7 +191,7 @@ def frame_error(sim: Simulation, scene, objects, device, cache_dir: Path, cg_pat
     sim.advance()
     ours = sim.states[0].x.numpy().copy()  # on the CPU numpy() is a view of the array the next line overwrites
     sim.states[0].assign(start)
-    reference = build(converged_cg(scene, scene.substeps), objects, device, cache_dir, cg_path)
+    reference = build(converged_cg(scene, scene.substeps), device, cache_dir, cg_path)
     reference.states[0].assign(start)
     reference.advance()
     return {"converged_cg_tolerance": CONVERGED_CG, **end_gap(ours, reference.states[0].x.numpy())}
@@ -218,7 +199,6 @@ def frame_error(sim: Simulation, scene, objects, device, cache_dir: Path, cg_pat
 
 def time_scene(
     scene,
-    objects,
     device,
     cache_dir: Path,
     frames: int,
@@ -231,35 +211,33 @@ def time_scene(
     With ``accuracy``, also the error of one frame from where the timed frames end against converged CG
     (:func:`frame_error`).
     """
-    sim = build(scene, objects, device, cache_dir, cg_path)
+    sim = build(scene, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
 
     def frame(timer=None):
         sim.advance(timer)
-        map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)
+        sim.map_dense()
 
     frame(PhaseTimer(device))  # a frame run directly (also compiles everything)
     for _ in range(warmup):
         frame()  # captures the graph on CUDA
     start = snapshot(sim)
-    solver.read_cg_stats()
-    contacts = Contacts()
+    sim.read_stats()  # from here on: the timed frames
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(frames):
         frame()
     wp.synchronize_device(device)
     ms = 1000.0 * (time.perf_counter() - t0) / frames
-    stats = solver.read_cg_stats()
-    contacts.read(solver, frames, None)
+    stats = sim.read_stats(frames)
     dense = sim.dense.numpy()
     points = [dense[b.dense_start : b.dense_start + b.dense_count] for b in model.bodies]
-    penetration = dense_penetration(sim, points)
+    penetration = sim.dense_penetration(points)
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
     end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
-    error = frame_error(sim, scene, objects, device, cache_dir, cg_path) if accuracy else None
+    error = frame_error(sim, scene, device, cache_dir, cg_path) if accuracy else None
     # the kernel profile where the timed frames ended (bodies in contact, not in the air)
     kernels = kernel_profile(lambda: frame(PhaseTimer(device))) if device.is_cuda else None
     return {
@@ -280,23 +258,23 @@ def time_scene(
         "tet_vertices": model.vertex_count,
         "dense_vertices": model.dense_count,
         "dense_triangles": int(sum(len(b.dense_faces) for b in model.bodies)),
-        "cg_iterations_per_step": stats.iterations / max(stats.solves, 1),
-        "cg_residual_max": stats.residual_max,
-        "contacts_max_per_step": contacts.most,
-        "contact_depth_max_m": contacts.deepest,
+        "cg_iterations_per_step": stats.cg_iterations,
+        "cg_residual_max": stats.cg_residual,
+        "contacts_max_per_step": stats.contacts_max,
+        "contact_depth_max_m": stats.deepest_contact,
         "dense_penetration_m": penetration,
         "lowest_dense_point_m": lowest,
     }
 
 
-def snapshot(sim: Simulation) -> State:
+def snapshot(sim: warpfem.Simulation) -> warpfem.State:
     """A copy of the simulation's current state (the start of the timed frames)."""
     copy = sim.model.state()
     copy.assign(sim.states[0])
     return copy
 
 
-def phase_split(sim: Simulation, start: State, frames: int, device) -> dict:
+def phase_split(sim: warpfem.Simulation, start: warpfem.State, frames: int, device) -> dict:
     """Milliseconds per frame of each phase (elastic, collision, solve, map) along the timed frames.
 
     The timed frames are run again from their ``start`` state, phase by phase, so the split sees the same
@@ -305,10 +283,9 @@ def phase_split(sim: Simulation, start: State, frames: int, device) -> dict:
     recorded between the replays (the host does not wait); on the CPU, synchronised wall-clock laps.
     """
     sim.states[0].assign(start)
-    model = sim.model
     work = [
         *sim.frame_phases(overlap=False),  # each phase its own graph: the collision stage's prepare in its own
-        ("map", lambda: map_dense(model.tets, sim.states[0].x, model.dense_tet, model.dense_bary, sim.dense)),
+        ("map", sim.map_dense),
     ]
     if device.is_cuda:
         launchers = []
@@ -368,26 +345,21 @@ def cg_at_scale(
     product; 64 is in effect a thread per row), the persistent grid path at the device's default chunk;
     ``cg_iteration_us`` is the faster of the two.
     """
-    from warpfem import cg as cg_module
-    from warpfem.shapes import box_tet_mesh
-    from warpfem.solver import Solver
+    from warpfem.prep.shapes import box_tet_mesh
+    from warpfem.sim import cg as cg_module
 
     V, T = box_tet_mesh((0, 0, 0), (1.0, 1.0, 1.0), cells)
-    b = ModelBuilder()
-    b.add_body("block", V, T, 1e6, 0.3, 1000.0, pinned=V[:, 1] < 1e-9)
+    b = warpfem.ModelBuilder()
+    warpfem.add_body(b, "block", V, T, 1e6, 0.3, 1000.0, pinned=V[:, 1] < 1e-9)
     model = b.finalize(device)
-    solver = Solver(model, ground=None, collision=None, cg_iterations=iterations, cg_tolerance=0.0)
+    solver = warpfem.Solver(model, ground=None, collision=None, cg_iterations=iterations, cg_tolerance=0.0)
     s0, s1 = model.state(), model.state()
     solver.step(s0, s1, 1 / 240)  # assemble and compile
     kind = "cuda" if device.is_cuda else "cpu"
     default = cg_module.CHUNK[kind]
 
     def iteration_us(chunk: int, path: str = "launches") -> float:
-        cg_module.CHUNK[kind] = chunk
-        try:
-            cg = cg_module.CGSolver(model.row_start, model.cols, model.free, iterations, device, mode=path)
-        finally:
-            cg_module.CHUNK[kind] = default
+        cg = cg_module.CGSolver(model.row_start, model.cols, model.free, iterations, device, mode=path, chunk=chunk)
         x = wp.zeros_like(s1.v)
 
         def solve():
@@ -493,44 +465,44 @@ def main(argv=None) -> int:
         parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     if skip - {"paper", "piles", "cg"}:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
-    scene_defaults = load_scene(ROOT / "scenes" / "default.toml")
+    scene_defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
 
     if args.quick:
-        work = [("pile", n, pile_objects(n, "builtin:bunny", 300, scale=0.5), scene_defaults) for n in (1, 2)]
+        work = [("pile", n, pile(scene_defaults, n, "builtin:bunny", 300, scale=0.5)) for n in (1, 2)]
         frames, cg_cells = 5, (8, 8, 8)
     else:
         armadillo = str((args.assets / "armadillo.off").resolve())
         work = []
         if "paper" not in skip:
             for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
-                scene = load_scene_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
-                work.append((name, len(scene.objects), scene.objects, scene))
+                scene = with_assets(warpfem.load_scene(ROOT / "scenes" / f"{name}.toml"), args.assets)
+                work.append((name, len(scene.objects), scene))
                 for k in args.paper_substeps:
                     if k != scene.substeps:
                         variant = dataclasses.replace(scene, substeps=k)
-                        work.append((name, len(scene.objects), scene.objects, variant))
+                        work.append((name, len(scene.objects), variant))
                 for tolerance in args.paper_tolerances:
                     if scene.solver.stop_tolerance != tolerance:
-                        work.append((name, len(scene.objects), scene.objects, cg_to(scene, tolerance)))
+                        work.append((name, len(scene.objects), cg_to(scene, tolerance)))
         if "piles" not in skip:
             for n in args.piles:
-                work.append(("pile", n, pile_objects(n, armadillo, 500), scene_defaults))
+                work.append(("pile", n, pile(scene_defaults, n, armadillo, 500)))
         frames, cg_cells = args.frames, (60, 60, 52)
 
     if args.prepare_only:
-        for _, _, objs, _ in work:
-            for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in objs}:
-                prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
+        for _, _, scene in work:
+            for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in scene.objects}:
+                warpfem.prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
         return 0
 
-    for (kind, n, objs, scene), cg_path in itertools.product(work, cg_paths):
+    for (kind, n, scene), cg_path in itertools.product(work, cg_paths):
         t0 = time.perf_counter()
         path = None if cg_path == "auto" else cg_path
         measured = kind != "pile" or n in args.deviation
-        run = time_scene(scene, objs, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
+        run = time_scene(scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
-            run["settle_deviation"] = settle_deviation(scene, objs, device, args.cache_dir, frames, path)
+            run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
         print(
@@ -555,15 +527,10 @@ def main(argv=None) -> int:
     return 0
 
 
-def load_scene_with_assets(path: Path, assets: Path):
-    """A paper scene with its ../../shared/assets meshes taken from ``assets`` instead."""
-    import tempfile
-
-    text = path.read_text().replace("../../shared/assets", str(assets.resolve()))
-    with tempfile.TemporaryDirectory() as folder:
-        copy = Path(folder) / path.name
-        copy.write_text(text)
-        return load_scene(copy)
+def with_assets(scene: warpfem.Scene, assets: Path) -> warpfem.Scene:
+    """``scene`` with each object's mesh taken from the folder ``assets`` (same file name)."""
+    objects = [dataclasses.replace(o, mesh=str((assets / Path(o.mesh).name).resolve())) for o in scene.objects]
+    return dataclasses.replace(scene, objects=objects)
 
 
 if __name__ == "__main__":

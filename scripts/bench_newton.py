@@ -1,8 +1,8 @@
 """Benchmark peer: the piles of scripts/bench.py run with Newton 1.8 (``SolverVBD``), same tet meshes.
 
-Each pile is the one ``scripts/bench.py`` builds (``pile_objects``: N armadillos of 541 tets, E 1e6 Pa,
-nu 0.3, density 1000, dropped from 0.7 m), each body preprocessed by ``warpfem.preprocess.prepare`` and
-placed exactly as ``warpfem.simulate.add_prepared_body`` places it (x = scale * x @ R.T + t). Newton
+Each pile is the one ``scripts/bench.py`` builds (``pile``: N armadillos of 541 tets, E 1e6 Pa,
+nu 0.3, density 1000, dropped from 0.7 m), each body preprocessed by ``warpfem.prep.pipeline.prepare`` and
+placed exactly as ``warpfem.build.add_prepared_body`` places it (x = scale * x @ R.T + t). Newton
 then gets a ground plane (y up, gravity -9.81 m/s^2), every body as ``ModelBuilder.add_soft_mesh``
 (Lame mu and lambda from E and nu), and ``SolverVBD`` with particle self-contact, 10 substeps x 10
 iterations per 1/60 s frame. Time per frame is taken after 2 warm-up frames over ``--frames`` frames, the
@@ -34,10 +34,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from bench import PILES, end_gap, environment, int_list, pile_objects  # noqa: E402
+from bench import PILES, end_gap, environment, int_list, pile  # noqa: E402
 
-from warpfem.preprocess import prepare  # noqa: E402
-from warpfem.simulate import euler_rotation  # noqa: E402
+import warpfem  # noqa: E402
+from warpfem.build import euler_rotation  # noqa: E402
+from warpfem.prep.pipeline import prepare  # noqa: E402
 
 FPS = 60.0
 
@@ -50,7 +51,7 @@ def lame(young: float, poisson: float) -> tuple[float, float]:
 
 
 def placed_meshes(objects, cache_dir: Path | None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """World tet vertices and tets of each object, placed as ``warpfem.simulate.add_prepared_body`` does."""
+    """World tet vertices and tets of each object, placed as ``warpfem.build.add_prepared_body`` does."""
     prepared = {}
     meshes = []
     for obj in objects:
@@ -255,12 +256,13 @@ def main(argv=None) -> int:
     env["newton"] = getattr(newton, "__version__", "unknown")
     results = {"environment": env, "mode": "quick" if args.quick else "full", "settings": settings, "runs": []}
 
+    defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     if args.quick:
-        work = [(1, pile_objects(1, "builtin:bunny", 300, scale=0.5))]
+        work = [(1, pile(defaults, 1, "builtin:bunny", 300, scale=0.5).objects)]
         frames = 3
     else:
         armadillo = str((args.assets / "armadillo.off").resolve())
-        work = [(n, pile_objects(n, armadillo, 500)) for n in args.piles]
+        work = [(n, pile(defaults, n, armadillo, 500).objects) for n in args.piles]
         frames = args.frames
 
     args.out.mkdir(parents=True, exist_ok=True)

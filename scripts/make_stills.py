@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,30 +21,23 @@ def still(scene_path: Path | None, out_dir: Path, frame: int | None, size: tuple
     """Run one scene to ``frame`` and write ``<out_dir>/<scene stem>.png``; returns the PNG path."""
     from PIL import Image
 
-    from warpfem.commands import default_cache_dir
-    from warpfem.render import Renderer, auto_camera, framing_box
-    from warpfem.scene import default_scene_path, load_scene
-    from warpfem.simulate import prepare_scene, run_scene
+    import warpfem
+    from warpfem.io.render import Renderer, auto_camera, framing_box
 
-    scene = load_scene(scene_path or default_scene_path())
+    scene = warpfem.load_scene(scene_path or warpfem.default_scene_path())
     target = frame if frame is not None else max(1, scene.frames // 4)
-    scene = scene.with_frames(target)
-    cache = default_cache_dir()
-    faces = [body.dense_faces for body in prepare_scene(scene, cache)]
+    sim = warpfem.Simulation(scene, device=device)
+    for _ in range(target):
+        sim.step_frame()
+    points = sim.dense_points()
     ground = scene.ground.height if scene.ground.enabled else None
-    renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
-    shot = {}
-
-    def on_points(index: int, points: list) -> None:
-        if index == target:  # framing the frame shown, down to the ground
-            box = framing_box(points, scene.up_axis, ground, margin=0.1)
-            renderer.camera = auto_camera(*box, scene.up_axis, size[0] / size[1])
-            shot["image"] = renderer.render(points)
-
-    with tempfile.TemporaryDirectory() as tmp:
-        run_scene(scene, Path(tmp) / "still.usdc", device, cache, on_points=on_points)
+    renderer = Renderer(
+        [b.dense_faces for b in sim.model.bodies], *size, device=device, up_axis=scene.up_axis, ground=ground
+    )
+    box = framing_box(points, scene.up_axis, ground, margin=0.1)  # framing the frame shown, down to the ground
+    renderer.camera = auto_camera(*box, scene.up_axis, size[0] / size[1])
     path = out_dir / f"{Path(scene.path).stem}.png"
-    Image.fromarray(shot["image"]).save(path, optimize=True)
+    Image.fromarray(renderer.render(points)).save(path, optimize=True)
     return path
 
 
@@ -59,7 +51,7 @@ def main() -> int:
     args = parser.parse_args()
     import warp as wp
 
-    from warpfem.render import parse_size
+    from warpfem.io.render import parse_size
 
     wp.config.log_level = wp.LOG_WARNING
     device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")

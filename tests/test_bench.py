@@ -17,6 +17,7 @@ import bench  # noqa: E402
 from warpfem.scene import load_scene  # noqa: E402
 
 
+@pytest.mark.slow
 def test_quick_benchmark_writes_a_complete_json(tmp_path):
     cmd = [
         sys.executable,
@@ -79,17 +80,18 @@ def test_bad_arguments_are_one_line_errors_and_write_nothing(tmp_path, script, a
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_frame_error_is_the_cg_error_of_one_frame_and_leaves_the_state(tmp_path):
     scene = load_scene(ROOT / "scenes" / "default.toml")
-    bunnies = bench.pile_objects(2, "builtin:bunny", 300, scale=0.5)
+    bunnies = bench.pile(scene, 2, "builtin:bunny", 300, scale=0.5)
     errors = {}
     for tolerance in (1e-1, 1e-4, bench.CONVERGED_CG):
-        settings = dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, cg_tolerance=tolerance))
-        sim = bench.build(settings, bunnies, "cpu", tmp_path)
+        settings = dataclasses.replace(bunnies, solver=dataclasses.replace(scene.solver, cg_tolerance=tolerance))
+        sim = bench.build(settings, "cpu", tmp_path)
         for _ in range(30):  # landed and touching: CG has work to do
             sim.advance()
         before = sim.states[0].x.numpy().copy()
-        errors[tolerance] = bench.frame_error(sim, settings, bunnies, "cpu", tmp_path)["max_m"]
+        errors[tolerance] = bench.frame_error(sim, settings, "cpu", tmp_path)["max_m"]
         np.testing.assert_array_equal(sim.states[0].x.numpy(), before)
     # against itself the converged run differs by nothing: the figure isolates CG from everything else
     assert errors[bench.CONVERGED_CG] == 0.0

@@ -13,6 +13,7 @@ pytest.importorskip("newton")
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_quick_newton_benchmark_writes_a_complete_json(tmp_path):
     cache = tmp_path / "cache"
     cmd = [sys.executable, str(ROOT / "scripts" / "bench_newton.py"), "--quick", "--out", str(tmp_path)]
@@ -30,7 +31,7 @@ def test_quick_newton_benchmark_writes_a_complete_json(tmp_path):
     assert run["n"] == 1 and run["bodies"] == 1 and run["frames_timed"] == 3
 
     # the same tet mesh as warpfem's own pile: every tet and vertex kept
-    from warpfem.preprocess import prepare
+    from warpfem.prep.pipeline import prepare
 
     body = prepare("builtin:bunny", faces=300, cache_dir=cache)
     assert run["tets"] == len(body.tets) and run["particles"] == len(body.tet_vertices)

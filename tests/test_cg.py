@@ -5,10 +5,11 @@ import pytest
 import warp as wp
 from warpfem.kernels.product import PAIR_LANES
 
-from warpfem import cg as cg_module
-from warpfem.cg import CGSolver, Coupling
-from warpfem.model import block_pattern
-from warpfem.shapes import box_tet_mesh
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.sim import cg as cg_module
+from warpfem.sim.cg import CGSolver
+from warpfem.sim.contacts import Coupling
+from warpfem.sim.model import block_pattern
 
 
 @pytest.fixture(

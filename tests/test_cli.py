@@ -8,11 +8,9 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom, UsdValidation
 
+import warpfem
+from warpfem.build import euler_rotation
 from warpfem.cli import main
-from warpfem.model import ModelBuilder
-from warpfem.preprocess import prepare
-from warpfem.scene import load_scene
-from warpfem.simulate import Simulation, add_prepared_body, euler_rotation, solver_of
 
 SCENE = """
 [scene]
@@ -75,18 +73,17 @@ def test_run_writes_valid_usd_matching_the_simulation(scene_dir, device, capsys)
     assert frames[0].shape == placed.shape
     np.testing.assert_allclose(np.sort(frames[0], axis=0), np.sort(placed, axis=0), atol=1e-5)
 
-    # the last frame equals the barycentric map (NumPy) of a direct run's final tet positions
-    scene = load_scene(scene_dir / "scene.toml")
-    obj = scene.objects[0]
-    body = prepare(obj.mesh, faces=obj.faces, maxh=obj.maxh)
-    builder = ModelBuilder()
-    add_prepared_body(builder, obj, body)
-    model = builder.finalize(device)
-    solver = solver_of(scene, model)
-    sim = Simulation(model, solver, scene.substeps, scene.dt)
+    # the API's dense points after the same frames are the file's last frame
+    scene = warpfem.load_scene(scene_dir / "scene.toml")
+    sim = warpfem.Simulation(scene, device=device, cache=False)
     for _ in range(scene.frames):
-        sim.advance()
-    x = sim.states[0].x.numpy()
+        sim.step_frame()
+    assert sim.frame == scene.frames and sim.time == pytest.approx(scene.frames / scene.fps)
+    np.testing.assert_allclose(frames[-1], sim.dense_points("ball"), atol=1e-6)
+    # and NumPy's barycentric map of the final tet positions
+    obj = scene.objects[0]
+    body = warpfem.prepare(obj.mesh, faces=obj.faces, maxh=obj.maxh)
+    x = sim.tet_points("ball")
     expected = np.einsum("nk,nkd->nd", body.embed_bary, x[body.tets[body.embed_tet]])
     np.testing.assert_allclose(frames[-1], expected, atol=1e-4)
     assert frames[-1][:, 1].mean() < frames[0][:, 1].mean()  # it fell
@@ -157,7 +154,7 @@ def test_bad_options_exit_2(scene_dir, capsys):
 
 
 def test_interrupted_run_keeps_the_frames_done(scene_dir, capsys, monkeypatch):
-    import warpfem.simulate as simulate
+    import warpfem.simulation as simulate
 
     calls = {"n": 0}
     original = simulate.Simulation.advance
@@ -183,6 +180,7 @@ def test_prepare_reports_what_it_made(scene_dir, capsys):
         assert word in report
 
 
+@pytest.mark.slow
 def test_default_scene_runs_from_a_fresh_process(tmp_path):
     """The README's first command, shortened: the shipped default scene (>= 100k dense triangles)."""
     out = tmp_path / "default.usdc"
@@ -250,7 +248,7 @@ def test_fast_bodies_warn_once_about_tunnelling(scene_dir, capsys):
 
 
 def test_fast_rotation_warns_once(scene_dir, capsys, monkeypatch):
-    import warpfem.simulate as simulate
+    import warpfem.simulation as simulate
 
     monkeypatch.setattr(simulate, "FAST_TURN", 0.0)  # any turn counts: the warning's plumbing
     out = scene_dir / "spin.usdc"

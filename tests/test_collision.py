@@ -4,13 +4,15 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpfem.cg import CGSolver
-from warpfem.collision import CollisionSettings, tet_trees
-from warpfem.distance import distance_field
-from warpfem.model import ModelBuilder
-from warpfem.shapes import box_tet_mesh
-from warpfem.solver import Ground, Solver
-from warpfem.tetmesh import boundary_faces
+from warpfem.build import add_body
+from warpfem.prep.distance import distance_field
+from warpfem.prep.geometry import tet_tree
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.prep.tetmesh import boundary_faces
+from warpfem.sim.cg import CGSolver
+from warpfem.sim.collision import CollisionSettings
+from warpfem.sim.model import ModelBuilder
+from warpfem.sim.solver import Ground, Solver
 
 
 def _box(lo, size, cells):
@@ -44,8 +46,10 @@ def penetration(points, vertices, tets):
 
 def test_two_cubes_come_to_rest_stacked(device):
     b = ModelBuilder()
-    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
-    b.add_body("b", *_box((0.025, 0.3, 0.025), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    add_body(b, "a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    add_body(
+        b, "b", *_box((0.025, 0.3, 0.025), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01
+    )
     model = b.finalize(device)
     solver = Solver(model, ground=Ground(), cg_iterations=200, cg_tolerance=1e-5, collision=CollisionSettings())
     x = _run(solver, model, 480, 1 / 240).x.numpy()
@@ -66,9 +70,9 @@ def test_two_cubes_come_to_rest_stacked(device):
 
 def test_head_on_collision_conserves_momentum(device):
     b = ModelBuilder()
-    b.add_body("left", *_box((-0.35, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 1000.0, velocity=(2.0, 0.0, 0.0))
-    b.add_body(
-        "right", *_box((0.15, 0.02, 0.01), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 500.0, velocity=(-1.0, 0.0, 0.0)
+    add_body(b, "left", *_box((-0.35, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 1000.0, velocity=(2.0, 0.0, 0.0))
+    add_body(
+        b, "right", *_box((0.15, 0.02, 0.01), (0.2, 0.2, 0.2), (2, 2, 2)), 2e5, 0.3, 500.0, velocity=(-1.0, 0.0, 0.0)
     )
     model = b.finalize(device)
     solver = Solver(model, gravity=(0, 0, 0), ground=None, cg_iterations=300, cg_tolerance=1e-6)
@@ -94,8 +98,8 @@ def test_thin_bar_dropped_across_a_thin_bar(device, spacing):
     b = ModelBuilder()
     lower = _box((-0.5, 0.0, -0.02), (1.0, 0.04, 0.04), (9, 1, 1))
     upper = _box((-0.02, 0.1, -0.5), (0.04, 0.04, 1.0), (1, 1, 9))
-    b.add_body("lower", *lower, 1e7, 0.3, 1000.0, pinned=np.ones(len(lower[0]), bool))
-    b.add_body("upper", *upper, 1e7, 0.3, 1000.0, damping_stiffness=0.002, collision_spacing=spacing)
+    add_body(b, "lower", *lower, 1e7, 0.3, 1000.0, pinned=np.ones(len(lower[0]), bool))
+    add_body(b, "upper", *upper, 1e7, 0.3, 1000.0, damping_stiffness=0.002, collision_spacing=spacing)
     model = b.finalize(device)
     solver = Solver(model, ground=None, cg_iterations=200, cg_tolerance=1e-5)
     x = _run(solver, model, 90, 1 / 240).x.numpy()
@@ -124,7 +128,8 @@ def test_self_collision_follows_the_scene(device):
     lows = []
     for self_collision in (False, True):
         b = ModelBuilder()
-        b.add_body(
+        add_body(
+            b,
             "pair",
             vertices,
             tets,
@@ -145,7 +150,7 @@ def test_self_collision_follows_the_scene(device):
 def test_a_body_at_rest_has_no_self_contacts(device):
     v, t = _box((0, 0, 0), (0.3, 0.1, 0.2), (3, 2, 2))
     b = ModelBuilder()
-    b.add_body("block", v, t, 1e5, 0.3, 1000.0, self_collision=True, collision_spacing=0.02)
+    add_body(b, "block", v, t, 1e5, 0.3, 1000.0, self_collision=True, collision_spacing=0.02)
     model = b.finalize(device)
     solver = Solver(model, gravity=(0, 0, 0), ground=None)
     x = _run(solver, model, 5, 1 / 240).x.numpy()
@@ -192,7 +197,7 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
     }
     detection = {"detect_contacts", "detect_contacts_direct"}  # through a BVH of the body boxes, or directly
     single = ModelBuilder()
-    single.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    add_body(single, "one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
     model = single.finalize(device)
     for mode in ("grid", "launches"):
         solver = Solver(model, cg_iterations=10, cg_tolerance=0.0)
@@ -212,8 +217,8 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
             assert len(names) <= 2 * 12 + 3 + 12
 
     pair = ModelBuilder()
-    pair.add_body("one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
-    pair.add_body("two", *_box((0, 0.9, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    add_body(pair, "one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    add_body(pair, "two", *_box((0, 0.9, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
     model = pair.finalize(device)
     colliding = Solver(model, cg_iterations=10, cg_tolerance=0.0)
     launched = set(_count_launches(monkeypatch, colliding, model))
@@ -229,8 +234,8 @@ def test_overlapped_captured_step_matches_a_serial_direct_one(device):
     if not wp.get_device(device).is_cuda:
         pytest.skip("streams and graph capture need a CUDA device")
     b = ModelBuilder()
-    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
-    b.add_body("b", *_box((0.02, 0.21, 0.03), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, velocity=(0, -2, 0))
+    add_body(b, "a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    add_body(b, "b", *_box((0.02, 0.21, 0.03), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, velocity=(0, -2, 0))
     model = b.finalize(device)
     solver = Solver(model, ground=Ground(), cg_iterations=100, cg_tolerance=1e-6)
     c = solver.collider
@@ -263,8 +268,8 @@ def test_overlapped_captured_step_matches_a_serial_direct_one(device):
 
 def test_contact_buffer_overflow_is_reported(device):
     b = ModelBuilder()
-    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
-    b.add_body("b", *_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, collision_spacing=0.01)
+    add_body(b, "a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    add_body(b, "b", *_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, collision_spacing=0.01)
     model = b.finalize(device)
     solver = Solver(model, ground=None, collision=CollisionSettings(contacts_per_point=0.001))
     _run(solver, model, 1, 1 / 240)
@@ -276,8 +281,10 @@ def test_contact_buffer_overflow_is_reported(device):
 def test_collision_penalty_across_orders_of_magnitude_stays_stable(device, stiffness):
     """The implicit penalty: soft to extremely stiff, no NaN and no energy beyond what the drop put in."""
     b = ModelBuilder()
-    b.add_body("a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, pinned=None, damping_stiffness=0.01)
-    b.add_body("b", *_box((0.02, 0.3, 0.02), (0.16, 0.16, 0.16), (2, 2, 2)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
+    add_body(
+        b, "a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0, pinned=None, damping_stiffness=0.01
+    )
+    add_body(b, "b", *_box((0.02, 0.3, 0.02), (0.16, 0.16, 0.16), (2, 2, 2)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
     model = b.finalize(device)
     solver = Solver(
         model, ground=Ground(), cg_iterations=300, cg_tolerance=1e-5, collision=CollisionSettings(stiffness=stiffness)
@@ -305,32 +312,40 @@ def _rotation(deg_x, deg_y):
 
 def test_tet_trees_hold_every_tet_once_in_balanced_leaves():
     rng = np.random.default_rng(3)
-    sizes = [1, 5, 37, 200]
-    tets, ranges, x = [], [], rng.random((400, 3))
-    for n in sizes:
-        ranges.append((sum(len(t) for t in tets), n))
-        tets.append(rng.integers(0, 400, size=(n, 4)))
-    trees = tet_trees(np.concatenate(tets), x, ranges)
-    for b, (first, n) in enumerate(ranges):
-        leaves = trees.leaf_tets[trees.leaf_start[b] : trees.leaf_start[b + 1]]
+    x = rng.random((400, 3))
+    for n in [1, 5, 37, 200]:
+        leaves = tet_tree(rng.integers(0, 400, size=(n, 4)), x)
         count = len(leaves)
         assert count & (count - 1) == 0 and count < max(2, 2 * -(-n // 4))  # a power of two, no spare level
-        assert trees.node_start[b + 1] - trees.node_start[b] == 2 * count - 1
         held = leaves[leaves >= 0]
-        assert sorted(held) == list(range(first, first + n))  # every tet of the body, once
+        assert sorted(held) == list(range(n))  # every tet of the body, once
         assert (leaves >= 0).sum(axis=1).min() >= min(n, 1)  # no empty leaf: splits are even
+
+
+def test_model_lays_the_bodies_trees_end_to_end():
+    """Each body's leaves hold exactly its own (global) tets; its nodes are 2 L - 1, its leaves last."""
+    b = ModelBuilder()
+    for k, cells in enumerate([(1, 1, 1), (3, 2, 2), (4, 4, 3)]):
+        add_body(b, f"b{k}", *_box((k, 0, 0), (0.2, 0.2, 0.2), cells), 1e5, 0.3, 1000.0)
+    model = b.finalize("cpu")
+    node_start, leaf_start = model.tree_node_start.numpy(), model.tree_leaf_start.numpy()
+    leaf_tets = model.tree_leaf_tets.numpy()
+    for k, body in enumerate(model.bodies):
+        leaves = leaf_tets[leaf_start[k] : leaf_start[k + 1]]
+        assert node_start[k + 1] - node_start[k] == 2 * len(leaves) - 1
+        assert sorted(leaves[leaves >= 0]) == list(range(body.tet_start, body.tet_start + body.tet_count))
 
 
 def test_tet_trees_refuse_a_body_deeper_than_the_walk_can_keep(monkeypatch):
     """The walk stacks 8 bits per three levels in an int64: a deeper tree is refused, naming the body's size."""
-    import warpfem.collision as collision
+    import warpfem.prep.geometry as geometry
 
     rng = np.random.default_rng(4)
     x, tets = rng.random((40, 3)), rng.integers(0, 40, size=(33, 4))  # 9 leaves -> 16: a tree of 4 levels
-    collision.tet_trees(tets, x, [(0, 33)])
-    monkeypatch.setattr(collision, "MAX_TREE_LEVELS", 3)
+    geometry.tet_tree(tets, x)
+    monkeypatch.setattr(geometry, "MAX_TREE_LEVELS", 3)
     with pytest.raises(ValueError, match="a body of 33 tets needs a tree of 4 levels"):
-        collision.tet_trees(tets, x, [(0, 33)])
+        geometry.tet_tree(tets, x)
 
 
 @pytest.mark.parametrize("bodies", ["direct", "bvh"])
@@ -355,15 +370,15 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
 
     b = ModelBuilder()
     for k, (offset, rx, ry) in enumerate([((0.0, 0.0, 0.0), 0, 0), ((0.15, 0.12, 0.05), 30, 40)]):
-        b.add_body(f"b{k}", *box(offset, rx, ry), 1e5, 0.3, 1000.0, collision_spacing=0.04)
+        add_body(b, f"b{k}", *box(offset, rx, ry), 1e5, 0.3, 1000.0, collision_spacing=0.04)
     (va, ta), (vb, tb) = box((-0.1, 0.2, 0.1), 10, 70), box((-0.05, 0.3, 0.0), 45, 0)
     verts, tets = np.concatenate([va, vb]), np.concatenate([ta, tb + len(va)])
-    b.add_body("crossed", verts, tets, 1e5, 0.3, 1000.0, collision_spacing=0.04, self_collision=True)
+    add_body(b, "crossed", verts, tets, 1e5, 0.3, 1000.0, collision_spacing=0.04, self_collision=True)
     lone = np.array([[-0.1, -0.1, -0.1], [0.1, -0.1, -0.1], [-0.1, 0.1, -0.1], [-0.1, -0.1, 0.1]])
-    b.add_body("tet", lone, np.array([[0, 1, 2, 3]]), 1e5, 0.3, 1000.0, collision_spacing=0.04)
+    add_body(b, "tet", lone, np.array([[0, 1, 2, 3]]), 1e5, 0.3, 1000.0, collision_spacing=0.04)
     model = b.finalize(device)
     x = model.rest_x.numpy()
-    monkeypatch.setattr("warpfem.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
+    monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
     solver = Solver(model, ground=None)
     assert solver.collider.direct == (bodies == "direct")
     xs = wp.array(x, dtype=wp.vec3, device=device)
@@ -415,7 +430,7 @@ def test_top_speed_per_body_matches_numpy(device):
     b = ModelBuilder()
     for k in range(3):
         mesh = _box((0.4 * k, 0, 0), (0.3, 0.3, 0.3), (3, 3, 3))
-        b.add_body(f"b{k}", *mesh, 1e5, 0.3, 1000.0, collision_spacing=0.05)
+        add_body(b, f"b{k}", *mesh, 1e5, 0.3, 1000.0, collision_spacing=0.05)
     model = b.finalize(device)
     solver = Solver(model, ground=None)
     c = solver.collider

@@ -12,7 +12,7 @@ from pxr import Usd, UsdGeom
 from test_render import object_mask, project
 
 from warpfem.cli import main
-from warpfem.render import auto_camera, framing_box
+from warpfem.io.render import auto_camera, framing_box
 
 SCENE = """
 [scene]
@@ -149,7 +149,7 @@ def test_bad_mesh_with_preview_leaves_nothing(tmp_path, capsys):
 
 
 def test_interrupted_run_keeps_preview_frames(tmp_path, capsys, monkeypatch):
-    import warpfem.simulate as simulate
+    import warpfem.simulation as simulate
 
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
     (tmp_path / "scene.toml").write_text(SCENE)

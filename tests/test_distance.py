@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from warpfem.distance import distance_field
-from warpfem.tetmesh import tetrahedralize
+from warpfem.prep.distance import distance_field
+from warpfem.prep.tetmesh import tetrahedralize
 
 
 def test_sphere_depth_and_gradient_against_the_analytic_field():
@@ -66,7 +66,7 @@ def test_depth_scales_with_the_mesh(scale):
 
 
 def test_sample_hausdorff_of_a_shifted_sphere():
-    from warpfem.distance import hausdorff
+    from warpfem.prep.distance import hausdorff
 
     sphere = trimesh.creation.icosphere(subdivisions=4)
     a_to_b, b_to_a = hausdorff(sphere.vertices, sphere.faces, sphere.vertices + [0.05, 0.0, 0.0], sphere.faces)

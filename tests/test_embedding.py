@@ -5,8 +5,9 @@ import pytest
 import trimesh
 import warp as wp
 
-from warpfem.embedding import embed, map_dense
-from warpfem.tetmesh import tetrahedralize
+from warpfem.prep.embedding import embed
+from warpfem.prep.tetmesh import tetrahedralize
+from warpfem.sim.embedding import map_dense
 
 
 @pytest.fixture(scope="module")

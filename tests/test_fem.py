@@ -4,16 +4,17 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpfem import fem
-from warpfem.model import ModelBuilder, lame
-from warpfem.shapes import box_tet_mesh
+from warpfem.build import add_body
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.sim import fem
+from warpfem.sim.model import ModelBuilder, lame
 
 E, NU = 1.0e6, 0.3
 
 
 def _model(vertices, tets, device, young=E, poisson=NU):
     b = ModelBuilder()
-    b.add_body("b", vertices, tets, young, poisson, 1000.0)
+    add_body(b, "b", vertices, tets, young, poisson, 1000.0)
     return b.finalize(device)
 
 
@@ -114,7 +115,7 @@ def test_rotation_is_proper_for_degenerate_tets(device, kind):
 
 
 def test_rotation_watch_measures_how_far_tets_turned(device):
-    from warpfem.fem import RotationWatch
+    from warpfem.sim.fem import RotationWatch
 
     V, T = box_tet_mesh((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2))
     model = _model(V, T, device)

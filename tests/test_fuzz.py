@@ -7,8 +7,8 @@ from hypothesis import strategies as st
 
 from warpfem.cli import main
 from warpfem.errors import InputError
+from warpfem.prep.surface import load_surface
 from warpfem.scene import load_scene
-from warpfem.surface import load_surface
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 

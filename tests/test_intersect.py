@@ -1,12 +1,12 @@
-"""Self-intersection detection (warpfem.intersect) against libigl's triangle-triangle test."""
+"""Self-intersection detection (warpfem.prep.intersect) against libigl's triangle-triangle test."""
 
 import igl
 import numpy as np
 import pytest
 import trimesh
 
-from warpfem.intersect import intersecting_faces
-from warpfem.surface import load_surface
+from warpfem.prep.intersect import intersecting_faces
+from warpfem.prep.surface import load_surface
 
 
 def _reference_pairs(vertices, faces):

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import pytest
 import warp as wp
 
-from warpfem.launch import spread_block_dim
+from warpfem.sim.launch import spread_block_dim
 
 H100 = SimpleNamespace(is_cuda=True, sm_count=132)
 

@@ -19,6 +19,7 @@ SCENES = Path(__file__).resolve().parents[1] / "scenes"
         ("paper_c_two_bodies.toml", "armadillo.off", 2),
     ],
 )
+@pytest.mark.slow
 def test_paper_scene_runs_two_seconds(tmp_path, capsys, asset, scene, mesh, bodies):
     asset(mesh)  # skips when ../shared/assets is absent
     out = tmp_path / "anim.usdc"

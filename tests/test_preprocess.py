@@ -8,9 +8,9 @@ import pytest
 import trimesh
 
 from warpfem.errors import InputError
-from warpfem.preprocess import prepare
-from warpfem.simplify import simplify
-from warpfem.tetmesh import tet_quality, tet_signed_volumes, tetrahedralize
+from warpfem.prep.pipeline import prepare
+from warpfem.prep.simplify import simplify
+from warpfem.prep.tetmesh import tet_quality, tet_signed_volumes, tetrahedralize
 
 
 def _once_used_faces(tets):
@@ -56,7 +56,7 @@ def test_netgen_crash_is_reported_with_its_signal(tmp_path, monkeypatch):
     fake = tmp_path / "crashing-python"
     fake.write_text("#!/bin/sh\necho 'Meshing volume'\nkill -SEGV $$\n")
     fake.chmod(0o755)
-    monkeypatch.setattr("warpfem._worker.sys.executable", str(fake))
+    monkeypatch.setattr("warpfem.prep.worker.sys.executable", str(fake))
     sphere = trimesh.creation.icosphere(subdivisions=1)
     with pytest.raises(InputError, match="ball: Netgen crashed \\(SIGSEGV\\); last output: Meshing volume"):
         tetrahedralize(sphere.vertices, sphere.faces, maxh=0.5, name="ball")
@@ -143,7 +143,7 @@ def test_killed_netgen_child_goes_to_the_next_rung(tmp_path, monkeypatch, ellips
         f'exec {sys.executable} "$@"\n'
     )
     fake.chmod(0o755)
-    monkeypatch.setattr("warpfem._worker.sys.executable", str(fake))
+    monkeypatch.setattr("warpfem.prep.worker.sys.executable", str(fake))
     body = prepare(ellipsoid_file, faces=200, maxh=0.3)
     assert marker.exists()
     assert body.stats["failed_rungs"].startswith("1) Netgen crashed (SIGKILL); last output: Meshing")

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
+from warpfem.build import add_body
 from warpfem.errors import InputError
-from warpfem.model import ModelBuilder
-from warpfem.reference import Cantilever, converged_sag, sag_on_tets
-from warpfem.shapes import box_tet_mesh
-from warpfem.solver import Solver
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.sim.model import ModelBuilder
+from warpfem.sim.solver import Solver
+from warpfem.study.reference import Cantilever, converged_sag, sag_on_tets
 
 
 def test_converged_linear_sag_matches_euler_bernoulli():
@@ -28,7 +29,7 @@ def test_large_deflection_is_geometrically_nonlinear():
 
 def _warp_sag(device, beam, vertices, tets, steps, dt):
     b = ModelBuilder()
-    b.add_body("beam", vertices, tets, beam.young, beam.poisson, beam.density, pinned=vertices[:, 0] < 1e-9)
+    add_body(b, "beam", vertices, tets, beam.young, beam.poisson, beam.density, pinned=vertices[:, 0] < 1e-9)
     model = b.finalize(device)
     solver = Solver(model, gravity=(0, -beam.gravity, 0), ground=None, cg_iterations=3000, cg_tolerance=1e-6)
     s0, s1 = model.state(), model.state()

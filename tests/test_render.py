@@ -8,7 +8,7 @@ import trimesh
 from PIL import Image
 
 from warpfem.errors import InputError
-from warpfem.render import Camera, PreviewWriter, Renderer, auto_camera, framing_box, parse_size, read_usd
+from warpfem.io.render import Camera, PreviewWriter, Renderer, auto_camera, framing_box, parse_size, read_usd
 
 W, H = 64, 48
 
@@ -185,7 +185,7 @@ def test_writer_leaves_nothing_when_no_frame_and_keeps_frames_on_interrupt(tmp_p
 
 
 def test_read_usd_returns_what_was_written(tmp_path, sphere):
-    from warpfem.usd_out import UsdWriter
+    from warpfem.io.usd import UsdWriter
 
     path = tmp_path / "a.usdc"
     frames = [sphere.vertices + [0.0, 1.0 - 0.1 * k, 0.0] for k in range(4)]

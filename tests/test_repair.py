@@ -1,14 +1,14 @@
-"""Hole closing and shells (warpfem.repair) and prepare() on deliberately broken inputs."""
+"""Hole closing and shells (warpfem.prep.repair) and prepare() on deliberately broken inputs."""
 
 import numpy as np
 import pytest
 import trimesh
 
 from warpfem.errors import InputError
-from warpfem.preprocess import prepare
-from warpfem.repair import boundary_loops, cap_loop, ear_clip
-from warpfem.surface import load_surface, signed_volume, topology_defects
-from warpfem.tetmesh import boundary_faces, tet_signed_volumes
+from warpfem.prep.pipeline import prepare
+from warpfem.prep.repair import boundary_loops, cap_loop, ear_clip
+from warpfem.prep.surface import load_surface, signed_volume, topology_defects
+from warpfem.prep.tetmesh import boundary_faces, tet_signed_volumes
 
 
 def _write_obj(path, vertices, faces):

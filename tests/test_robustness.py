@@ -14,13 +14,14 @@ import trimesh
 from pxr import Sdf, Usd, UsdGeom
 
 import warpfem.memory as memory
+from warpfem.build import add_body, add_prepared_body, placed_geometry, solver_of
 from warpfem.cli import main
 from warpfem.errors import SimulationError
-from warpfem.model import ModelBuilder
-from warpfem.preprocess import prepare
+from warpfem.io.usd import UsdWriter
+from warpfem.prep.pipeline import prepare
 from warpfem.scene import load_scene
-from warpfem.simulate import Simulation, add_prepared_body, solver_of
-from warpfem.usd_out import UsdWriter
+from warpfem.sim.model import ModelBuilder
+from warpfem.simulation import Simulation
 
 SCENE = """
 [scene]
@@ -173,16 +174,16 @@ def test_writer_without_overwrite_refuses_an_existing_file(tmp_path):
 
 @pytest.mark.parametrize("stop", ["nan", "exception"])
 def test_nan_or_kernel_exception_keeps_the_frames_before(folder, tmp_path, monkeypatch, capsys, stop):
-    import warpfem.simulate as simulate
+    import warpfem.simulation as simulate
 
     original = simulate.Simulation.check_finite
 
-    def check_finite(self, frame):
-        if frame == 4:
+    def check_finite(self):
+        if self.frame == 4:
             if stop == "nan":
-                raise SimulationError(f"frame {frame}: body 'ball' became NaN/Inf")
+                raise SimulationError(f"frame {self.frame}: body 'ball' became NaN/Inf")
             raise RuntimeError("a kernel failed")
-        original(self, frame)
+        original(self)
 
     monkeypatch.setattr(simulate.Simulation, "check_finite", check_finite)
     out = tmp_path / "anim.usdc"
@@ -214,7 +215,7 @@ def test_out_is_not_overwritten_without_overwrite(folder, tmp_path, capsys):
 
 
 def test_not_enough_memory_is_one_line_with_both_numbers_and_writes_nothing(folder, tmp_path, monkeypatch, capsys):
-    import warpfem.simulate as simulate
+    import warpfem.simulation as simulate
 
     monkeypatch.setattr(memory, "free_bytes", lambda device: (500, 2000))
     monkeypatch.setattr(simulate.ModelBuilder, "finalize", lambda *a: pytest.fail("allocated after the refusal"))
@@ -222,7 +223,8 @@ def test_not_enough_memory_is_one_line_with_both_numbers_and_writes_nothing(fold
     assert _run(folder, "--out", out) == 2
     lines = _warpfem_lines(capsys.readouterr().err)
     scene = load_scene(folder / "short.toml")
-    need = memory.scene_estimate(scene, [prepare(folder / "ball.obj", faces=100, cache_dir=folder / "cache")])
+    body = prepare(folder / "ball.obj", faces=100, cache_dir=folder / "cache")
+    need = memory.scene_estimate(scene, [body], [placed_geometry(scene.objects[0], body)[1]])
     assert len(lines) == 1, lines
     assert f"needs about {memory.format_bytes(need.total)}" in lines[0] and "only 500 B of 2.0 kB" in lines[0]
     assert list(tmp_path.iterdir()) == []
@@ -251,15 +253,16 @@ def _device_bytes(*roots):
 def test_memory_estimate_matches_the_arrays_allocated(folder, scene_name):
     scene = load_scene(folder / scene_name)
     body = prepare(folder / "ball.obj", faces=100, cache_dir=folder / "cache")
+    placed = [placed_geometry(obj, body) for obj in scene.objects]
     builder = ModelBuilder()
-    for obj in scene.objects:
-        add_prepared_body(builder, obj, body)
+    for obj, where in zip(scene.objects, placed, strict=True):
+        add_prepared_body(builder, obj, body, where)
     model = builder.finalize("cpu")
     solver = solver_of(scene, model)
-    sim = Simulation(model, solver, scene.substeps, scene.dt)
+    sim = Simulation.from_model(model, solver, scene.substeps, scene.fps)
     real = _device_bytes(model, solver, sim)  # the tet trees are wp.arrays (the body BVH's few nodes are not)
     assert (solver.collider is not None) == (len(scene.objects) == 2)
-    need = memory.scene_estimate(scene, [body] * len(scene.objects)).total
+    need = memory.scene_estimate(scene, [body] * len(scene.objects), [g for _, g in placed]).total
     assert 0.75 < need / real < 1.5, (need, real)
     free, total = memory.free_bytes("cpu")
     assert 0 < free <= total
@@ -300,6 +303,7 @@ def _rss_bytes():
         return int(stream.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+@pytest.mark.slow
 def test_ten_thousand_frames_keep_memory_flat_and_the_file_valid(tmp_path):
     cube = trimesh.creation.box()
     tets = np.array([[0, 1, 3, 5], [0, 3, 2, 6], [0, 5, 4, 6], [3, 5, 6, 7], [0, 3, 5, 6]])
@@ -308,20 +312,20 @@ def test_ten_thousand_frames_keep_memory_flat_and_the_file_valid(tmp_path):
     home = np.array([np.flatnonzero((tets == i).any(axis=1))[0] for i in range(8)])  # a tet holding each corner
     scene = load_scene_text(tmp_path, 10_000)
     builder = ModelBuilder()
-    builder.add_body(
+    add_body(
+        builder,
         "cube",
         x,
         tets,
         young=1e5,
         poisson=0.3,
         density=1000.0,
-        dense_vertices=x,
         dense_faces=cube.faces,
         embed_tet=home,
         embed_bary=(tets[home] == np.arange(8)[:, None]).astype(float),
     )
     model = builder.finalize("cpu")
-    sim = Simulation(model, solver_of(scene, model), 1, 1 / 60)
+    sim = Simulation.from_model(model, solver_of(scene, model), 1, 60.0)
     rss = {}
     for frame in range(1, 5_001):  # the simulation alone: flat once warm
         sim.advance()
@@ -335,7 +339,7 @@ def test_ten_thousand_frames_keep_memory_flat_and_the_file_valid(tmp_path):
         for frame in range(1, 10_001):
             sim.advance()
             if frame % 100 == 0:
-                sim.check_finite(frame)
+                sim.check_finite()
             writer.add_frame(frame, sim.dense_points())
             if frame in (2_000, 10_000):
                 rss[-frame] = _rss_bytes()

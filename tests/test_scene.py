@@ -13,7 +13,7 @@ from warpfem.scene import (
     CollisionConfig,
     GroundConfig,
     ObjectConfig,
-    SceneConfig,
+    Scene,
     SolverConfig,
     default_scene_path,
     load_scene,
@@ -314,7 +314,7 @@ def test_with_frames_copies_and_validates(tmp_path):
 
 
 def test_validate_on_hand_built_config(tmp_path):
-    scene = SceneConfig(path=tmp_path / "x.toml", objects=[ObjectConfig(name="a", mesh="builtin:bunny")])
+    scene = Scene(path=tmp_path / "x.toml", objects=[ObjectConfig(name="a", mesh="builtin:bunny")])
     scene.validate()
     assert math.isclose(scene.dt, 1 / 240)
     scene.objects[0].poisson = 0.49

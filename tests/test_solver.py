@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpfem.integrate import Box, Sphere
-from warpfem.model import ModelBuilder
-from warpfem.shapes import box_tet_mesh
-from warpfem.solver import Ground, Solver
+from warpfem.build import add_body
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.sim.integrate import Box, Sphere
+from warpfem.sim.model import ModelBuilder
+from warpfem.sim.solver import Ground, Solver
 
 G = 9.81
 
@@ -15,7 +16,7 @@ G = 9.81
 def _cube(device, y0=1.0, young=1e5, **kw):
     V, T = box_tet_mesh((0, y0, 0), (0.2, y0 + 0.2, 0.2), (2, 2, 2))
     b = ModelBuilder()
-    b.add_body("cube", V, T, young, 0.3, 1000.0, **kw)
+    add_body(b, "cube", V, T, young, 0.3, 1000.0, **kw)
     return b.finalize(device), V
 
 
@@ -83,7 +84,7 @@ def test_clamped_cantilever_sags_like_euler_bernoulli(device):
     L, h, E, rho = 1.0, 0.1, 1e8, 1000.0
     V, T = box_tet_mesh((0, 0, 0), (L, h, h), (50, 8, 8))  # linear tets lock in bending: 8 across
     b = ModelBuilder()
-    b.add_body("beam", V, T, E, 0.0, rho, pinned=V[:, 0] < 1e-9)
+    add_body(b, "beam", V, T, E, 0.0, rho, pinned=V[:, 0] < 1e-9)
     model = b.finalize(device)
     solver = Solver(model, ground=None, cg_iterations=5000, cg_tolerance=1e-7)
     # backward Euler with a long step is a (damped) static solve: x1 = x0 + (M/dt^2 + K)^-1 M g
@@ -99,7 +100,7 @@ def test_pinned_vertices_do_not_move(device):
     V, T = box_tet_mesh((0, 1, 0), (0.2, 1.2, 0.2), (2, 2, 2))
     pinned = V[:, 1] > 1.2 - 1e-9
     b = ModelBuilder()
-    b.add_body("hang", V, T, 1e5, 0.3, 1000.0, pinned=pinned)
+    add_body(b, "hang", V, T, 1e5, 0.3, 1000.0, pinned=pinned)
     model = b.finalize(device)
     x = _run(Solver(model, ground=None), model, 60, 1 / 120).x.numpy()
     np.testing.assert_array_equal(x[pinned], V[pinned].astype(np.float32))
@@ -112,13 +113,13 @@ def test_bodies_in_one_model_match_separate_runs(device):
     params = [("a", Va, Ta, 1e5, 0.3, 1000.0), ("b", Vb, Tb, 3e5, 0.4, 500.0)]
     together = ModelBuilder()
     for p in params:
-        together.add_body(*p, velocity=(0.5, 0, 0))
+        add_body(together, *p, velocity=(0.5, 0, 0))
     model = together.finalize(device)
     cfg = dict(ground=Ground(), cg_iterations=200, cg_tolerance=1e-7)
     joint = _run(Solver(model, **cfg), model, 60, 1 / 120).x.numpy()
     for body, p in zip(model.bodies, params, strict=True):
         alone = ModelBuilder()
-        alone.add_body(*p, velocity=(0.5, 0, 0))
+        add_body(alone, *p, velocity=(0.5, 0, 0))
         m = alone.finalize(device)
         x = _run(Solver(m, **cfg), m, 60, 1 / 120).x.numpy()
         np.testing.assert_allclose(joint[body.vertex_start : body.vertex_start + body.vertex_count], x, atol=2e-4)

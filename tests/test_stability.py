@@ -12,9 +12,10 @@ import itertools
 import numpy as np
 import pytest
 
-from warpfem.model import ModelBuilder, lame
-from warpfem.shapes import box_tet_mesh
-from warpfem.solver import Ground, Solver
+from warpfem.build import add_body
+from warpfem.prep.shapes import box_tet_mesh
+from warpfem.sim.model import ModelBuilder, lame
+from warpfem.sim.solver import Ground, Solver
 
 G = 9.81
 RHO = 1000.0
@@ -43,7 +44,7 @@ def _energy(x, v, T, rest, young, poisson, gravity):
 def _simulate(device, V, T, young, poisson, dt, steps, x0=None, gravity=(0, -G, 0), ground=None, **body):
     """Run ``steps`` steps; return final positions, the energy after every step and the NaN flag."""
     b = ModelBuilder()
-    b.add_body("body", V, T, young, poisson, RHO, **body)
+    add_body(b, "body", V, T, young, poisson, RHO, **body)
     model = b.finalize(device)
     solver = Solver(model, gravity=gravity, ground=ground, cg_iterations=500, cg_tolerance=1e-5)
     s0, s1 = model.state(), model.state()
@@ -119,7 +120,7 @@ def test_spinning_body_keeps_its_energy(device, dt):
     omega = np.array([0.0, 0.0, 30.0])
     c = V.mean(0)
     b = ModelBuilder()
-    b.add_body("spin", V, T, 1e6, 0.45, RHO)
+    add_body(b, "spin", V, T, 1e6, 0.45, RHO)
     model = b.finalize(device)
     solver = Solver(model, gravity=(0, 0, 0), ground=None, cg_iterations=500, cg_tolerance=1e-5)
     s0, s1 = model.state(), model.state()

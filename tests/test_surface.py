@@ -1,11 +1,11 @@
-"""Loading, repair and validation of surface meshes (warpfem.surface)."""
+"""Loading, repair and validation of surface meshes (warpfem.prep.surface)."""
 
 import numpy as np
 import pytest
 import trimesh
 
 from warpfem.errors import InputError
-from warpfem.surface import load_surface, signed_volume, topology_defects
+from warpfem.prep.surface import load_surface, signed_volume, topology_defects
 
 
 def _write_obj(path, vertices, faces):

@@ -8,9 +8,9 @@ import pytest
 
 from warpfem.cli import main
 from warpfem.errors import InputError
-from warpfem.reference import Cantilever
 from warpfem.scene import PRESETS
-from warpfem.tradeoff import BeamScene, Setting, pareto_front, plot, run_setting, score, tip_sag, write_csv
+from warpfem.study.reference import Cantilever
+from warpfem.study.tradeoff import BeamScene, Setting, pareto_front, plot, run_setting, score, write_csv
 
 
 def test_pareto_front_against_brute_force():
@@ -46,8 +46,6 @@ def test_sweep_rows_are_consistent(device, tmp_path):
     rows = score(SCENE, runs, fine, reference_sag=0.1)
     assert rows[1].trajectory_error < 1e-6  # the same setting as the reference: the same trajectory
     assert rows[0].trajectory_error > 1e-3
-    assert rows[0].sag == pytest.approx(tip_sag(SCENE, runs[0].points[-1]))
-    assert rows[0].sag_error == pytest.approx(abs(rows[0].sag - 0.1) / 0.1)
     # the beam falls: 0.25 s of free fall would be g t^2 / 2 = 0.31 m; clamped, it sags far less but > 0
     assert 0.0 < rows[1].sag < 0.3
     write_csv(tmp_path / "t.csv", rows)
@@ -85,7 +83,7 @@ def test_plot_from_an_existing_csv(tmp_path):
 
 
 def test_contact_sweep_covers_every_penalty(device):
-    from warpfem.tradeoff import PENALTIES, contact_sweep
+    from warpfem.study.tradeoff import PENALTIES, contact_sweep
 
     rows = contact_sweep(device, frames=60, cells=2)
     assert [r.stiffness for r in rows] == list(PENALTIES)
@@ -94,7 +92,14 @@ def test_contact_sweep_covers_every_penalty(device):
         assert 0.0 < r.impact_depth < 0.5 * 0.15  # the cubes met and none passed through
     soft, firm = rows[0], rows[2]
     assert firm.resting_depth < soft.resting_depth  # a softer penalty lets the cube sink further
-    assert any(r.pareto for r in rows)
+    for r in rows:  # flagged on the front exactly when no other penalty is as fast and as shallow, and better
+        beaten = any(
+            o.ms_per_frame <= r.ms_per_frame
+            and o.impact_depth <= r.impact_depth
+            and (o.ms_per_frame < r.ms_per_frame or o.impact_depth < r.impact_depth)
+            for o in rows
+        )
+        assert r.pareto == (not beaten)
 
 
 def test_bad_reference_sag_is_one_line_exit_2(tmp_path, capsys):

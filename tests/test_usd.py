@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from warpfem.usd_out import UsdWriter
+from warpfem.io.usd import UsdWriter
 
 
 def bodies_and_frames(n_frames: int = 5, seed: int = 0):

@@ -1,7 +1,7 @@
 """Memory a scene needs on its device, estimated before anything is allocated, and the memory free there.
 
-The estimate adds up the arrays :class:`warpfem.model.Model`, :class:`warpfem.solver.Solver` (with its CG
-workspace and collider) and :class:`warpfem.simulate.Simulation` allocate, from the preprocessed bodies'
+The estimate adds up the arrays :class:`warpfem.sim.model.Model`, :class:`warpfem.sim.solver.Solver` (with its CG
+workspace and collider) and :class:`warpfem.simulation.Simulation` allocate, from the preprocessed bodies'
 sizes: per tet vertex (rest and initial state, two states, masses, forces, preconditioner, CG vectors),
 per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block of the
 stored upper triangle and its column; blocks are counted exactly from the tets' edges), per dense vertex
@@ -21,8 +21,9 @@ import numpy as np
 from warpfem.errors import InputError
 
 if TYPE_CHECKING:
-    from warpfem.preprocess import PreparedBody
-    from warpfem.scene import SceneConfig
+    from warpfem.prep.geometry import BodyGeometry
+    from warpfem.prep.pipeline import PreparedBody
+    from warpfem.scene import Scene
 
 VERTEX_BYTES = 280
 """Device bytes per tet vertex: rest/initial x and v, 2 states (x, v, dv), mass, damping, pins, depth and gradient,
@@ -37,7 +38,7 @@ BLOCK_BYTES = 43
 """Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
 
 GATHER_BLOCK_BYTES = 18
-"""More bytes per stored block where CG's product gathers (on CUDA up to ``warpfem.cg.GATHER_MAX_ROWS`` rows;
+"""More bytes per stored block where CG's product gathers (on CUDA up to ``warpfem.sim.cg.GATHER_MAX_ROWS`` rows;
 counted there on the CPU too, an upper bound): the entries (column and slot, about 1.9 per stored block: the
 block and its mirror) and their longer chunk table."""
 
@@ -119,16 +120,16 @@ def estimate(
     Args:
         tets: Each body's (q, 4) tet array (local vertex indices).
         dense_vertices: Each body's dense vertex count.
-        collision_points: Each body's collision point count (:func:`warpfem.collision.surface_points`).
+        collision_points: Each body's collision point count (:func:`warpfem.prep.geometry.surface_points`).
         collision: Whether the solver has a collider (contacts, BVHs): collisions are on and there are
             several bodies or one colliding with itself.
         tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
-            (:func:`warpfem.model.tet_surface_faces`).
+            (:func:`warpfem.prep.geometry.tet_surface_faces`).
 
     Returns:
         The estimate by part.
     """
-    from warpfem.cg import GATHER_MAX_ROWS
+    from warpfem.sim.cg import GATHER_MAX_ROWS
 
     q = sum(len(t) for t in tets)
     n = sum(int(np.unique(t).size) for t in tets)
@@ -148,18 +149,11 @@ def estimate(
     return Estimate(parts)
 
 
-def scene_estimate(scene: SceneConfig, prepared: Sequence[PreparedBody]) -> Estimate:
-    """Estimate the device memory of ``scene`` built from its preprocessed bodies (in scene order)."""
-    from warpfem.collision import surface_points
-
-    points = [
-        len(surface_points(p.tets, p.boundary_faces, obj.scale * p.tet_vertices, obj.collision_spacing).tet)
-        for obj, p in zip(scene.objects, prepared, strict=True)
-    ]
+def scene_estimate(scene: Scene, prepared: Sequence[PreparedBody], geometry: Sequence[BodyGeometry]) -> Estimate:
+    """Estimate the device memory of ``scene`` from its preprocessed bodies and their placed geometry (scene order)."""
+    points = [len(g.point_tet) for g in geometry]
     collider = scene.collision.enabled and (len(prepared) > 1 or any(obj.self_collision for obj in scene.objects))
-    from warpfem.model import tet_surface_faces
-
-    refs = [len(tet_surface_faces(p.tets, p.boundary_faces, len(p.tet_vertices))[1]) for p in prepared]
+    refs = [len(g.tet_faces) for g in geometry]
     return estimate([p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, collider, refs)
 
 

@@ -9,6 +9,7 @@ All quantities are SI: metres, seconds, kilograms, pascals, degrees for rotation
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import importlib.resources
@@ -405,11 +406,12 @@ class ObjectConfig:
 
 
 @dataclass
-class SceneConfig:
+class Scene:
     """A whole scene: timing, gravity, solver, ground and the bodies.
 
     Attributes:
-        path: The scene file this came from (as given to :func:`load_scene`).
+        path: The scene file this came from (as given to :func:`load_scene`), or ``base_dir / name`` for
+            :meth:`Scene.from_dict`.
         frames: Output frames to simulate (>= 1); frame 0, the initial pose, is written as well.
         fps: Output frames per second (> 0).
         substeps: Simulation steps per output frame (>= 1).
@@ -465,7 +467,25 @@ class SceneConfig:
                 raise _object_table(origin, index, obj.name)("name", f"is already used by object[{seen[obj.name]}]")
             seen[obj.name] = index
 
-    def with_frames(self, frames: int) -> SceneConfig:
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any], base_dir: str | Path = ".", name: str = "scene") -> Scene:
+        """A scene from a dictionary shaped like a scene file (tables as dicts, ``object`` a list of dicts).
+
+        Validated exactly as :func:`load_scene` validates a file, with the same one-line messages.
+
+        Args:
+            doc: The scene, e.g. ``{"scene": {"frames": 30}, "object": [{"name": "bunny", ...}]}``.
+            base_dir: The folder relative mesh paths resolve against.
+            name: Names the scene in messages (as ``<base_dir>/<name>``) and is the default output file's stem.
+
+        Raises:
+            InputError: The first bad table or key.
+        """
+        if not isinstance(doc, dict):
+            raise InputError(f"{name}: a scene must be a dict of tables, got {type(doc).__name__}")
+        return _from_doc(copy.deepcopy(doc), Path(base_dir) / name)
+
+    def with_frames(self, frames: int) -> Scene:
         """A validated copy of this scene with ``frames`` replaced."""
         copy = dataclasses.replace(self, frames=frames)
         copy.validate()
@@ -523,7 +543,7 @@ def _resolve_mesh(value: Any, folder: Path) -> Any:
     return str((folder / value).resolve())
 
 
-def load_scene(path: str | Path) -> SceneConfig:
+def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene file.
 
     Args:
@@ -548,7 +568,12 @@ def load_scene(path: str | Path) -> SceneConfig:
     except tomllib.TOMLDecodeError as exc:
         message = str(exc).replace("\n", " ")
         raise InputError(f"{origin}: TOML syntax error: {message}") from exc
+    return _from_doc(doc, path)
 
+
+def _from_doc(doc: dict[str, Any], path: Path) -> Scene:
+    """Build and validate a scene from a parsed document; ``path`` names it in messages and anchors meshes."""
+    origin = str(path)
     known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle")
     _apply_preset(doc, origin)
     for key in doc:
@@ -556,27 +581,8 @@ def load_scene(path: str | Path) -> SceneConfig:
             close = difflib.get_close_matches(key, known, n=1)
             hint = f" (did you mean {close[0]}?)" if close else ""
             raise InputError(f"{origin}: {key} is not a known table{hint}; known tables: {', '.join(known)}")
-
-    raw_objects = doc.get("object", [])
-    if not isinstance(raw_objects, list) or not all(isinstance(o, dict) for o in raw_objects):
-        raise InputError(f"{origin}: object must be an array of tables, written [[object]]")
-    folder = path.parent
-    objects = []
-    for index, raw in enumerate(raw_objects):
-        err = _object_table(origin, index, raw.get("name"))
-        raw = dict(raw)
-        if "mesh" in raw:
-            raw["mesh"] = _resolve_mesh(raw["mesh"], folder)
-        objects.append(_build(ObjectConfig, raw, err))
-    raw_obstacles = doc.get("obstacle", [])
-    if not isinstance(raw_obstacles, list) or not all(isinstance(o, dict) for o in raw_obstacles):
-        raise InputError(f"{origin}: obstacle must be an array of tables, written [[obstacle]]")
-    obstacles = [
-        _build(ObstacleConfig, raw, _Problem(origin, f"obstacle[{index}]: ")) for index, raw in enumerate(raw_obstacles)
-    ]
-
     scene = _build(
-        SceneConfig,
+        Scene,
         _sub_table(doc, origin, "scene"),
         _table(origin, "scene"),
         extra={
@@ -585,12 +591,35 @@ def load_scene(path: str | Path) -> SceneConfig:
             "ground": _build(GroundConfig, _sub_table(doc, origin, "ground"), _table(origin, "ground")),
             "collision": _build(CollisionConfig, _sub_table(doc, origin, "collision"), _table(origin, "collision")),
             "camera": _build(CameraConfig, _sub_table(doc, origin, "camera"), _table(origin, "camera")),
-            "objects": objects,
-            "obstacles": obstacles,
+            "objects": _objects(doc, origin, path.parent),
+            "obstacles": _obstacles(doc, origin),
         },
     )
     scene.validate()
     return scene
+
+
+def _objects(doc: dict[str, Any], origin: str, folder: Path) -> list[ObjectConfig]:
+    raw_objects = doc.get("object", [])
+    if not isinstance(raw_objects, list) or not all(isinstance(o, dict) for o in raw_objects):
+        raise InputError(f"{origin}: object must be an array of tables, written [[object]]")
+    objects = []
+    for index, raw in enumerate(raw_objects):
+        err = _object_table(origin, index, raw.get("name"))
+        raw = dict(raw)
+        if "mesh" in raw:
+            raw["mesh"] = _resolve_mesh(raw["mesh"], folder)
+        objects.append(_build(ObjectConfig, raw, err))
+    return objects
+
+
+def _obstacles(doc: dict[str, Any], origin: str) -> list[ObstacleConfig]:
+    raw_obstacles = doc.get("obstacle", [])
+    if not isinstance(raw_obstacles, list) or not all(isinstance(o, dict) for o in raw_obstacles):
+        raise InputError(f"{origin}: obstacle must be an array of tables, written [[obstacle]]")
+    return [
+        _build(ObstacleConfig, raw, _Problem(origin, f"obstacle[{index}]: ")) for index, raw in enumerate(raw_obstacles)
+    ]
 
 
 def default_scene_path() -> Path:

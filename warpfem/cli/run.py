@@ -1,0 +1,268 @@
+"""``warpfem run``: run a scene, write an animated USD file and optionally a rendered preview."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from warpfem.cli.common import (
+    StopRequest,
+    add_camera_flags,
+    add_output_flags,
+    camera_flags,
+    check_device,
+    make_camera,
+    print_summary,
+    shows_progress,
+    stop_signals,
+    stopped,
+)
+from warpfem.errors import InputError
+
+EXAMPLES = """examples:
+  warpfem run                                    the default scene (a dense bunny dropped on the ground)
+  warpfem run scenes/default.toml --frames 30 --out bunny.usdc --device cpu
+  warpfem run --frames 10 --device cpu --preview out.gif     a quick look on any machine
+  warpfem run --preview out.mp4 --size 640x480               H.264 video beside the USD file
+  warpfem run --preview frames/ --quiet --json               PNG frames, a JSON summary for scripts
+
+exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input (or not enough memory), 130 interrupted,
+143 terminated (SIGTERM); after 1, 130 and 143 the USD file holds every frame finished. A killed run
+(SIGKILL) leaves the last snapshot: the frames up to --save-every seconds (or more, for big files) back.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``run`` command to the CLI's subparsers."""
+    run = sub.add_parser(
+        "run",
+        help="run a scene and write an animated USD file (and a preview video)",
+        description="Run a scene (default: the shipped default scene) and write its dense meshes as animated USD; "
+        "with --preview also render them (headless, on the simulation's device) to an mp4, a gif or PNG frames.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    run.add_argument("scene", nargs="?", type=Path, help="scene TOML file (default: the shipped default scene)")
+    run.add_argument("--out", type=Path, help="output .usdc or .usda (default: <scene name>.usdc here)")
+    run.add_argument("--overwrite", action="store_true", help="replace --out if it exists (else: an error)")
+    run.add_argument(
+        "--save-every",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="save the frames so far to --out at least this often, so a killed run keeps them (default 10; "
+        "longer when a save would take over 5%% of the run)",
+    )
+    run.add_argument("--frames", type=int, help="override the scene's frame count")
+    run.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
+    run.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
+    run.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
+    run.add_argument("--preview", type=Path, help="also render to FILE.mp4, FILE.gif or a new FOLDER of PNG frames")
+    add_camera_flags(run)
+    add_output_flags(run)
+    run.set_defaults(func=main)
+
+
+def _build(args: argparse.Namespace, scene: Any, device: str, show: bool) -> Any:
+    """The scene's :class:`~warpfem.Simulation`, preprocessing under a progress bar over objects."""
+    from tqdm import tqdm
+
+    from warpfem.simulation import Simulation
+
+    with tqdm(total=len(scene.objects), unit="object", desc="preparing", disable=not show, file=sys.stderr) as bar:
+        names: list[str] = []
+
+        def progress(name: str, message: str) -> None:
+            if name not in names:
+                names.append(name)
+                bar.n = len(names) - 1
+            bar.set_postfix_str(f"{name}: {message}"[-70:])
+
+        sim = Simulation(
+            scene,
+            device=device,
+            cache_dir=args.cache_dir,
+            cache=not args.no_cache,
+            progress=progress,
+            warn=None if args.quiet else (lambda message: print(f"warpfem: {message}", file=sys.stderr, flush=True)),
+        )
+        bar.n = len(scene.objects)
+    return sim
+
+
+def _simulate(
+    args: argparse.Namespace,
+    scene: Any,
+    out: Path,
+    device: str,
+    size: tuple[int, int],
+    flags: dict[str, Any],
+    stop: StopRequest,
+) -> tuple[Any, float]:
+    """Prepare, simulate and (with ``--preview``) render; returns the run summary and the render seconds.
+
+    On an interrupt or a failure the USD file and the preview keep the frames finished so far; ``stop`` is
+    checked after preprocessing and after every frame.
+    """
+    from tqdm import tqdm
+
+    from warpfem.io.render import AUTO_MARGIN, PreviewWriter, Renderer, framing_box
+    from warpfem.runner import record
+
+    show = shows_progress(args)
+    render_seconds = 0.0
+    with contextlib.ExitStack() as stack:
+        sim = _build(args, scene, device, show)
+        stop.check()
+        bar = stack.enter_context(
+            tqdm(total=scene.frames, unit="frame", desc="simulating", disable=not show, file=sys.stderr)
+        )
+        preview = renderer = None
+        if args.preview is not None:
+            ground = scene.ground.height if scene.ground.enabled else None
+            faces = [body.dense_faces for body in sim.model.bodies]
+            renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
+            preview = stack.enter_context(PreviewWriter(args.preview, scene.fps, size))
+
+        def on_points(frame: int, points: list[Any]) -> None:
+            nonlocal render_seconds
+            clock = time.perf_counter()
+            if renderer.camera is None:
+                lo, hi = framing_box(points, scene.up_axis, renderer.ground, AUTO_MARGIN)
+                renderer.camera = make_camera(flags, lo, hi, scene.up_axis, size[0] / size[1])
+            preview.add(renderer.render(points))
+            render_seconds += time.perf_counter() - clock
+
+        def on_frame() -> None:
+            stop.check()
+            bar.update(1)
+            if bar.n == scene.frames:
+                bar.set_description("writing")
+
+        summary = record(
+            sim,
+            out,
+            overwrite=args.overwrite,
+            save_every=args.save_every,
+            on_frame=on_frame,
+            on_points=on_points if preview else None,
+        )
+        if preview is not None:
+            preview.close()
+    return summary, render_seconds
+
+
+def _identity(path: Path | None) -> tuple[int, int, int] | None:
+    """What tells a file at ``path`` from the one there before an atomic replace (None: no file)."""
+    if path is None or not path.exists():
+        return None
+    st = path.stat()
+    return st.st_dev, st.st_ino, st.st_mtime_ns
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the scene named by ``args``; returns the exit code."""
+    from warpfem.io.render import parse_size, preview_kind
+    from warpfem.scene import default_scene_path, load_scene
+
+    scene = load_scene(args.scene or default_scene_path())
+    if args.frames is not None:
+        if args.frames < 1:
+            raise InputError(f"--frames must be >= 1, got {args.frames}")
+        scene = scene.with_frames(args.frames)
+    out = args.out or Path(Path(scene.path).stem + ".usdc")
+    if out.suffix not in (".usdc", ".usda"):
+        raise InputError(f"--out {out}: the output must end in .usdc or .usda")
+    if not out.resolve().parent.is_dir():
+        raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
+    for option, path in (("--out", out), ("--preview", args.preview)):
+        if path is not None and path.is_file() and not args.overwrite:
+            raise InputError(f"{option} {path}: the file exists; pass --overwrite to replace it")
+    if not (args.save_every >= 0 and args.save_every < float("inf")):
+        raise InputError(f"--save-every must be a number of seconds >= 0, got {args.save_every}")
+    size = parse_size(args.size)
+    flags = camera_flags(args)
+    # the scene's [camera] fills in what the command line left unset
+    flags["position"] = flags["position"] or scene.camera.position
+    flags["target"] = flags["target"] or scene.camera.target
+    flags["fov"] = args.fov if args.fov is not None else scene.camera.fov
+    if args.preview is not None:
+        preview_kind(args.preview)
+    check_device(args.device)
+    import warp as wp
+
+    device = args.device or ("cuda:0" if wp.is_cuda_available() else "cpu")
+    import pxr.Sdf  # noqa: F401  loaded before signals are caught: a signal inside USD's module loader breaks it
+    import pxr.UsdGeom  # noqa: F401
+
+    before = _identity(out), _identity(args.preview)
+    try:
+        with stop_signals() as stop:
+            summary, render_seconds = _simulate(args, scene, out, device, size, flags, stop)
+    except KeyboardInterrupt as err:  # name only what this run wrote, not a file --overwrite would have replaced
+        written = [p for p, old in zip((out, args.preview), before, strict=True) if _identity(p) != old]
+        return stopped(err, written)
+    except FileExistsError as err:  # a file appeared at --out during the run
+        raise InputError(str(err)) from None
+    s = summary.seconds
+    per = 1e3 / summary.frames
+    render_ms = per * render_seconds
+    rows = [
+        ("output", str(summary.output)),
+        ("preview", f"{args.preview} ({size[0]}x{size[1]}, {render_ms:.1f} ms per frame)" if args.preview else "none"),
+        ("device", summary.device),
+        ("frames", f"{summary.frames} ({summary.simulated_seconds:.3g} s simulated)"),
+        (
+            "wall time per frame",
+            f"{summary.ms_per_frame + render_ms:.2f} ms (simulate {per * s['simulate']:.2f}, map {per * s['map']:.2f}, "
+            f"write {per * s['write']:.2f}, render {render_ms:.2f})",
+        ),
+        ("preprocessing", f"{s['prepare']:.2f} s"),
+        ("bodies", str(summary.bodies)),
+        ("tets / tet vertices", f"{summary.tets} / {summary.tet_vertices}"),
+        ("dense triangles / vertices", f"{summary.dense_triangles} / {summary.dense_vertices}"),
+        (
+            "CG iterations per step",
+            f"{summary.cg_iterations_per_step:.1f} (max residual {summary.cg_residual_max:.2g})",
+        ),
+        (
+            "step phases per frame",
+            ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a",
+        ),
+        ("contacts per step", f"{summary.contacts_per_step:.1f} (most {summary.contacts_max})"),
+        (
+            "max penetration",
+            f"contacts {1e3 * summary.contact_depth_max:.2f} mm over the run; dense vertices at the end "
+            f"{1e3 * summary.dense_penetration:.2f} mm ({100 * summary.dense_penetration_relative:.2f} % of the "
+            "smallest body)",
+        ),
+    ]
+    data = {
+        "output": str(summary.output),
+        "preview": str(args.preview) if args.preview else None,
+        "preview_size": list(size) if args.preview else None,
+        "device": summary.device,
+        "frames": summary.frames,
+        "simulated_seconds": summary.simulated_seconds,
+        "ms_per_frame": summary.ms_per_frame + render_ms,
+        "seconds": {**s, "render": render_seconds},
+        "bodies": summary.bodies,
+        "tets": summary.tets,
+        "tet_vertices": summary.tet_vertices,
+        "dense_triangles": summary.dense_triangles,
+        "dense_vertices": summary.dense_vertices,
+        "cg_iterations_per_step": summary.cg_iterations_per_step,
+        "cg_residual_max": summary.cg_residual_max,
+        "step_ms": summary.step_ms,
+        "contacts_per_step": summary.contacts_per_step,
+        "contacts_max": summary.contacts_max,
+        "contact_depth_max": summary.contact_depth_max,
+        "dense_penetration": summary.dense_penetration,
+        "dense_penetration_relative": summary.dense_penetration_relative,
+    }
+    print_summary(rows, data, args.json)
+    return 0

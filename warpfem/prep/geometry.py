@@ -1,0 +1,205 @@
+"""Build-time geometry of a body that the simulation model receives as arrays.
+
+For a tet mesh placed in the world: its outward boundary faces, the distance field at its vertices, the
+collision points (surface vertices, plus samples on the surface triangles for thin parts), the surface
+faces near each tet (where a contact measures its depth) and the tree of tet boxes contact detection walks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from warpfem.prep.distance import distance_field
+from warpfem.prep.embedding import boundary_face_tets
+from warpfem.prep.tetmesh import boundary_faces
+
+LEAF_TETS = 4
+"""Tets per leaf of a body's tree (the detection kernel tests a leaf's four tets together)."""
+
+MAX_TREE_LEVELS = 27
+"""Deepest tree the detection walk can keep its place in (it descends three levels at a time and stacks 8
+bits per step in an int64): 2^27 leaves, half a billion tets in one body."""
+
+
+@dataclass(frozen=True)
+class BodyGeometry:
+    """What :meth:`warpfem.sim.model.ModelBuilder.add_body` needs besides vertices, tets and materials.
+
+    All indices are local to the body.
+
+    Attributes:
+        surface_faces: (l, 3) int32 outward boundary triangles.
+        vertex_depth: (p,) distance of each tet vertex below the surface (m).
+        vertex_grad: (p, 3) outward unit gradient of that distance.
+        point_tet: (c,) int32 tet holding each collision point.
+        point_bary: (c, 4) its barycentric weights there.
+        point_anchor: (c, 3) int32 vertices it lies on (-1: unused): one for a vertex, three for a sample.
+        tet_face_start: (q + 1,) CSR offsets into ``tet_faces``.
+        tet_faces: Indices into ``surface_faces`` of the faces touching each tet's corners.
+        leaf_tets: (L, 4) int32 tets of each leaf of the body's tree (-1: none); L is a power of two and the
+            tree is complete, in heap order (node k has children 2k+1 and 2k+2, the leaves last).
+    """
+
+    surface_faces: np.ndarray
+    vertex_depth: np.ndarray
+    vertex_grad: np.ndarray
+    point_tet: np.ndarray
+    point_bary: np.ndarray
+    point_anchor: np.ndarray
+    tet_face_start: np.ndarray
+    tet_faces: np.ndarray
+    leaf_tets: np.ndarray
+
+
+def body_geometry(
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    collision_spacing: float = 0.0,
+    surface_faces: np.ndarray | None = None,
+    vertex_depth: np.ndarray | None = None,
+    vertex_grad: np.ndarray | None = None,
+) -> BodyGeometry:
+    """The geometry of a body placed in the world.
+
+    Args:
+        vertices: (p, 3) tet vertex positions (m).
+        tets: (q, 4) positive tets.
+        collision_spacing: Spacing of extra collision samples on the surface (m); 0: vertices only.
+        surface_faces: Outward boundary triangles (default: the tet mesh's boundary).
+        vertex_depth: Distance to the surface at each vertex (m); computed from the surface when not given.
+        vertex_grad: Outward unit gradient of that distance; computed when not given.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int32)
+    faces = boundary_faces(tets) if surface_faces is None else np.asarray(surface_faces, np.int32)
+    if vertex_depth is None or vertex_grad is None:
+        vertex_depth, vertex_grad = distance_field(vertices, vertices, faces)
+    points = surface_points(tets, faces, vertices, collision_spacing)
+    start, flat = tet_surface_faces(tets, faces, len(vertices))
+    return BodyGeometry(
+        surface_faces=faces,
+        vertex_depth=np.asarray(vertex_depth, np.float64),
+        vertex_grad=np.asarray(vertex_grad, np.float64),
+        point_tet=points.tet,
+        point_bary=points.bary,
+        point_anchor=points.anchor,
+        tet_face_start=start,
+        tet_faces=flat,
+        leaf_tets=tet_tree(tets, vertices),
+    )
+
+
+def tet_tree(tets: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A balanced tree of a body's tets, split at the median centroid along the widest axis, level by level.
+
+    Args:
+        tets: (q, 4) tets.
+        x: (p, 3) rest positions (m).
+
+    Returns:
+        (L, 4) int32 leaves (see :attr:`BodyGeometry.leaf_tets`).
+
+    Raises:
+        ValueError: The body needs a deeper tree than the detection walk can keep its place in.
+    """
+    centroid = x[tets].mean(axis=1)
+    count = len(tets)
+    depth = int(np.ceil(np.log2(max(1, -(-count // LEAF_TETS)))))
+    if depth > MAX_TREE_LEVELS:
+        raise ValueError(
+            f"a body of {count} tets needs a tree of {depth} levels; the walk keeps at most {MAX_TREE_LEVELS}"
+        )
+    order = np.arange(count)
+    bounds = np.array([0, count])
+    for _ in range(depth):  # every segment holds at least LEAF_TETS tets until the last split
+        sizes = np.diff(bounds)
+        seg = np.repeat(np.arange(len(sizes)), sizes)
+        c = centroid[order]
+        widest = np.argmax(np.maximum.reduceat(c, bounds[:-1]) - np.minimum.reduceat(c, bounds[:-1]), axis=1)
+        order = order[np.lexsort((c[np.arange(count), widest[seg]], seg))]
+        bounds = np.sort(np.concatenate([bounds, bounds[:-1] + (sizes + 1) // 2]))
+    sizes = np.diff(bounds)
+    slot = np.arange(LEAF_TETS)
+    index = np.minimum(bounds[:-1, None] + slot[None, :], count - 1)
+    return np.where(slot[None, :] < sizes[:, None], order[index], -1).astype(np.int32)
+
+
+@dataclass(frozen=True)
+class CollisionPoints:
+    """Collision points of one body, in its local vertex and tet indices.
+
+    Attributes:
+        tet: (c,) owning tet of each point.
+        bary: (c, 4) barycentric weights in that tet.
+        anchor: (c, 3) vertices the point lies on (-1 for unused): one for a vertex, three for a sample.
+    """
+
+    tet: np.ndarray
+    bary: np.ndarray
+    anchor: np.ndarray
+
+
+def surface_points(
+    tets: np.ndarray, surface_faces: np.ndarray, vertices: np.ndarray, spacing: float
+) -> CollisionPoints:
+    """The surface vertices of a body, plus samples on its surface triangles every ``spacing`` metres.
+
+    Each triangle is split into m^2 sub-triangles with m = ceil(longest edge / spacing) and a sample is put at
+    each sub-triangle's centroid, so no gap between samples exceeds about ``spacing``. ``spacing`` <= 0
+    gives the vertices only (the paper's method).
+
+    Args:
+        tets: (q, 4) positive tets.
+        surface_faces: (l, 3) outward boundary triangles indexing the tet vertices.
+        vertices: (p, 3) tet vertex positions (m).
+        spacing: Sample spacing (m).
+    """
+    face_tet = boundary_face_tets(tets, surface_faces)
+    corner = np.argmax(tets[face_tet][:, :, None] == surface_faces[:, None, :], axis=1)  # (l, 3) slot in tet
+    verts, first = np.unique(surface_faces.ravel(), return_index=True)
+    f_idx, k_idx = np.divmod(first, 3)
+    tet = [face_tet[f_idx]]
+    bary = np.zeros((len(verts), 4))
+    bary[np.arange(len(verts)), corner[f_idx, k_idx]] = 1.0
+    bary = [bary]
+    anchor = [np.stack([verts, np.full_like(verts, -1), np.full_like(verts, -1)], axis=1)]
+    if spacing > 0.0:
+        tri = vertices[surface_faces]
+        longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+        for m in np.unique(np.ceil(longest / spacing).astype(int)):
+            faces = np.flatnonzero(np.ceil(longest / spacing).astype(int) == m)
+            up = [(i + 1 / 3, j + 1 / 3, m - 1 - i - j + 1 / 3) for i in range(m) for j in range(m - i)]
+            down = [(i + 2 / 3, j + 2 / 3, m - 2 - i - j + 2 / 3) for i in range(m - 1) for j in range(m - 1 - i)]
+            uvw = np.array(up + down) / m  # (s, 3) weights on the triangle's corners
+            n = len(uvw)
+            w = np.zeros((len(faces), n, 4))
+            rows = np.arange(len(faces))[:, None]
+            for k in range(3):
+                w[rows, np.arange(n)[None, :], corner[faces, k][:, None]] += uvw[None, :, k]
+            tet.append(np.repeat(face_tet[faces], n))
+            bary.append(w.reshape(-1, 4))
+            anchor.append(np.repeat(surface_faces[faces], n, axis=0))
+    return CollisionPoints(
+        tet=np.concatenate(tet).astype(np.int32),
+        bary=np.concatenate(bary),
+        anchor=np.concatenate(anchor).astype(np.int32),
+    )
+
+
+def tet_surface_faces(tets: np.ndarray, surface_faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each tet, the surface faces that touch one of its corners (CSR: row offsets, face indices).
+
+    The collision response measures a point's depth below these faces: the body's surface near the tet,
+    not only the tet's own faces (a tet at an edge may have only a side face on the surface).
+    """
+    face_of_vertex = [[] for _ in range(vertex_count)]
+    for f, face in enumerate(surface_faces):
+        for v in face:
+            face_of_vertex[v].append(f)
+    rows = [sorted({f for v in t for f in face_of_vertex[v]}) for t in tets]
+    start = np.zeros(len(tets) + 1, dtype=np.int64)
+    np.cumsum([len(r) for r in rows], out=start[1:])
+    flat = np.fromiter((f for r in rows for f in r), dtype=np.int64, count=int(start[-1]))
+    return start, flat

@@ -1,0 +1,475 @@
+"""Preprocessing of one body: load, simplify, validate, tetrahedralize, embed, distance field; cached.
+
+Results are in the mesh file's own coordinates; the simulator applies the scene's uniform scale,
+rotation and translation afterwards. Internally every stage works on coordinates translated and scaled
+to a unit bounding-box diagonal, so a file's scale (1e-9 or 1e12 units) changes nothing.
+
+When a stage fails, the retry ladder (:data:`LADDER`) tries the next rung: the same coarse surface with
+other Netgen settings, other face counts, then a clean outer surface rebuilt from the generalized winding
+number (for input that intersects itself). Each coarse surface is validated before Netgen sees it
+(closed, manifold, no self-intersection); each tet mesh is accepted only if its tets are positive, its
+worst dihedral angle is at least :data:`MIN_DIHEDRAL_DEG`, its boundary is the coarse surface and its
+volume within :data:`VOLUME_TOLERANCE` of the dense mesh's. QEM, the outer surface and Netgen run in
+child processes under a time limit each, so a crash or hang there is a failed rung, not a dead caller.
+
+The cache is content-addressed: a file is named by the sha256 of the welded input mesh and the
+parameters, so an edited mesh or changed parameter never hits a stale entry; it is written atomically
+and carries a checksum of its arrays, so a damaged or truncated entry is rebuilt, not loaded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from warpfem.errors import InputError
+from warpfem.prep.embedding import embed
+from warpfem.prep.surface import Surface, load_surface, subdivide_surface
+
+CACHE_FORMAT = 2
+"""Version of the cache file layout and of the preprocessing algorithm; bump to invalidate old entries."""
+
+INSIDE_EPS = 1e-9
+"""A dense vertex whose smallest barycentric coordinate is >= -this counts as inside its tet."""
+
+MIN_DIHEDRAL_DEG = 0.5
+"""Quality bound: every accepted tet has all six dihedral angles at least this (degrees). Netgen keeps
+the coarse surface, so slivers between nearly coplanar surface triangles cannot be optimized away; at 1
+degree homer.obj and cow.obj at 3,000 faces fail on every rung (see docs/preprocessing.md)."""
+
+VOLUME_TOLERANCE = 0.10
+"""Accepted relative difference between the tet mesh's volume and the dense surface's (for input that
+intersects itself or has overlapping shells: the outer surface's). QEM of armadillo.off to 300 faces
+loses 9.4%, to 1,000 faces 3%."""
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One attempt of the retry ladder.
+
+    Attributes:
+        label: What the rung does, as reported in ``stats["rung"]``.
+        source: ``"qslim"`` (QEM of the repaired dense surface) or ``"outer"`` (QEM of the generalized
+            winding number's marching-cubes surface).
+        faces_factor: Target face count relative to the requested one.
+        maxh_factor: Netgen's maxh relative to the requested one.
+        optsteps: Netgen's 3D optimization passes.
+        cells_factor: Outer-surface grid resolution relative to :func:`warpfem.prep.simplify.outer_cells`.
+    """
+
+    label: str
+    source: str
+    faces_factor: float = 1.0
+    maxh_factor: float = 1.0
+    optsteps: int = 3
+    cells_factor: float = 1.0
+
+
+LADDER = (
+    Rung("qslim", "qslim"),
+    Rung("qslim, Netgen maxh/2 and 8 optimization passes", "qslim", maxh_factor=0.5, optsteps=8),
+    Rung("qslim at 0.8x faces", "qslim", faces_factor=0.8),
+    Rung("qslim at 1.25x faces", "qslim", faces_factor=1.25),
+    Rung("outer surface (winding number + marching cubes) + qslim", "outer"),
+    Rung("outer surface on a 0.6x grid (smoother) + qslim", "outer", cells_factor=0.6),
+    Rung("outer surface + qslim at 0.8x faces, Netgen 8 passes", "outer", faces_factor=0.8, optsteps=8),
+)
+"""The retry ladder, tried in order until a rung gives a valid tet mesh (``stats["rung"]`` says which)."""
+
+_STAT_PREFIX = "stat__"
+
+
+@dataclass(frozen=True)
+class PreparedBody:
+    """A body ready to simulate, in its mesh's own coordinates (units of the mesh file).
+
+    Attributes:
+        dense_vertices: (n, 3) float64 rendered surface positions.
+        dense_faces: (m, 3) int32 rendered surface triangles, outward.
+        coarse_vertices: (k, 3) float64 simplified surface positions (== ``tet_vertices[:k]``).
+        coarse_faces: (l, 3) int32 simplified surface triangles, indexing ``coarse_vertices``.
+        boundary_faces: (l, 3) int32 the same triangles indexing ``tet_vertices``.
+        tet_vertices: (p, 3) float64 tet mesh vertex positions.
+        tets: (q, 4) int32 tets, all with positive det(b-a, c-a, d-a).
+        embed_tet: (n,) int32 tet of each dense vertex.
+        embed_bary: (n, 4) float64 barycentric coordinates of each dense vertex in its tet.
+        vertex_depth: (p,) float64 distance of each tet vertex to the coarse surface (0 on it).
+        vertex_grad: (p, 3) float64 unit gradient of that distance, pointing out of the body.
+        stats: What was made and how long it took (see :func:`prepare`).
+    """
+
+    dense_vertices: np.ndarray
+    dense_faces: np.ndarray
+    coarse_vertices: np.ndarray
+    coarse_faces: np.ndarray
+    boundary_faces: np.ndarray
+    tet_vertices: np.ndarray
+    tets: np.ndarray
+    embed_tet: np.ndarray
+    embed_bary: np.ndarray
+    vertex_depth: np.ndarray
+    vertex_grad: np.ndarray
+    stats: dict[str, float | int | str]
+
+
+_ARRAY_FIELDS = tuple(f.name for f in fields(PreparedBody) if f.name != "stats")
+
+
+def cache_key(surface: Surface, faces: int, subdivide: int, maxh: float, options: str = "") -> str:
+    """Return the sha256 hex digest naming the cache entry of a welded surface and the parameters.
+
+    Args:
+        surface: The loaded, welded surface before subdivision.
+        faces: Target coarse face count.
+        subdivide: Loop subdivision rounds.
+        maxh: Relative maximum tet edge length.
+        options: Any further parameters that change the result, as text.
+
+    Returns:
+        64 hex characters.
+    """
+    digest = hashlib.sha256()
+    digest.update(
+        f"warpfem-prepare v{CACHE_FORMAT} faces={faces} subdivide={subdivide} maxh={maxh!r} {options}\n".encode()
+    )
+    digest.update(np.ascontiguousarray(surface.vertices, dtype="<f8").tobytes())
+    digest.update(np.ascontiguousarray(surface.faces, dtype="<i4").tobytes())
+    return digest.hexdigest()
+
+
+def _read_cache(path: Path) -> PreparedBody | None:
+    """Return the body stored at ``path``, or None if it is absent, unreadable or incomplete."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: np.array(data[name]) for name in _ARRAY_FIELDS}
+            stats = {key[len(_STAT_PREFIX) :]: data[key].item() for key in data.files if key.startswith(_STAT_PREFIX)}
+            checksum = str(data["checksum"])
+    except Exception:  # a damaged file can fail in zipfile, numpy or the OS layer: rebuild it
+        return None
+    if checksum != _checksum(arrays):
+        return None
+    n, p = len(arrays["dense_vertices"]), len(arrays["tet_vertices"])
+    consistent = (
+        arrays["embed_tet"].shape == (n,)
+        and arrays["embed_bary"].shape == (n, 4)
+        and arrays["vertex_depth"].shape == (p,)
+        and arrays["vertex_grad"].shape == (p, 3)
+        and arrays["tets"].ndim == 2
+        and arrays["tets"].shape[1:] == (4,)
+    )
+    return PreparedBody(**arrays, stats=stats) if consistent else None
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over the arrays' names, dtypes, shapes and bytes."""
+    digest = hashlib.sha256()
+    for name in _ARRAY_FIELDS:
+        array = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name} {array.dtype.str} {array.shape}\n".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def _write_cache(path: Path, body: PreparedBody) -> None:
+    """Write ``body`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {name: getattr(body, name) for name in _ARRAY_FIELDS}
+    payload["checksum"] = np.array(_checksum(payload))
+    payload.update({_STAT_PREFIX + key: np.array(value) for key, value in body.stats.items()})
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as stream:
+            np.savez(stream, **payload)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+@dataclass
+class _Attempt:
+    """Coarse surfaces made so far (memoized per rung source), failures and time per stage."""
+
+    dense: Surface
+    faces: int
+    timeout_s: float
+    say: Callable[[str], None]
+    dense_volume: float
+    dense_clean: bool
+    surfaces: dict[tuple, tuple[np.ndarray, np.ndarray, float] | InputError]
+    seconds: dict[str, float]
+
+    def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray, float]:
+        """Return the validated coarse surface of ``rung`` and its reference volume.
+
+        The reference is the dense surface's volume, or, for an outer surface made because the dense
+        one intersects itself or has overlapping shells, the volume of that outer surface.
+
+        Raises:
+            InputError: The memoized reason why this rung's surface could not be made or is invalid.
+        """
+        from warpfem.prep.simplify import outer_cells
+
+        target = max(4, round(self.faces * rung.faces_factor))
+        cells = outer_cells(target) if rung.source == "outer" else 0
+        key = (rung.source, target, max(8, round(cells * rung.cells_factor)) if cells else 0)
+        if key not in self.surfaces:
+            try:
+                self.surfaces[key] = self._make(rung.source, target, key[2])
+            except InputError as err:
+                self.surfaces[key] = err
+        made = self.surfaces[key]
+        if isinstance(made, InputError):
+            raise made
+        return made
+
+    def _make(self, source: str, target: int, cells: int) -> tuple[np.ndarray, np.ndarray, float]:
+        from warpfem.prep.intersect import intersecting_faces
+        from warpfem.prep.simplify import outer_surface, simplify
+        from warpfem.prep.surface import signed_volume
+
+        name = self.dense.source
+        vertices, faces = self.dense.vertices, self.dense.faces
+        reference = self.dense_volume
+        if source == "qslim" and self.dense.overlapping:
+            raise InputError(f"{name}: shells overlap, so the body is their union (an outer surface)")
+        clock = time.perf_counter()
+        if source == "outer":
+            self.say(f"{name}: rebuilding the outer surface on a {cells}-cell grid")
+            vertices, faces = outer_surface(vertices, faces, cells, name=name, timeout_s=self.timeout_s)
+            if not self.dense_clean:
+                reference = signed_volume(vertices, faces)
+            self.seconds["outer"] = self.seconds.get("outer", 0.0) + time.perf_counter() - clock
+            clock = time.perf_counter()
+        self.say(f"{name}: simplifying {len(faces)} faces to {target}")
+        coarse_v, coarse_f = simplify(vertices, faces, target, name=name, timeout_s=self.timeout_s)
+        self.seconds["simplify"] = self.seconds.get("simplify", 0.0) + time.perf_counter() - clock
+        clock = time.perf_counter()
+        pairs, _ = intersecting_faces(coarse_v, coarse_f)
+        self.seconds["validate"] = self.seconds.get("validate", 0.0) + time.perf_counter() - clock
+        if pairs:
+            raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself ({pairs} pairs)")
+        return coarse_v, coarse_f, reference
+
+
+def _tet_mesh(
+    attempt: _Attempt, rung: Rung, maxh: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+    """Run one rung: coarse surface, Netgen, quality and volume checks (raises InputError on failure)."""
+    from warpfem.prep.surface import signed_volume
+    from warpfem.prep.tetmesh import tet_quality, tetrahedralize
+
+    name = attempt.dense.source
+    coarse_v, coarse_f, reference = attempt.coarse(rung)
+    diag = float(np.linalg.norm(coarse_v.max(axis=0) - coarse_v.min(axis=0)))
+    h = maxh * rung.maxh_factor * diag
+    attempt.say(f"{name}: tetrahedralizing {len(coarse_f)} faces (maxh {h:.4g} of a unit diagonal)")
+    clock = time.perf_counter()
+    try:
+        tet_v, tets = tetrahedralize(
+            coarse_v, coarse_f, h, timeout_s=attempt.timeout_s, name=name, optsteps=rung.optsteps
+        )
+    finally:
+        attempt.seconds["tetrahedralize"] = attempt.seconds.get("tetrahedralize", 0.0) + time.perf_counter() - clock
+    dihedral, ratio = tet_quality(tet_v, tets)
+    if dihedral.min() < MIN_DIHEDRAL_DEG:
+        raise InputError(f"{name}: worst tet dihedral angle {dihedral.min():.3g} deg is below {MIN_DIHEDRAL_DEG:g}")
+    volume_ratio = signed_volume(coarse_v, coarse_f) / reference
+    if not abs(volume_ratio - 1.0) <= VOLUME_TOLERANCE:
+        raise InputError(f"{name}: the tet mesh's volume is {volume_ratio:.3f}x the reference (dense or outer surface)")
+    quality = {
+        "tet_min_dihedral_deg": float(dihedral.min()),
+        "tet_min_radius_ratio": float(ratio.min()),
+        "volume_ratio": float(volume_ratio),
+        "maxh_absolute": h,
+    }
+    return coarse_v, coarse_f, tet_v, tets, quality
+
+
+def _build(
+    dense: Surface, faces: int, maxh: float, timeout_s: float, say: Callable[[str], None]
+) -> tuple[dict[str, np.ndarray], dict[str, float | int | str]]:
+    """Climb the retry ladder to a valid tet mesh, then embed and compute the distance field and stats.
+
+    ``dense`` is in the caller's coordinates; the work is done on a copy scaled to a unit diagonal.
+    """
+    from warpfem.prep.distance import distance_field, hausdorff
+    from warpfem.prep.intersect import intersecting_faces
+    from warpfem.prep.surface import signed_volume
+
+    name = dense.source
+    center = 0.5 * (dense.vertices.max(axis=0) + dense.vertices.min(axis=0))
+    scale = float(np.linalg.norm(dense.vertices.max(axis=0) - dense.vertices.min(axis=0)))
+    unit = replace(dense, vertices=(dense.vertices - center) / scale)
+
+    clock = time.perf_counter()
+    dense_pairs, _ = intersecting_faces(unit.vertices, unit.faces)
+    seconds = {"validate": time.perf_counter() - clock}
+    # a surface crossing itself or overlapping shells count some volume twice: the outer surface's is used
+    clean = dense_pairs == 0 and not dense.overlapping
+    attempt = _Attempt(unit, faces, timeout_s, say, signed_volume(unit.vertices, unit.faces), clean, {}, seconds)
+    failures = []
+    for index, rung in enumerate(LADDER):
+        say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
+        try:
+            coarse_v, coarse_f, tet_v, tets, quality = _tet_mesh(attempt, rung, maxh)
+            break
+        except InputError as err:
+            reason = str(err).removeprefix(f"{name}: ")
+            failures.append(f"{index + 1}) {reason}")
+            say(f"{name}: rung {index + 1} failed: {reason}")
+    else:
+        raise InputError(f"{name}: no valid tet mesh at {faces} faces, every rung failed: {' '.join(failures)}")
+
+    boundary = coarse_f.copy()  # tetrahedralize keeps the surface points first, so these index tet_v
+    clock = time.perf_counter()
+    say(f"{name}: embedding {len(unit.vertices)} dense vertices in {len(tets)} tets")
+    try:
+        embed_tet, embed_bary = embed(unit.vertices, tet_v, tets, boundary)
+    except ValueError as err:
+        raise InputError(f"{name}: embedding failed: {err}") from None
+    seconds["embed"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    say(f"{name}: distance field at {len(tet_v)} tet vertices")
+    depth, grad = distance_field(tet_v, coarse_v, coarse_f)
+    seconds["distance"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    dense_to_coarse, coarse_to_dense = hausdorff(unit.vertices, unit.faces, coarse_v, coarse_f)
+    seconds["hausdorff"] = time.perf_counter() - clock
+
+    rebuilt = np.einsum("nk,nkj->nj", embed_bary, tet_v[tets[embed_tet]])
+    stats: dict[str, float | int | str] = {
+        "rung": f"{index + 1} ({LADDER[index].label})",
+        "failed_rungs": " ".join(failures) or "none",
+        "dense_intersecting_pairs": dense_pairs,
+        "coarse_vertices": len(coarse_v),
+        "coarse_faces": len(coarse_f),
+        "tets": len(tets),
+        "tet_vertices": len(tet_v),
+        **quality,
+        "maxh_absolute": quality["maxh_absolute"] * scale,
+        "hausdorff": max(dense_to_coarse, coarse_to_dense) * scale,
+        "hausdorff_relative": max(dense_to_coarse, coarse_to_dense),
+        "hausdorff_dense_to_coarse": dense_to_coarse * scale,
+        "hausdorff_coarse_to_dense": coarse_to_dense * scale,
+        "embedding_coverage": float(np.mean(embed_bary.min(axis=1) >= -INSIDE_EPS)),
+        "embedding_max_error": float(np.abs(rebuilt - unit.vertices).max()),
+        "max_depth": float(depth.max()) * scale,
+    }
+    stats.update({f"seconds_{stage}": value for stage, value in seconds.items()})
+    arrays = {
+        "coarse_vertices": coarse_v * scale + center,
+        "coarse_faces": coarse_f,
+        "boundary_faces": boundary,
+        "tet_vertices": tet_v * scale + center,
+        "tets": tets,
+        "embed_tet": embed_tet.astype(np.int32),
+        "embed_bary": embed_bary,
+        "vertex_depth": depth * scale,
+        "vertex_grad": grad,
+    }
+    return arrays, stats
+
+
+def default_cache_dir() -> Path:
+    """The preprocessing cache: $WARPFEM_CACHE, else $XDG_CACHE_HOME/warpfem, else ~/.cache/warpfem."""
+    if os.environ.get("WARPFEM_CACHE"):
+        return Path(os.environ["WARPFEM_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "warpfem"
+
+
+def prepare(
+    mesh: str | Path,
+    faces: int,
+    subdivide: int = 0,
+    maxh: float = 0.2,
+    cache_dir: Path | None = None,
+    timeout_s: float = 120.0,
+    progress: Callable[[str], None] | None = None,
+    shells: str | int = "merge",
+    max_hole: float | None = None,
+) -> PreparedBody:
+    """Preprocess one body, or load it from the cache.
+
+    Args:
+        mesh: Surface mesh file (OBJ, PLY, STL, OFF) or ``"builtin:bunny"``.
+        faces: Target face count of the simplified (coarse) surface.
+        subdivide: Loop subdivision rounds applied to the dense surface after loading.
+        maxh: Largest tet edge, as a fraction of the coarse surface's bounding-box diagonal.
+        cache_dir: Folder of cached results (``<sha256>.npz``), or None for no caching.
+        timeout_s: Time limit of each child-process stage (QEM, outer surface, Netgen), in seconds.
+        progress: Receives one-line status messages.
+        shells: What to do with several shells: ``"merge"`` them into one body, keep the ``"largest"``,
+            ``"error"``, or an int k to keep the k-th largest (one body per shell: prepare each k).
+        max_hole: Largest hole closed automatically, relative to the bounding-box diagonal (None: the
+            default :data:`warpfem.prep.repair.MAX_HOLE_FRACTION`; 0: none).
+
+    Returns:
+        The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off),
+        ``rung`` (the ladder rung that succeeded), ``failed_rungs`` (the reasons of those before it),
+        ``dense_vertices``, ``dense_faces``, ``dense_intersecting_pairs``, ``coarse_vertices``,
+        ``coarse_faces``, ``tets``, ``tet_vertices``, ``tet_min_dihedral_deg``, ``tet_min_radius_ratio``
+        (3 inradius / circumradius, 1 for a regular tet), ``volume_ratio`` (coarse / dense volume, or /
+        outer-surface volume for self-intersecting input or overlapping shells), ``maxh_absolute``
+        (mesh units), ``hausdorff`` (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to
+        the bounding-box diagonal and each one-sided value), ``embedding_coverage`` (fraction of dense
+        vertices inside a tet), ``embedding_max_error`` (max reconstruction error / bbox diagonal),
+        ``max_depth`` and ``seconds_<stage>`` for load, validate, outer (if used), simplify,
+        tetrahedralize, embed, distance, hausdorff (on a cache hit, those of the run that filled the
+        cache, plus ``seconds_cache_read``).
+
+    Raises:
+        InputError: For a bad mesh or parameter, or when a stage fails on this mesh (one line).
+    """
+    say = progress or (lambda _message: None)
+    if faces < 4:
+        raise InputError(f"{mesh}: faces must be >= 4, got {faces}")
+    if not maxh > 0:
+        raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
+    clock = time.perf_counter()
+    say(f"{mesh}: loading")
+    surface = load_surface(mesh, max_hole=max_hole, shells=shells)
+    seconds_load = time.perf_counter() - clock
+
+    path = None
+    if cache_dir is not None:
+        options = f"shells={shells!r} max_hole={max_hole!r}"
+        path = Path(cache_dir) / f"{cache_key(surface, faces, subdivide, maxh, options)}.npz"
+        clock = time.perf_counter()
+        cached = _read_cache(path)
+        if cached is not None:
+            say(f"{mesh}: loaded from cache {path}")
+            cached.stats.update(
+                mesh=str(mesh), cache="hit", seconds_load=seconds_load, seconds_cache_read=time.perf_counter() - clock
+            )
+            return cached
+
+    clock = time.perf_counter()
+    dense = subdivide_surface(surface, subdivide)
+    seconds_load += time.perf_counter() - clock
+    arrays, built = _build(dense, faces, maxh, timeout_s, say)
+    stats: dict[str, float | int | str] = {
+        "mesh": str(mesh),
+        "repairs": "; ".join(dense.repairs) or "none",
+        "cache": "off" if path is None else "miss",
+        "dense_vertices": len(dense.vertices),
+        "dense_faces": len(dense.faces),
+        "seconds_load": seconds_load,
+        **built,
+    }
+    body = PreparedBody(dense_vertices=dense.vertices, dense_faces=dense.faces, **arrays, stats=stats)
+    if path is not None:
+        _write_cache(path, body)
+    return body

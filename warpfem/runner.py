@@ -1,0 +1,197 @@
+"""Running a scene to a USD file: what ``warpfem run`` does, as :func:`run`."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from warpfem.errors import InputError
+from warpfem.scene import Scene
+from warpfem.simulation import Simulation
+
+
+@dataclass
+class RunSummary:
+    """What a run did, for the closing summary.
+
+    Attributes:
+        output: The USD file written.
+        device: Warp device alias.
+        frames: Frames simulated (not counting frame 0, the initial pose).
+        simulated_seconds: Simulated time (s).
+        bodies: Number of bodies.
+        tets: Tets over all bodies.
+        tet_vertices: Tet vertices over all bodies.
+        dense_vertices: Dense vertices over all bodies.
+        dense_triangles: Dense triangles over all bodies.
+        cg_iterations_per_step: Mean CG iterations per step.
+        cg_residual_max: Largest final relative CG residual.
+        seconds: Wall time per phase (s): prepare, build, simulate, map, write.
+        step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
+            with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
+            whose later frames replay a captured graph).
+        contacts_per_step: Mean body-body contacts per step, over the run.
+        contacts_max: Most contacts in one step.
+        contact_depth_max: Deepest contact over the run (m).
+        dense_penetration: Deepest dense vertex inside another body's tet mesh at the last frame (m).
+        dense_penetration_relative: The same relative to the smallest body's size.
+    """
+
+    output: Path
+    device: str
+    frames: int
+    simulated_seconds: float
+    bodies: int
+    tets: int
+    tet_vertices: int
+    dense_vertices: int
+    dense_triangles: int
+    cg_iterations_per_step: float
+    cg_residual_max: float
+    seconds: dict[str, float] = field(default_factory=dict)
+    step_ms: dict[str, float] = field(default_factory=dict)
+    contacts_per_step: float = 0.0
+    contacts_max: int = 0
+    contact_depth_max: float = 0.0
+    dense_penetration: float = 0.0
+    dense_penetration_relative: float = 0.0
+
+    @property
+    def ms_per_frame(self) -> float:
+        """Wall time per frame of simulation, mapping and writing (ms)."""
+        work = self.seconds.get("simulate", 0) + self.seconds.get("map", 0) + self.seconds.get("write", 0)
+        return 1000.0 * work / max(self.frames, 1)
+
+
+def run(
+    scene: Scene,
+    out: str | Path,
+    frames: int | None = None,
+    device: str | None = None,
+    cache_dir: str | Path | None = None,
+    cache: bool = True,
+    overwrite: bool = False,
+    save_every: float | None = 10.0,
+    progress: Callable[[str, str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> RunSummary:
+    """Run ``scene`` and write its dense meshes to ``out`` (USD), as ``warpfem run`` does.
+
+    Args:
+        scene: A validated scene.
+        out: Target ``.usdc`` or ``.usda`` file, written atomically; on an interrupt (Ctrl-C) or NaN the
+            frames finished so far are kept in a valid file.
+        frames: Override the scene's frame count.
+        device: ``"cpu"`` or ``"cuda:N"`` (default: ``cuda:0`` when there is a GPU, else the CPU).
+        cache_dir: The preprocessing cache (default: ``$WARPFEM_CACHE``, else ``~/.cache/warpfem``).
+        cache: False preprocesses again and stores nothing.
+        progress: Receives ``(object name, message)`` as each preprocessing stage starts.
+        warn: Receives one-line warnings (see :class:`~warpfem.simulation.Simulation`).
+        overwrite: Whether an existing ``out`` may be replaced.
+        save_every: Shortest time between snapshots of the file (s), so a killed process keeps the frames up
+            to the last one; None: write only at the end.
+
+    Returns:
+        The run's summary.
+
+    Raises:
+        InputError: A bad scene, mesh, output path or device (one line).
+        SimulationError: The state became NaN/Inf (the frames before it are in the file).
+    """
+    if frames is not None:
+        if frames < 1:
+            raise InputError(f"frames must be >= 1, got {frames}")
+        scene = scene.with_frames(frames)
+    out = Path(out)
+    if out.suffix.lower() not in (".usdc", ".usda", ".usd"):
+        raise InputError(f"{out}: the output must end in .usdc or .usda")
+    if not out.resolve().parent.is_dir():
+        raise InputError(f"{out}: folder {out.resolve().parent} does not exist")
+    if out.exists() and not overwrite:
+        raise InputError(f"{out}: the file exists; pass overwrite=True to replace it")
+    sim = Simulation(scene, device=device, cache_dir=cache_dir, cache=cache, progress=progress, warn=warn)
+    return record(sim, out, overwrite=overwrite, save_every=save_every)
+
+
+def record(
+    sim: Simulation,
+    out: Path,
+    overwrite: bool = False,
+    save_every: float | None = 10.0,
+    on_frame: Callable[[], None] | None = None,
+    on_points: Callable[[int, list[np.ndarray]], None] | None = None,
+) -> RunSummary:
+    """Step ``sim`` through its scene's frames from where it is, writing every frame's dense meshes to ``out``.
+
+    Args:
+        sim: A simulation at frame 0.
+        out: Target ``.usdc`` or ``.usda`` file (see :func:`run`).
+        overwrite: Whether an existing ``out`` may be replaced.
+        save_every: Shortest time between snapshots of the file (s); None: write only at the end.
+        on_frame: Called once per finished frame.
+        on_points: Called as ``on_points(frame, points)`` with each frame's dense points (one (n_i, 3) array
+            per body), frame 0 included, after the frame is written; its time is not in the summary.
+    """
+    from warpfem.io.usd import UsdWriter
+
+    scene, model = sim.scene, sim.model
+    seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0, "write": 0.0}
+    bodies = [(b.name, b.dense_faces) for b in model.bodies]
+    try:
+        writer = UsdWriter(
+            out, bodies, fps=scene.fps, up_axis=scene.up_axis, overwrite=overwrite, save_every=save_every
+        )
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        raise InputError(str(err)) from None
+    with writer:
+        t0 = time.perf_counter()
+        points = sim.dense_points()
+        writer.add_frame(0, points)
+        seconds["write"] += time.perf_counter() - t0
+        if on_points:
+            on_points(0, points)
+        for frame in range(1, scene.frames + 1):
+            t0 = time.perf_counter()
+            sim.step_frame(profile=not sim.device.is_cuda or frame == 1)
+            t1 = time.perf_counter()
+            points = sim.dense_points()
+            t2 = time.perf_counter()
+            writer.add_frame(frame, points)
+            seconds["simulate"] += t1 - t0
+            seconds["map"] += t2 - t1
+            seconds["write"] += time.perf_counter() - t2
+            if on_points:
+                on_points(frame, points)
+            if on_frame:
+                on_frame()
+        t_close = time.perf_counter()  # the writer saves the file on leaving this block
+    seconds["write"] += time.perf_counter() - t_close
+    return _summary(sim, out, seconds, sim.dense_penetration(points))
+
+
+def _summary(sim: Simulation, out: Path, seconds: dict[str, float], penetration: float) -> RunSummary:
+    model, totals, timer = sim.model, sim.totals, sim.phase_timer
+    return RunSummary(
+        output=out,
+        device=sim.device.alias,
+        frames=sim.frame,
+        simulated_seconds=sim.time,
+        bodies=len(model.bodies),
+        tets=model.tet_count,
+        tet_vertices=model.vertex_count,
+        dense_vertices=model.dense_count,
+        dense_triangles=sum(len(b.dense_faces) for b in model.bodies),
+        cg_iterations_per_step=totals.cg_iterations / max(totals.cg_solves, 1),
+        cg_residual_max=totals.cg_residual_max,
+        seconds=seconds,
+        step_ms={k: 1000.0 * v / max(timer.frames, 1) for k, v in timer.seconds.items()},
+        contacts_per_step=totals.contacts / max(totals.steps, 1),
+        contacts_max=totals.contacts_max,
+        contact_depth_max=totals.deepest_contact,
+        dense_penetration=penetration,
+        dense_penetration_relative=penetration / min(b.size for b in model.bodies),
+    )

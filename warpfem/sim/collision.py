@@ -1,0 +1,345 @@
+"""Host side of collisions: collision points (built once) and the per-step detection and response.
+
+Detection: every step each body's tree of tet boxes (built once by preprocessing) is refitted, and each
+collision point walks the trees of the bodies whose boxes hold it (each box tested directly in scenes of up to
+``DIRECT_BODIES`` bodies, else a ``wp.Bvh`` over the body boxes) for the tets whose boxes hold it, then
+applies the barycentric inside test (one thread per point: the paper's vertex-in-tet test of Teschner et al.
+2003 with bounding volumes in place of the spatial hash; a thread per tet walking hash cells measured 0.9-2.3
+ms per step on the paper's scenes on an H100). One tree per body, rather than one ``wp.Bvh`` over every tet,
+spares a point the walk through its own body's tets, which it always lies among. Response
+(Kondo & Kanai, step 7): a penalty force from the tet's distance field, implicit (see
+:mod:`warpfem.kernels.collision`). Self-collision rule: a point is tested against tets of its own body only
+if none of its anchor vertices (the vertex itself, or the three corners of the surface triangle a sample
+lies on) is a corner of the tet or shares a tet with one of its corners (the one-ring); this keeps a body
+at rest free of false contacts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import collision as K
+from warpfem.sim.contacts import Coupling
+
+
+@dataclass(frozen=True)
+class CollisionSettings:
+    """Collision response and capacity.
+
+    Attributes:
+        stiffness: Penalty stiffness per unit point mass (1/s^2): a = stiffness * m_point, where m_point is
+            the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
+            behaves like the ground's penalty (resting depth about g / stiffness).
+        friction: Coulomb friction coefficient between bodies.
+        contacts_per_point: Contact buffer capacity per collision point.
+    """
+
+    stiffness: float = 1.0e7
+    friction: float = 0.5
+    contacts_per_point: float = 2.0
+
+
+DEFAULT_COLLISION = CollisionSettings()
+
+DETECT_LANES = 4
+"""Threads per collision point of contact detection on CUDA, each walking every fourth of the bodies whose
+boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Two lanes measured within the
+spread on the paper scenes and slightly behind on piles of 4 and 16 (H100, scripts/results/ab-tune-*.json).
+The detection kernel uses 122 registers (two blocks of 256 per SM); capping them at 80 or 64 (launch bounds of
+3 or 4 blocks per SM) spilled and made it slower on scene A, 70 and 77 against 62 us per step under ncu
+(kernel-durations-paper-a-detectbounds*-ncu.csv; A 1.34-1.39 against 1.30-1.35 ms per frame,
+ab-tune-detectbounds-*.json)."""
+
+DIRECT_BODIES = 16
+"""Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
+a ``wp.Bvh`` of them (whose traversal stack took 33.8 KB of shared memory per block of the detection launch,
+and whose refit was a launch of its own each step). On an H100, three interleaved rounds against the BVH
+(scripts/results/ab-trial-direct-bodies-*.json): the collision phase of scene C 0.118-0.123 against
+0.139-0.144 ms per frame, 4 armadillos 0.141-0.145 against 0.161-0.163, 16: 0.183-0.185 against 0.200-0.202;
+frames 16 armadillos 0.894-0.905 against 0.915-0.922, the paper scenes within the spread (the refit ran beside
+the elastic launch). Launch bounds of 3 blocks per SM on it (80 registers against 94) gained nothing more."""
+
+BODY_BLOCK = 256
+"""Threads per body of the tree refit (CUDA)."""
+
+class Collider:
+    """Buffers and launches of the collision stage for a model with collision points.
+
+    Args:
+        model: The model (its ``point_*`` arrays define the collision points).
+        settings: Stiffness and capacity.
+    """
+
+    def __init__(self, model, settings: CollisionSettings) -> None:
+        self.model = model
+        dev = model.device
+        n_points = model.point_tet.shape[0]
+        self.capacity = max(64, int(settings.contacts_per_point * n_points))
+        self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
+        self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
+        self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
+        self.count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self.contact_tet = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
+        self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
+        self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
+        self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
+        self.coupling = Coupling(
+            self.count,
+            wp.zeros(self.capacity, dtype=wp.vec4i, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4i, device=dev),
+            wp.zeros(self.capacity, dtype=wp.vec4, device=dev),
+            self.contact_matrix,
+        )
+        """The contacts as CG's matrix-free term (filled each step by :meth:`respond`)."""
+        self.friction = wp.zeros(1, dtype=float, device=dev)
+        self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
+        self.depth_max = wp.zeros(1, dtype=float, device=dev)
+        self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
+        self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
+        self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
+        self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
+        starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
+        self.body_tet_start = wp.array(starts, dtype=wp.int32, device=dev)
+        self.node_start = model.tree_node_start
+        self.leaf_start = model.tree_leaf_start
+        self.leaf_tets = model.tree_leaf_tets
+        self.node_lower = wp.zeros(2 * model.tree_leaf_tets.shape[0] - len(model.bodies), dtype=wp.vec3, device=dev)
+        self.node_upper = wp.zeros_like(self.node_lower)
+        self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        self.direct = len(model.bodies) <= DIRECT_BODIES
+        """Whether detection tests every body's box itself rather than querying a BVH of them."""
+        self.body_bvh = None
+        if not self.direct:
+            self._bound(model.rest_x)  # the body boxes the BVH is built from
+            # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
+            self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
+        self.lanes = DETECT_LANES if dev.is_cuda else 1
+        """Threads per collision point in contact detection (any count finds the same contacts)."""
+        self.set_response(settings.stiffness, settings.friction)
+
+    def set_response(self, stiffness: float, friction: float) -> None:
+        """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays)."""
+        self.friction.fill_(float(friction))
+        wp.launch(
+            K.scale_point_stiffness,
+            dim=self.points.shape[0],
+            inputs=[self.model.point_mass, float(stiffness)],
+            outputs=[self.point_stiffness],
+            device=self.model.device,
+        )
+
+    def prepare(self, x: wp.array, v: wp.array) -> None:
+        """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
+
+        The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
+        inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
+        another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
+        """
+        m = self.model
+        wp.launch(
+            K.collision_points,
+            dim=self.points.shape[0],
+            inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
+            outputs=[self.points, self.point_velocity, self.speed_max],
+            device=m.device,
+        )
+        self._bound(x)
+
+    def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:
+        """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
+
+        Needs :meth:`prepare` at the same ``x`` and ``v`` first. Reads the rotated distance gradients in
+        ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
+        first.
+        """
+        m = self.model
+        dev = m.device
+        self._detect(
+            x,
+            v,
+            dt,
+            self.points,
+            self.point_velocity,
+            m.point_body,
+            m.point_anchor,
+            m.body_self,
+            self.capacity,
+            self.depth_max,
+        )
+        wp.launch(
+            K.contact_forces,
+            dim=self.capacity,
+            inputs=[
+                self.count,
+                self.contact_point,
+                self.contact_tet,
+                self.contact_bary,
+                self.contact_normal,
+                self.contact_depth,
+                v,
+                m.tets,
+                m.point_tet,
+                m.point_bary,
+                self.point_stiffness,
+                self.friction,
+                m.diag_slot,
+                dt,
+            ],
+            outputs=[
+                self.coupling.verts_a,
+                self.coupling.weights_a,
+                self.coupling.verts_b,
+                self.coupling.weights_b,
+                self.contact_matrix,
+                force_out,
+                matrix_out,
+                self.contacts_total,
+            ],
+            device=dev,
+        )
+
+    def _bound(self, x: wp.array) -> None:
+        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH (if any) refitted."""
+        m = self.model
+        threads = BODY_BLOCK if m.device.is_cuda else 1
+        wp.launch_tiled(
+            K.refit_trees,
+            dim=[len(m.bodies)],
+            inputs=[m.tets, x, self.body_tet_start, self.node_start, self.leaf_start, self.leaf_tets, threads],
+            outputs=[
+                self.tet_inverse,
+                self.tet_origin,
+                self.node_lower,
+                self.node_upper,
+                self.body_lowers,
+                self.body_uppers,
+            ],
+            block_dim=threads,
+            device=m.device,
+        )
+        if self.body_bvh is not None:
+            self.body_bvh.refit()
+
+    def rotate_gradients(self, rotation: wp.array) -> None:
+        """grad = sum over incident tets of R_t g0, per tet vertex (detection normalises it where it reads it).
+
+        The step gets this from the elastic launch; this is for :meth:`deepest` and callers outside a step.
+        """
+        m = self.model
+        self.grad.zero_()
+        wp.launch(
+            K.accumulate_gradients,
+            dim=m.tet_count,
+            inputs=[m.tets, rotation, m.vertex_grad],
+            outputs=[self.grad],
+            device=m.device,
+        )
+
+    def _detect(
+        self,
+        x,
+        v,
+        dt,
+        points,
+        point_velocity,
+        point_body,
+        point_anchor,
+        body_self,
+        capacity: int,
+        depth_max_out,
+    ) -> None:
+        m = self.model
+        self.count.zero_()
+        lanes = self.lanes
+        bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
+        wp.launch(
+            K.detect_contacts_direct if self.direct else K.detect_contacts,
+            dim=points.shape[0] * lanes,
+            inputs=[
+                *bodies,
+                self.node_start,
+                self.leaf_start,
+                self.leaf_tets,
+                self.node_lower,
+                self.node_upper,
+                x,
+                v,
+                dt,
+                m.tets,
+                self.tet_inverse,
+                self.tet_origin,
+                m.tet_face_start,
+                m.tet_faces,
+                points,
+                point_velocity,
+                point_body,
+                point_anchor,
+                body_self,
+                m.row_start,
+                m.cols,
+                m.vertex_depth,
+                self.grad,
+                capacity,
+                lanes,
+            ],
+            outputs=[
+                self.count,
+                self.contact_point,
+                self.contact_tet,
+                self.contact_bary,
+                self.contact_normal,
+                self.contact_depth,
+                depth_max_out,
+            ],
+            device=m.device,
+        )
+
+    def deepest(self, x: wp.array, rotation: wp.array, points: np.ndarray, point_body: np.ndarray) -> float:
+        """Depth (m) of the deepest of ``points`` inside another body's tets at positions ``x`` (0 if none).
+
+        A measure for summaries and tests, with the contacts' own depth rule (allocates: not for the step).
+        """
+        m = self.model
+        dev = m.device
+        self.rotate_gradients(rotation)
+        self._bound(x)
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
+        deepest = wp.zeros(1, dtype=float, device=dev)
+        self._detect(
+            x,
+            wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
+            0.0,
+            pts,
+            wp.zeros(len(points), dtype=wp.vec3, device=dev),
+            wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
+            wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
+            wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
+            0,
+            deepest,
+        )
+        return float(deepest.numpy()[0])
+
+    def read_stats(self) -> tuple[int, int, float, bool]:
+        """Contact statistics since the last call (one host synchronisation).
+
+        Returns:
+            (contacts summed over steps, most contacts in one step, deepest contact (m), buffer overflowed).
+        """
+        total, most = (int(c) for c in self.contacts_total.numpy())
+        depth = float(self.depth_max.numpy()[0])
+        self.contacts_total.zero_()
+        self.depth_max.zero_()
+        return total, most, depth, most > self.capacity
+
+    def read_speeds(self) -> np.ndarray:
+        """Per body, the fastest collision point's speed (m/s) since the last call (one host synchronisation)."""
+        speeds = self.speed_max.numpy().copy()
+        self.speed_max.zero_()
+        return speeds

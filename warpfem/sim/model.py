@@ -1,0 +1,398 @@
+"""What never changes during a run (:class:`Model`) and what does (:class:`State`).
+
+All bodies of a scene live in one set of flat arrays with per-body offsets, so every stage of a step is
+one launch for the whole scene. :class:`ModelBuilder` collects bodies (in world coordinates, SI units)
+and precomputes on the host what the step needs: inverse rest matrices, volumes, lumped masses, Lame
+parameters, pins, the sparsity pattern of the 3x3-block system matrix and each tet's slots in it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import warp as wp
+
+from warpfem.errors import InputError
+
+
+@dataclass(frozen=True)
+class Body:
+    """Where one body lives in the flat arrays, plus what output needs on the host.
+
+    Attributes:
+        name: Body name (USD prim name).
+        vertex_start: First tet vertex of the body.
+        vertex_count: Number of tet vertices.
+        tet_start: First tet of the body.
+        tet_count: Number of tets.
+        dense_start: First dense (embedded) vertex.
+        dense_count: Number of dense vertices.
+        dense_faces: Dense triangles (m, 3) int32, indices local to the body.
+        size: Rest bounding-box diagonal of the tet mesh (m).
+    """
+
+    name: str
+    vertex_start: int
+    vertex_count: int
+    tet_start: int
+    tet_count: int
+    dense_start: int
+    dense_count: int
+    dense_faces: np.ndarray
+    size: float
+
+
+@dataclass
+class State:
+    """Tet-vertex positions (m) and velocities (m/s) of every body, flat.
+
+    ``dv`` is the velocity change (m/s) of the step that produced the state (zero initially): the next step's
+    CG starts from ``v`` moved along ``dv`` (see :meth:`warpfem.sim.cg.CGSolver.solve`), which in a free fall or a
+    steady push is nearly the answer.
+    """
+
+    x: wp.array
+    v: wp.array
+    dv: wp.array
+
+    def assign(self, other: State) -> None:
+        """Copy ``other`` into this state (device copies, capturable)."""
+        wp.copy(self.x, other.x)
+        wp.copy(self.v, other.v)
+        wp.copy(self.dv, other.dv)
+
+
+@dataclass
+class Model:
+    """The rest shape, materials, pins and matrix structure of a scene; constant during a run."""
+
+    device: wp.context.Device
+    bodies: list[Body]
+    rest_x: wp.array  # vec3, m
+    initial_v: wp.array  # vec3, m/s
+    tets: wp.array  # vec4i, global vertex indices
+    dm_inv: wp.array  # mat33, inverse rest shape matrix (1/m)
+    rest_volume: wp.array  # float, m^3
+    tet_mu: wp.array  # float, Pa
+    tet_lambda: wp.array  # float, Pa
+    tet_beta: wp.array  # float, Rayleigh stiffness damping (s)
+    mass: wp.array  # float, lumped vertex mass (kg)
+    alpha: wp.array  # float, Rayleigh mass damping (1/s)
+    free: wp.array  # int32, 0 for pinned vertices
+    row_start: wp.array  # int32 (n+1), block CSR rows of the upper triangle (the matrix is symmetric)
+    cols: wp.array  # int32 (nnz), block CSR columns (>= the row)
+    diag_slot: wp.array  # int32 (n), the diagonal block of each row
+    tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e at e*16 + a*4 + b; -1 below the diagonal
+    dense_tet: wp.array  # int32, global tet of each dense vertex
+    dense_bary: wp.array  # vec4, barycentric coordinates in that tet
+    vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
+    vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
+    tet_body: wp.array  # int32, body of each tet
+    tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
+    tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
+    body_self: wp.array  # int32, 1 where a body collides with itself
+    point_tet: wp.array  # int32, global tet of each collision point
+    point_bary: wp.array  # vec4, its barycentric weights there
+    point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
+    point_body: wp.array  # int32
+    point_mass: wp.array  # float, lumped vertex mass interpolated at each collision point (kg)
+    tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
+    tree_leaf_start: wp.array  # int32 (bodies+1), leaf offsets (a body's leaves are its last nodes)
+    tree_leaf_tets: wp.array  # vec4i, global tets of each leaf (-1: none)
+    tet_size: float  # typical tet size (m): the median largest edge component of a tet (tunnelling warning)
+
+    @property
+    def vertex_count(self) -> int:
+        """Number of tet vertices over all bodies."""
+        return self.rest_x.shape[0]
+
+    @property
+    def tet_count(self) -> int:
+        """Number of tets over all bodies."""
+        return self.tets.shape[0]
+
+    @property
+    def dense_count(self) -> int:
+        """Number of dense (embedded) vertices over all bodies."""
+        return self.dense_tet.shape[0]
+
+    @property
+    def nnz_blocks(self) -> int:
+        """Number of 3x3 blocks stored for the system matrix (its upper triangle)."""
+        return self.cols.shape[0]
+
+    def state(self) -> State:
+        """A new state at the rest shape with the bodies' initial velocities."""
+        return State(x=wp.clone(self.rest_x), v=wp.clone(self.initial_v), dv=wp.zeros_like(self.initial_v))
+
+    @property
+    def has_collisions(self) -> bool:
+        """True if any two bodies can touch (several bodies) or some body collides with itself."""
+        return len(self.bodies) > 1 or bool(self.body_self.numpy().any())
+
+    def body_of_vertex(self, vertex: int) -> Body:
+        """The body owning tet vertex ``vertex``."""
+        for body in self.bodies:
+            if body.vertex_start <= vertex < body.vertex_start + body.vertex_count:
+                return body
+        raise IndexError(vertex)
+
+
+def lame(young: float, poisson: float) -> tuple[float, float]:
+    """Lame parameters (mu, lambda) in Pa from Young's modulus (Pa) and Poisson's ratio."""
+    mu = young / (2.0 * (1.0 + poisson))
+    lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    return mu, lam
+
+
+def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sparsity pattern of the upper triangle (row <= column) of the symmetric 3x3-block matrix of a tet mesh.
+
+    Storing one triangle halves the bytes a product reads (the product applies each off-diagonal block
+    and its transpose) and the assembly's atomics.
+
+    Args:
+        tets: (q, 4) vertex indices.
+        vertex_count: Number of vertices n (every vertex gets a diagonal block).
+
+    Returns:
+        row_start (n+1), cols (nnz), diag_slot (n), tet_slots (16 q; -1 for the blocks below the diagonal,
+        whose transposes are the slots of the blocks above) as int32 arrays.
+    """
+    n = np.int64(vertex_count)
+    t = tets.astype(np.int64)
+    rows = np.repeat(t[:, :, None], 4, axis=2).ravel()
+    cols = np.repeat(t[:, None, :], 4, axis=1).ravel()
+    keys = rows * n + cols
+    upper = rows <= cols
+    diag = np.arange(n, dtype=np.int64) * (n + 1)
+    unique = np.unique(np.concatenate([keys[upper], diag]))
+    row_of = unique // n
+    row_start = np.zeros(vertex_count + 1, dtype=np.int64)
+    np.cumsum(np.bincount(row_of, minlength=vertex_count), out=row_start[1:])
+    return (
+        row_start.astype(np.int32),
+        (unique % n).astype(np.int32),
+        np.searchsorted(unique, diag).astype(np.int32),
+        np.where(upper, np.searchsorted(unique, keys), -1).astype(np.int32),
+    )
+
+
+class BodyArrays(Protocol):
+    """Build-time geometry of a body (made by :func:`warpfem.prep.geometry.body_geometry`), local indices.
+
+    Attributes:
+        surface_faces: (l, 3) outward boundary triangles.
+        vertex_depth: (p,) distance of each tet vertex below the surface (m).
+        vertex_grad: (p, 3) outward unit gradient of that distance at rest.
+        point_tet, point_bary, point_anchor: Collision points: tet, barycentric weights, vertices they lie on.
+        tet_face_start, tet_faces: CSR, the surface faces touching each tet's corners.
+        leaf_tets: (L, 4) leaves of the body's tree of tets (-1: none), L a power of two.
+    """
+
+    surface_faces: np.ndarray
+    vertex_depth: np.ndarray
+    vertex_grad: np.ndarray
+    point_tet: np.ndarray
+    point_bary: np.ndarray
+    point_anchor: np.ndarray
+    tet_face_start: np.ndarray
+    tet_faces: np.ndarray
+    leaf_tets: np.ndarray
+
+
+class ModelBuilder:
+    """Collects bodies, then builds one flat :class:`Model` on a device."""
+
+    def __init__(self) -> None:
+        self._bodies: list[dict] = []
+
+    def add_body(
+        self,
+        name: str,
+        vertices: np.ndarray,
+        tets: np.ndarray,
+        geometry: BodyArrays,
+        young: float,
+        poisson: float,
+        density: float,
+        damping_mass: float = 0.0,
+        damping_stiffness: float = 0.0,
+        velocity: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        pinned: np.ndarray | None = None,
+        dense_faces: np.ndarray | None = None,
+        embed_tet: np.ndarray | None = None,
+        embed_bary: np.ndarray | None = None,
+        self_collision: bool = False,
+    ) -> int:
+        """Add a body in world coordinates.
+
+        Args:
+            name: Body name.
+            vertices: (p, 3) tet vertex rest positions (m).
+            tets: (q, 4) positively oriented tets.
+            geometry: Its surface, distance field, collision points and tree (local indices).
+            young: Young's modulus (Pa).
+            poisson: Poisson's ratio.
+            density: Density (kg/m^3).
+            damping_mass: Rayleigh mass damping alpha (1/s).
+            damping_stiffness: Rayleigh stiffness damping beta (s).
+            velocity: Initial velocity (m/s).
+            pinned: Optional (p,) bool mask of fixed vertices.
+            dense_faces: Optional (m, 3) dense triangles.
+            embed_tet: (n,) tet of each dense vertex (local index); None: no dense mesh.
+            embed_bary: (n, 4) barycentric coordinates; required with ``embed_tet``.
+            self_collision: Whether the body collides with itself.
+
+        Returns:
+            The body's index.
+
+        Raises:
+            InputError: a tet of zero or negative volume, or non-finite input.
+        """
+        vertices = np.asarray(vertices, dtype=np.float64)
+        tets = np.asarray(tets, dtype=np.int32)
+        if not np.isfinite(vertices).all():
+            raise InputError(f"body '{name}': tet vertices are not finite")
+        if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
+            raise InputError(f"body '{name}': needs at least one tet, got tets of shape {tets.shape}")
+        if tets.min() < 0 or tets.max() >= len(vertices):
+            raise InputError(f"body '{name}': tet indices out of range")
+        d = vertices[tets[:, 1:]] - vertices[tets[:, :1]]
+        volume = np.linalg.det(d) / 6.0
+        size = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        if (volume <= 1e-12 * size**3).any():
+            bad = int(np.argmin(volume))
+            raise InputError(f"body '{name}': tet {bad} has zero or negative volume ({volume[bad]:.3g} m^3)")
+        mu, lam = lame(young, poisson)
+        mass = np.zeros(len(vertices))
+        np.add.at(mass, tets.ravel(), np.repeat(density * volume / 4.0, 4))
+        free = mass > 0.0
+        if pinned is not None:
+            free &= ~np.asarray(pinned, dtype=bool)
+        g = geometry
+        point_bary = np.asarray(g.point_bary, np.float64)
+        self._bodies.append(
+            dict(
+                name=name,
+                x=vertices,
+                tets=tets,
+                dm_inv=np.linalg.inv(np.transpose(d, (0, 2, 1))),
+                volume=volume,
+                mu=np.full(len(tets), mu),
+                lam=np.full(len(tets), lam),
+                beta=np.full(len(tets), damping_stiffness),
+                mass=mass,
+                alpha=np.full(len(vertices), damping_mass),
+                free=free.astype(np.int32),
+                v=np.tile(np.asarray(velocity, dtype=np.float64), (len(vertices), 1)),
+                dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
+                embed_tet=np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32),
+                embed_bary=np.zeros((0, 4)) if embed_tet is None else np.asarray(embed_bary, np.float64),
+                depth=np.asarray(g.vertex_depth, np.float64),
+                grad=np.asarray(g.vertex_grad, np.float64),
+                size=size,
+                self_collision=bool(self_collision),
+                point_tet=np.asarray(g.point_tet, np.int32),
+                point_bary=point_bary,
+                point_anchor=np.asarray(g.point_anchor, np.int32),
+                point_mass=np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]]),
+                tet_extent=np.abs(d).max(axis=(1, 2)),
+                surface_faces=np.asarray(g.surface_faces, np.int32),
+                tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
+                leaf_tets=np.asarray(g.leaf_tets, np.int32).reshape(-1, 4),
+            )
+        )
+        return len(self._bodies) - 1
+
+    def finalize(self, device: str | wp.context.Device | None = None) -> Model:
+        """Build the flat model on ``device`` (default: Warp's default device)."""
+        if not self._bodies:
+            raise InputError("a scene needs at least one body")
+        device = wp.get_device(device)
+        bodies, flat = self._flatten()
+        row_start, cols, diag_slot, tet_slots = block_pattern(flat["tets"], len(flat["x"]))
+
+        def arr(key: str, dtype, np_type=np.float32) -> wp.array:
+            return wp.array(np.ascontiguousarray(flat[key].astype(np_type)), dtype=dtype, device=device)
+
+        def arr_of(data: np.ndarray, dtype) -> wp.array:
+            return wp.array(np.ascontiguousarray(data), dtype=dtype, device=device)
+
+        i32 = np.int32
+        return Model(
+            device=device,
+            bodies=bodies,
+            rest_x=arr("x", wp.vec3),
+            initial_v=arr("v", wp.vec3),
+            tets=arr("tets", wp.vec4i, i32),
+            dm_inv=arr("dm_inv", wp.mat33),
+            rest_volume=arr("volume", float),
+            tet_mu=arr("mu", float),
+            tet_lambda=arr("lam", float),
+            tet_beta=arr("beta", float),
+            mass=arr("mass", float),
+            alpha=arr("alpha", float),
+            free=arr("free", wp.int32, i32),
+            row_start=arr_of(row_start, wp.int32),
+            cols=arr_of(cols, wp.int32),
+            diag_slot=arr_of(diag_slot, wp.int32),
+            tet_slots=arr_of(tet_slots, wp.int32),
+            dense_tet=arr("embed_tet", wp.int32, i32),
+            dense_bary=arr("embed_bary", wp.vec4),
+            vertex_depth=arr("depth", float),
+            vertex_grad=arr("grad", wp.vec3),
+            tet_body=arr("tet_body", wp.int32, i32),
+            tet_face_start=arr("tet_face_start", wp.int32, i32),
+            tet_faces=arr("tet_faces", wp.vec3i, i32),
+            body_self=arr_of(np.array([b["self_collision"] for b in self._bodies], i32), wp.int32),
+            point_tet=arr("point_tet", wp.int32, i32),
+            point_bary=arr("point_bary", wp.vec4),
+            point_anchor=arr("point_anchor", wp.vec3i, i32),
+            point_body=arr("point_body", wp.int32, i32),
+            point_mass=arr("point_mass", float),
+            tree_node_start=arr("node_start", wp.int32, i32),
+            tree_leaf_start=arr("leaf_start", wp.int32, i32),
+            tree_leaf_tets=arr("leaf_tets", wp.vec4i, i32),
+            tet_size=float(np.median(flat["tet_extent"])),
+        )
+
+    def _flatten(self) -> tuple[list[Body], dict[str, np.ndarray]]:
+        """Every body's arrays concatenated, local indices offset to global ones."""
+        per: dict[str, list[np.ndarray]] = {}
+        bodies, v0, t0, d0, f0, leaves = [], 0, 0, 0, 0, 0
+
+        def add(key: str, value: np.ndarray) -> None:
+            per.setdefault(key, []).append(value)
+
+        for index, b in enumerate(self._bodies):
+            for key in ("x", "v", "dm_inv", "volume", "mu", "lam", "beta", "mass", "alpha", "free"):
+                add(key, b[key])
+            for key in ("embed_bary", "depth", "grad", "point_bary", "point_mass", "tet_extent"):
+                add(key, b[key])
+            start, flat = b["tet_faces"]
+            add("tet_face_start", start[1:] + f0)
+            add("tet_faces", b["surface_faces"][flat] + v0)
+            f0 += len(flat)
+            add("tets", b["tets"] + v0)
+            add("embed_tet", b["embed_tet"] + t0)
+            add("point_tet", b["point_tet"] + t0)
+            add("point_anchor", np.where(b["point_anchor"] >= 0, b["point_anchor"] + v0, -1))
+            add("point_body", np.full(len(b["point_tet"]), index))
+            add("tet_body", np.full(len(b["tets"]), index))
+            add("leaf_tets", np.where(b["leaf_tets"] >= 0, b["leaf_tets"] + t0, -1))
+            leaves += len(b["leaf_tets"])
+            add("leaf_start", np.array([leaves]))
+            add("node_start", np.array([2 * leaves - index - 1]))
+            n_x, n_t, n_d = len(b["x"]), len(b["tets"]), len(b["embed_tet"])
+            bodies.append(Body(b["name"], v0, n_x, t0, n_t, d0, n_d, b["dense_faces"], b["size"]))
+            v0, t0, d0 = v0 + n_x, t0 + n_t, d0 + n_d
+        flat = {key: np.concatenate(values) for key, values in per.items()}
+        for key in ("tet_face_start", "leaf_start", "node_start"):
+            flat[key] = np.concatenate([[0], flat[key]])
+        flat["embed_bary"] = flat["embed_bary"].reshape(-1, 4)
+        flat["grad"] = flat["grad"].reshape(-1, 3)
+        flat["tet_faces"] = flat["tet_faces"].reshape(-1, 3)
+        return bodies, flat

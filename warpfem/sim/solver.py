@@ -1,0 +1,169 @@
+"""The solver: one implicit-Euler corotational FEM step, ``step(state_in, state_out, dt)``.
+
+Everything is allocated in the constructor; a step launches kernels only (no allocation, no host
+synchronisation on CUDA), so a frame of steps can be captured as a CUDA graph and replayed. Tunable
+scalars (gravity, collider and contact parameters, CG limits) live in device arrays and can change between
+replays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import warp as wp
+
+from warpfem.sim import fem, integrate
+from warpfem.sim.cg import CGSolver, CGStats
+from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
+from warpfem.sim.integrate import Box, Ground, Sphere, StaticColliders
+from warpfem.sim.model import Model, State
+
+DEFAULT_GROUND = Ground()
+
+_NO_BAD_VERTEX = np.iinfo(np.int32).max
+
+
+class Solver:
+    """Corotational linear FEM with backward Euler, solved by block-Jacobi PCG.
+
+    Args:
+        model: The scene's model.
+        gravity: Gravity (m/s^2).
+        ground: The ground plane, or None for none.
+        obstacles: Static spheres and boxes.
+        cg_iterations: Fixed iteration count (``cg_tolerance == 0``) or cap.
+        cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
+        collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
+            touch (one body without self-collision) gets no collision stage at all.
+        cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
+            "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
+            (:data:`warpfem.sim.cg.DEFAULT_MODE`).
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        gravity: tuple[float, float, float] = (0.0, -9.81, 0.0),
+        ground: Ground | None = DEFAULT_GROUND,
+        obstacles: Sequence[Sphere | Box] = (),
+        cg_iterations: int = 100,
+        cg_tolerance: float = 1.0e-4,
+        collision: CollisionSettings | None = DEFAULT_COLLISION,
+        cg_path: str | None = None,
+    ) -> None:
+        self.model = model
+        dev = model.device
+        n = model.vertex_count
+        self.force = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.direction = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.diag_inv = wp.zeros(n, dtype=wp.mat33, device=dev)
+        self.matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev)
+        self.rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
+        self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
+        self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
+        self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
+        self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
+        # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
+        self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
+        coupling = self.collider.coupling if self.collider is not None else None
+        # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
+        self.grad = self.collider.grad if self.collider is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
+        mode, _, blocks = (cg_path or "").partition(":")
+        if blocks and (mode != "grid" or not blocks.isdigit()):
+            raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
+        self.cg = CGSolver(
+            model.row_start,
+            model.cols,
+            model.free,
+            cg_iterations,
+            dev,
+            coupling=coupling,
+            mode=mode or None,
+            grid_blocks=int(blocks) if blocks else None,
+        )
+        self.cg.configure(cg_iterations, cg_tolerance)
+        self.set_gravity(gravity)
+
+    def set_gravity(self, gravity: tuple[float, float, float]) -> None:
+        """Set gravity (m/s^2); takes effect in captured graphs too."""
+        self.gravity.assign(np.array([gravity], dtype=np.float32))
+
+    def phases(
+        self, state_in: State, state_out: State, dt: float, overlap: bool = True
+    ) -> list[tuple[str, Callable[[], None]]]:
+        """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve.
+
+        With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: collision points,
+        tet inverses, trees, none of which the elastic launch touches) runs on a side stream alongside the
+        elastic launch, forked in "elastic" and joined in "collision" (in a captured graph, two branches);
+        without it, in order (what a timer that synchronises at each phase boundary needs).
+        """
+        model = self.model
+        side = self._side if overlap else None  # None without collisions, or off CUDA
+
+        def elastic() -> None:
+            if side is not None:
+                side.wait_stream(wp.get_stream(model.device))
+                with wp.ScopedStream(side, sync_enter=False):
+                    self.collider.prepare(state_in.x, state_in.v)
+            self.force.zero_()
+            self.matrix.zero_()
+            self.grad.zero_()
+            fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix, self.grad)
+
+        def collision() -> None:
+            if side is not None:
+                wp.get_stream(model.device).wait_stream(side)
+            else:
+                self.collider.prepare(state_in.x, state_in.v)
+            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
+
+        def solve() -> None:
+            integrate.build_system(
+                model,
+                state_in,
+                self.force,
+                self.gravity,
+                self.colliders,
+                dt,
+                self.matrix,
+                self.rhs,
+                self.diag_inv,
+                state_out.v,
+                self.direction,
+            )
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
+            integrate.advance_positions(
+                model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
+            )
+
+        if self.collider is None:
+            return [("elastic", elastic), ("solve", solve)]
+        return [("elastic", elastic), ("collision", collision), ("solve", solve)]
+
+    @property
+    def overlapped(self) -> bool:
+        """Whether a step runs the collision stage's preparation beside the elastic launch (see ``phases``)."""
+        return self._side is not None
+
+    def step(self, state_in: State, state_out: State, dt: float) -> None:
+        """Advance ``state_in`` by ``dt`` seconds into ``state_out`` (distinct states).
+
+        (A timed run laps each phase through ``phases``: see ``warpfem.simulation.Simulation.frame_phases``.)
+        """
+        for _, phase in self.phases(state_in, state_out, dt):
+            phase()
+
+    def first_bad_vertex(self) -> int | None:
+        """The lowest tet vertex that became NaN/Inf since the last call, or None (one host synchronisation)."""
+        bad = int(self.bad_vertex.numpy()[0])
+        if bad == _NO_BAD_VERTEX:
+            return None
+        self.bad_vertex.fill_(_NO_BAD_VERTEX)
+        return bad
+
+    def read_cg_stats(self) -> CGStats:
+        """CG statistics since the last call (one host synchronisation)."""
+        return self.cg.read_stats()

@@ -1,0 +1,387 @@
+"""A scene built and stepped frame by frame: :class:`Simulation`, the centre of the public API.
+
+Preprocessing runs once per distinct mesh (cached), the model and solver are built once, and each
+:meth:`Simulation.step_frame` advances one output frame (``scene.substeps`` steps; on CUDA a captured
+graph replayed), then reads that frame's statistics in one host synchronisation.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from warpfem.build import add_prepared_body, placed_geometry, prepare_scene, solver_of
+from warpfem.errors import InputError, SimulationError
+from warpfem.memory import check_fits, scene_estimate
+from warpfem.prep.pipeline import default_cache_dir
+from warpfem.scene import Scene
+from warpfem.sim.embedding import map_dense
+from warpfem.sim.fem import RotationWatch
+from warpfem.sim.model import Body, Model, ModelBuilder, State
+from warpfem.sim.solver import Solver
+
+FAST_TURN = 0.03
+"""Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """What the solver did over the last frame (all zero before the first).
+
+    Attributes:
+        cg_iterations: Mean CG iterations per step.
+        cg_residual: Largest final relative CG residual of a step.
+        contacts: Mean body-body contacts per step.
+        contacts_max: Most contacts in one step.
+        deepest_contact: Deepest contact the collision stage answered (m).
+    """
+
+    cg_iterations: float = 0.0
+    cg_residual: float = 0.0
+    contacts: float = 0.0
+    contacts_max: int = 0
+    deepest_contact: float = 0.0
+
+
+@dataclass
+class RunTotals:
+    """Statistics over every frame stepped so far.
+
+    Attributes:
+        steps: Steps taken.
+        cg_solves: CG solves (one per step).
+        cg_iterations: CG iterations over all solves.
+        cg_residual_max: Largest final relative CG residual.
+        contacts: Contacts summed over steps.
+        contacts_max: Most contacts in one step.
+        deepest_contact: Deepest contact (m).
+    """
+
+    steps: int = 0
+    cg_solves: int = 0
+    cg_iterations: int = 0
+    cg_residual_max: float = 0.0
+    contacts: int = 0
+    contacts_max: int = 0
+    deepest_contact: float = 0.0
+
+
+class PhaseTimer:
+    """Wall time per phase (s), measured by synchronising the device at each phase boundary."""
+
+    def __init__(self, device: wp.context.Device) -> None:
+        self.device = device
+        self.seconds: dict[str, float] = {}
+        self.frames = 0
+        self._last = time.perf_counter()
+
+    def start(self) -> None:
+        """Synchronise and start timing the next phase."""
+        wp.synchronize_device(self.device)
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        """Synchronise and add the time since the last lap (or start) to ``phase``."""
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
+        self._last = now
+
+
+class Simulation:
+    """A scene's model, solver and states, advanced one output frame at a time.
+
+    Args:
+        scene: A validated scene (:func:`warpfem.load_scene` or :meth:`warpfem.Scene.from_dict`).
+        device: ``"cpu"`` or ``"cuda:N"``; default: ``cuda:0`` when there is a GPU, else the CPU.
+        cache_dir: The preprocessing cache; default: ``$WARPFEM_CACHE``, else ``~/.cache/warpfem``.
+        cache: False preprocesses again and stores nothing (the CLI's ``--no-cache``).
+        progress: Receives ``(object name, message)`` as each preprocessing stage starts.
+        warn: Receives one-line warnings, each kind at most once (contact buffer overflow; a body moving more
+            than half a tet per step; a body turning fast enough to gain energy).
+        cg_path: How CG runs (see :class:`~warpfem.sim.solver.Solver`); None: the default.
+
+    Raises:
+        InputError: A bad mesh (naming the scene file and object), or a scene that would not fit in the
+            device's memory (before anything is allocated).
+
+    Attributes:
+        scene: The scene (None for :meth:`from_model`).
+        substeps: Steps per output frame; ``dt`` the step (s), ``fps`` output frames per second.
+        model: The :class:`~warpfem.sim.model.Model` (what never changes).
+        solver: The :class:`~warpfem.sim.solver.Solver`.
+        states: Two :class:`~warpfem.sim.model.State` buffers; ``states[0]`` is the current one between frames.
+        frame: Output frames stepped so far (0: the initial pose).
+        stats: The last frame's :class:`FrameStats`.
+        totals: :class:`RunTotals` over all frames stepped.
+        seconds: Wall time (s) of ``prepare`` (preprocessing, or reading the cache) and ``build``.
+        phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        device: str | None = None,
+        cache_dir: str | Path | None = None,
+        cache: bool = True,
+        progress: Callable[[str, str], None] | None = None,
+        warn: Callable[[str], None] | None = None,
+        cg_path: str | None = None,
+    ) -> None:
+        self.scene = scene
+        self.warn = warn
+        if device is not None:
+            _check_device(device)
+        dev = wp.get_device(device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
+        clock = time.perf_counter()
+        folder = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) if cache else None
+        prepared = prepare_scene(scene, folder, progress)
+        self.seconds = {"prepare": time.perf_counter() - clock}
+        clock = time.perf_counter()
+        placed = [placed_geometry(obj, body) for obj, body in zip(scene.objects, prepared, strict=True)]
+        check_fits(scene_estimate(scene, prepared, [geometry for _, geometry in placed]), dev.alias)
+        builder = ModelBuilder()
+        for obj, body, where in zip(scene.objects, prepared, placed, strict=True):
+            add_prepared_body(builder, obj, body, where)
+        model = builder.finalize(dev)
+        self._attach(model, solver_of(scene, model, cg_path), scene.substeps, scene.fps)
+        self.seconds["build"] = time.perf_counter() - clock
+
+    @classmethod
+    def from_model(
+        cls,
+        model: Model,
+        solver: Solver,
+        substeps: int = 1,
+        fps: float = 60.0,
+        warn: Callable[[str], None] | None = None,
+    ) -> Simulation:
+        """A simulation of a model built by hand (:class:`~warpfem.sim.model.ModelBuilder`, :func:`warpfem.add_body`).
+
+        Args:
+            model: The model.
+            solver: Its solver.
+            substeps: Steps per output frame.
+            fps: Output frames per second.
+            warn: As for the constructor.
+        """
+        sim = cls.__new__(cls)
+        sim.scene, sim.warn, sim.seconds = None, warn, {}
+        sim._attach(model, solver, substeps, fps)
+        return sim
+
+    def _attach(self, model: Model, solver: Solver, substeps: int, fps: float) -> None:
+        """Allocate the states and buffers of ``model`` stepped by ``solver``."""
+        self.model, self.solver = model, solver
+        self.substeps, self.fps = int(substeps), float(fps)
+        self.dt = 1.0 / (self.fps * self.substeps)
+        self.states = [model.state(), model.state()]
+        self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
+        self.frame = 0
+        self.stats = FrameStats()
+        self.totals = RunTotals()
+        self.phase_timer = PhaseTimer(model.device)
+        self._graph = None
+        self._rotation = RotationWatch(model, solver.rotation)
+        self._warned: set[str] = set()
+
+    @property
+    def device(self) -> wp.context.Device:
+        """The Warp device the simulation runs on."""
+        return self.model.device
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s) at the current frame."""
+        return self.frame / self.fps
+
+    @property
+    def body_names(self) -> list[str]:
+        """The bodies' names, in scene order."""
+        return [b.name for b in self.model.bodies]
+
+    def body(self, name: str) -> Body:
+        """Where body ``name`` lives in the model's flat arrays.
+
+        Raises:
+            InputError: No body has that name (the message lists them).
+        """
+        for b in self.model.bodies:
+            if b.name == name:
+                return b
+        raise InputError(f"no body named '{name}' (bodies: {', '.join(self.body_names)})")
+
+    def step_frame(self, profile: bool = False) -> FrameStats:
+        """Advance one output frame and read its statistics (one host synchronisation).
+
+        Args:
+            profile: Run the frame's phases directly, synchronising at each boundary, and add their wall
+                times to :attr:`phase_timer` (slower; on CUDA the frame is otherwise a graph replay).
+
+        Raises:
+            SimulationError: The state became NaN/Inf (naming the frame and body).
+        """
+        self.advance(self.phase_timer if profile else None)
+        self.frame += 1
+        self.phase_timer.frames += profile
+        self.check_finite()
+        return self.read_stats()
+
+    def frame_phases(self, overlap: bool = True) -> list[tuple[str, Callable[[], None]]]:
+        """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
+
+        The states alternate between substeps; after an odd count the last one is copied back into
+        ``states[0]`` as part of the last "solve". ``overlap``: see ``Solver.phases``.
+        """
+        a, b = self.states
+        out = []
+        for i in range(self.substeps):
+            src, dst = (a, b) if i % 2 == 0 else (b, a)
+            out += self.solver.phases(src, dst, self.dt, overlap)
+        if self.substeps % 2 == 1:
+            out.append(("solve", lambda: a.assign(b)))
+        return out
+
+    def advance(self, timer: PhaseTimer | None = None) -> None:
+        """Advance one output frame on the device, reading nothing back (``frame`` and ``stats`` unchanged).
+
+        With a ``timer`` the frame runs directly, timing each phase; without one on CUDA, the frame is a
+        captured graph (captured on the first such call).
+        """
+        if timer is not None or not self.device.is_cuda:
+            if timer:
+                timer.start()
+            for name, phase in self.frame_phases(overlap=timer is None):
+                phase()
+                if timer:
+                    timer.lap(name)
+            return
+        if self._graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                for _, phase in self.frame_phases():
+                    phase()
+            self._graph = capture.graph
+        wp.capture_launch(self._graph)
+
+    def map_dense(self) -> wp.array:
+        """Map every dense mesh from the current state on the device; returns the flat (V, 3) device array."""
+        m = self.model
+        map_dense(m.tets, self.states[0].x, m.dense_tet, m.dense_bary, self.dense)
+        return self.dense
+
+    def dense_points(self, name: str | None = None) -> np.ndarray | list[np.ndarray]:
+        """The dense mesh of body ``name`` as a NumPy (V, 3) array (m, world frame); None: one per body."""
+        flat = self.map_dense().numpy()
+        if name is None:
+            return [flat[b.dense_start : b.dense_start + b.dense_count].copy() for b in self.model.bodies]
+        b = self.body(name)
+        return flat[b.dense_start : b.dense_start + b.dense_count].copy()
+
+    def tet_points(self, name: str) -> np.ndarray:
+        """The tet vertices of body ``name`` as a NumPy (P, 3) array (m, world frame)."""
+        b = self.body(name)
+        return self.states[0].x.numpy()[b.vertex_start : b.vertex_start + b.vertex_count].copy()
+
+    def state(self) -> State:
+        """The current state (positions, velocities) on the device."""
+        return self.states[0]
+
+    def dense_penetration(self, points: list[np.ndarray] | None = None) -> float:
+        """Deepest dense vertex inside another body's tet mesh now (m); 0 without collisions.
+
+        ``points``: the dense meshes as :meth:`dense_points` returns them (mapped here when not given).
+        """
+        collider = self.solver.collider
+        if collider is None:
+            return 0.0
+        points = self.dense_points() if points is None else points
+        owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])
+        return collider.deepest(self.states[0].x, self.solver.rotation, np.concatenate(points), owner)
+
+    def check_finite(self) -> None:
+        """Raise :class:`SimulationError` naming the frame and body if the state became NaN/Inf (one sync)."""
+        bad = self.solver.first_bad_vertex()
+        if bad is not None:
+            body = self.model.body_of_vertex(bad)
+            raise SimulationError(
+                f"frame {self.frame}: body '{body.name}' became NaN/Inf (tet vertex {bad - body.vertex_start}); "
+                "try a smaller time step (more substeps), a lower Young's modulus or more CG iterations"
+            )
+
+    def read_stats(self, frames: int = 1) -> FrameStats:
+        """Read what the solver did since the last read, ``frames`` frames of :meth:`advance` (one sync).
+
+        :meth:`step_frame` reads after every frame; a caller that advances several frames without it reads
+        once after them. Updates :attr:`stats` and :attr:`totals` and gives the warnings due.
+        """
+        substeps = self.substeps * frames
+        cg = self.solver.read_cg_stats()
+        t = self.totals
+        t.steps += substeps
+        t.cg_solves += cg.solves
+        t.cg_iterations += cg.iterations
+        t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)
+        total, most, deepest = 0, 0, 0.0
+        collider = self.solver.collider
+        if collider is not None:
+            self._check_speed(collider.read_speeds())
+            total, most, deepest, overflow = collider.read_stats()
+            if overflow:
+                self._warn_once(
+                    "overflow",
+                    f"warning: frame {self.frame}: {most} contacts overflowed the buffer of {collider.capacity}; "
+                    "the excess were ignored (raise contacts_per_point)",
+                )
+            t.contacts += total
+            t.contacts_max = max(t.contacts_max, most)
+            t.deepest_contact = max(t.deepest_contact, deepest)
+        per_step = self._rotation.turned() / substeps
+        if self.frame > 1 and per_step.max() > FAST_TURN:
+            body = self.model.bodies[int(np.argmax(per_step))]
+            self._warn_once(
+                "spin",
+                f"warning: frame {self.frame}: body '{body.name}' turns {per_step.max():.3g} rad per step (over "
+                f"{FAST_TURN}): one linear solve per step adds energy this fast; raise substeps",
+            )
+        self.stats = FrameStats(
+            cg_iterations=cg.iterations / max(cg.solves, 1),
+            cg_residual=cg.residual_max,
+            contacts=total / substeps,
+            contacts_max=most,
+            deepest_contact=deepest,
+        )
+        return self.stats
+
+    def _check_speed(self, speeds: np.ndarray) -> None:
+        """Warn once if a body moves more than half a tet in one step: thin parts may then tunnel."""
+        if not len(speeds):
+            return
+        fastest = int(np.argmax(speeds))
+        cell, dt = self.model.tet_size, self.dt
+        if speeds[fastest] * dt > 0.5 * cell:
+            body = self.model.bodies[fastest]
+            self._warn_once(
+                "speed",
+                f"warning: frame {self.frame}: body '{body.name}' moves {speeds[fastest]:.3g} m/s, "
+                f"{1e3 * speeds[fastest] * dt:.3g} mm per step, more than half a tet ({1e3 * cell:.3g} mm): thin "
+                "parts may pass through each other; raise substeps",
+            )
+
+    def _warn_once(self, kind: str, message: str) -> None:
+        if self.warn is not None and kind not in self._warned:
+            self._warned.add(kind)
+            self.warn(message)
+
+
+def _check_device(name: str) -> None:
+    """Raise :class:`InputError` if ``name`` is not a Warp device here."""
+    try:
+        wp.get_device(name)
+    except (ValueError, RuntimeError):
+        available = ", ".join(d.alias for d in wp.get_devices())
+        raise InputError(f"device {name}: no such device (available: {available})") from None

@@ -1,0 +1,1 @@
+"""Studies: the speed/accuracy tradeoff and the independent references (analytic and NGSolve) it measures against."""
