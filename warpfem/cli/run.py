@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -208,12 +209,20 @@ def main(args: argparse.Namespace) -> int:
         return stopped(err, written)
     except FileExistsError as err:  # a file appeared at --out during the run
         raise InputError(str(err)) from None
+    print_summary(*_report(summary, args.preview, size, render_seconds), args.json)
+    return 0
+
+
+def _report(
+    summary: Any, preview: Path | None, size: tuple[int, int], render_seconds: float
+) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """The closing summary as table rows and as the ``--json`` object."""
     s = summary.seconds
     per = 1e3 / summary.frames
     render_ms = per * render_seconds
     rows = [
         ("output", str(summary.output)),
-        ("preview", f"{args.preview} ({size[0]}x{size[1]}, {render_ms:.1f} ms per frame)" if args.preview else "none"),
+        ("preview", f"{preview} ({size[0]}x{size[1]}, {render_ms:.1f} ms per frame)" if preview else "none"),
         ("device", summary.device),
         ("frames", f"{summary.frames} ({summary.simulated_seconds:.3g} s simulated)"),
         (
@@ -229,10 +238,7 @@ def main(args: argparse.Namespace) -> int:
             "CG iterations per step",
             f"{summary.cg_iterations_per_step:.1f} (max residual {summary.cg_residual_max:.2g})",
         ),
-        (
-            "step phases per frame",
-            ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a",
-        ),
+        ("step phases per frame", ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a"),
         ("contacts per step", f"{summary.contacts_per_step:.1f} (most {summary.contacts_max})"),
         (
             "max penetration",
@@ -242,27 +248,11 @@ def main(args: argparse.Namespace) -> int:
         ),
     ]
     data = {
+        **dataclasses.asdict(summary),
         "output": str(summary.output),
-        "preview": str(args.preview) if args.preview else None,
-        "preview_size": list(size) if args.preview else None,
-        "device": summary.device,
-        "frames": summary.frames,
-        "simulated_seconds": summary.simulated_seconds,
+        "preview": str(preview) if preview else None,
+        "preview_size": list(size) if preview else None,
         "ms_per_frame": summary.ms_per_frame + render_ms,
         "seconds": {**s, "render": render_seconds},
-        "bodies": summary.bodies,
-        "tets": summary.tets,
-        "tet_vertices": summary.tet_vertices,
-        "dense_triangles": summary.dense_triangles,
-        "dense_vertices": summary.dense_vertices,
-        "cg_iterations_per_step": summary.cg_iterations_per_step,
-        "cg_residual_max": summary.cg_residual_max,
-        "step_ms": summary.step_ms,
-        "contacts_per_step": summary.contacts_per_step,
-        "contacts_max": summary.contacts_max,
-        "contact_depth_max": summary.contact_depth_max,
-        "dense_penetration": summary.dense_penetration,
-        "dense_penetration_relative": summary.dense_penetration_relative,
     }
-    print_summary(rows, data, args.json)
-    return 0
+    return rows, data

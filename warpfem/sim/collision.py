@@ -1,17 +1,14 @@
-"""Host side of collisions: collision points (built once) and the per-step detection and response.
+"""Host side of collisions: the per-step detection and response of the collision points.
 
-Detection: every step each body's tree of tet boxes (built once by preprocessing) is refitted, and each
-collision point walks the trees of the bodies whose boxes hold it (each box tested directly in scenes of up to
-``DIRECT_BODIES`` bodies, else a ``wp.Bvh`` over the body boxes) for the tets whose boxes hold it, then
-applies the barycentric inside test (one thread per point: the paper's vertex-in-tet test of Teschner et al.
-2003 with bounding volumes in place of the spatial hash; a thread per tet walking hash cells measured 0.9-2.3
-ms per step on the paper's scenes on an H100). One tree per body, rather than one ``wp.Bvh`` over every tet,
-spares a point the walk through its own body's tets, which it always lies among. Response
-(Kondo & Kanai, step 7): a penalty force from the tet's distance field, implicit (see
-:mod:`warpfem.kernels.collision`). Self-collision rule: a point is tested against tets of its own body only
-if none of its anchor vertices (the vertex itself, or the three corners of the surface triangle a sample
-lies on) is a corner of the tet or shares a tet with one of its corners (the one-ring); this keeps a body
-at rest free of false contacts.
+Detection: every step each body's tree of tet boxes (built by preprocessing) is refitted, and each collision
+point walks the trees of the bodies whose boxes hold it (each box tested directly in scenes of up to
+``DIRECT_BODIES`` bodies, else a ``wp.Bvh`` over the body boxes), then applies the barycentric inside test:
+the paper's vertex-in-tet test (Teschner et al. 2003) with bounding volumes in place of the spatial hash.
+One tree per body spares a point the walk through its own body's tets, which it always lies among.
+Response (Kondo & Kanai, step 7): an implicit penalty force from the tet's distance field (see
+:mod:`warpfem.kernels.collision`). Self-collision: a point is tested against its own body's tets only if
+none of its anchor vertices (the vertex itself, or the corners of the surface triangle a sample lies on)
+is a corner of the tet or shares a tet with one (the one-ring), so a body at rest has no false contacts.
 """
 
 from __future__ import annotations
@@ -46,21 +43,13 @@ DEFAULT_COLLISION = CollisionSettings()
 
 DETECT_LANES = 4
 """Threads per collision point of contact detection on CUDA, each walking every fourth of the bodies whose
-boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Two lanes measured within the
-spread on the paper scenes and slightly behind on piles of 4 and 16 (H100, scripts/results/ab-tune-*.json).
-The detection kernel uses 122 registers (two blocks of 256 per SM); capping them at 80 or 64 (launch bounds of
-3 or 4 blocks per SM) spilled and made it slower on scene A, 70 and 77 against 62 us per step under ncu
-(kernel-durations-paper-a-detectbounds*-ncu.csv; A 1.34-1.39 against 1.30-1.35 ms per frame,
-ab-tune-detectbounds-*.json)."""
+boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Chosen by measurement on an
+H100 (docs/decisions.md)."""
 
 DIRECT_BODIES = 16
 """Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
-a ``wp.Bvh`` of them (whose traversal stack took 33.8 KB of shared memory per block of the detection launch,
-and whose refit was a launch of its own each step). On an H100, three interleaved rounds against the BVH
-(scripts/results/ab-trial-direct-bodies-*.json): the collision phase of scene C 0.118-0.123 against
-0.139-0.144 ms per frame, 4 armadillos 0.141-0.145 against 0.161-0.163, 16: 0.183-0.185 against 0.200-0.202;
-frames 16 armadillos 0.894-0.905 against 0.915-0.922, the paper scenes within the spread (the refit ran beside
-the elastic launch). Launch bounds of 3 blocks per SM on it (80 registers against 94) gained nothing more."""
+a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of the detection launch and
+whose refit is a launch of its own each step (docs/decisions.md)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""

@@ -180,6 +180,31 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
     )
 
 
+def _checked_tets(
+    name: str, vertices: np.ndarray, tets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Vertices and tets as arrays, each tet's edge vectors and volume, and the body's size (m).
+
+    Raises:
+        InputError: Non-finite vertices, malformed or out-of-range tets, a tet of zero or negative volume.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int32)
+    if not np.isfinite(vertices).all():
+        raise InputError(f"body '{name}': tet vertices are not finite")
+    if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
+        raise InputError(f"body '{name}': needs at least one tet, got tets of shape {tets.shape}")
+    if tets.min() < 0 or tets.max() >= len(vertices):
+        raise InputError(f"body '{name}': tet indices out of range")
+    d = vertices[tets[:, 1:]] - vertices[tets[:, :1]]
+    volume = np.linalg.det(d) / 6.0
+    size = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    if (volume <= 1e-12 * size**3).any():
+        bad = int(np.argmin(volume))
+        raise InputError(f"body '{name}': tet {bad} has zero or negative volume ({volume[bad]:.3g} m^3)")
+    return vertices, tets, d, volume, size
+
+
 class BodyArrays(Protocol):
     """Build-time geometry of a body (made by :func:`warpfem.prep.geometry.body_geometry`), local indices.
 
@@ -252,20 +277,7 @@ class ModelBuilder:
         Raises:
             InputError: a tet of zero or negative volume, or non-finite input.
         """
-        vertices = np.asarray(vertices, dtype=np.float64)
-        tets = np.asarray(tets, dtype=np.int32)
-        if not np.isfinite(vertices).all():
-            raise InputError(f"body '{name}': tet vertices are not finite")
-        if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
-            raise InputError(f"body '{name}': needs at least one tet, got tets of shape {tets.shape}")
-        if tets.min() < 0 or tets.max() >= len(vertices):
-            raise InputError(f"body '{name}': tet indices out of range")
-        d = vertices[tets[:, 1:]] - vertices[tets[:, :1]]
-        volume = np.linalg.det(d) / 6.0
-        size = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-        if (volume <= 1e-12 * size**3).any():
-            bad = int(np.argmin(volume))
-            raise InputError(f"body '{name}': tet {bad} has zero or negative volume ({volume[bad]:.3g} m^3)")
+        vertices, tets, d, volume, size = _checked_tets(name, vertices, tets)
         mu, lam = lame(young, poisson)
         mass = np.zeros(len(vertices))
         np.add.at(mass, tets.ravel(), np.repeat(density * volume / 4.0, 4))
