@@ -144,3 +144,22 @@ def test_readme_python_example_runs_as_written(tmp_path, monkeypatch):
     stage = Usd.Stage.Open(str(tmp_path / "bunny.usdc"))
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/bunny"))
     assert stage.GetEndTimeCode() == 30 and len(mesh.GetPointsAttr().Get(30)) > 90_000
+
+
+@pytest.mark.parametrize("cache", [True, False])
+def test_a_run_preprocesses_each_mesh_once(ball_dir, monkeypatch, cache):
+    """Two bodies of one mesh and one of another: two preprocessing passes, cached or not."""
+    import warpfem.build as build
+    from warpfem.cli import main
+
+    trimesh.creation.box(extents=(0.2, 0.2, 0.2)).export(ball_dir / "box.obj")
+    doc = {**SCENE, "object": [*SCENE["object"], {"name": "box", "mesh": "box.obj", "translate": [0.6, 0.3, 0.0]}]}
+    (ball_dir / "scene.toml").write_text(_toml(doc))
+    calls = []
+    real = build.prepare
+    monkeypatch.setattr(build, "prepare", lambda mesh, **kw: calls.append(Path(mesh).name) or real(mesh, **kw))
+    flags = ["--cache-dir", str(ball_dir / "cache")] if cache else ["--no-cache"]
+    args = ["run", str(ball_dir / "scene.toml"), "--out", str(ball_dir / "a.usdc"), "--device", "cpu", "--quiet"]
+    assert main([*args, "--frames", "1", *flags]) == 0
+    assert sorted(calls) == ["ball.obj", "box.obj"]
+    assert (ball_dir / "cache").exists() == cache

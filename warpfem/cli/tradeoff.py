@@ -51,6 +51,8 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
     from warpfem.study import tradeoff as T
 
+    if not args.no_plot:
+        T.pyplot()  # matplotlib is an optional extra: say so before the sweep, not after it
     if args.plot_from is not None:
         if not args.plot_from.is_file():
             raise InputError(f"--plot-from {args.plot_from}: no such file")

@@ -401,12 +401,27 @@ def contact_sweep(device: str | None = None, frames: int = 120, cells: int = 3) 
     return [dataclasses.replace(r, pareto=bool(on)) for r, on in zip(rows, front, strict=True)]
 
 
-def plot_contact(path: Path, rows: list[ContactRow], title: str) -> None:
-    """Plot penetration at impact and at rest against time per frame, one point per penalty (PNG)."""
-    import matplotlib
+def pyplot():
+    """matplotlib's pyplot on the headless Agg backend.
 
+    Raises:
+        InputError: matplotlib is not installed (it is the optional ``plot`` extra).
+    """
+    try:
+        import matplotlib
+    except ImportError:
+        raise InputError(
+            "drawing the tradeoff plot needs matplotlib: pip install 'warpfem[plot]' (or pass --no-plot)"
+        ) from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_contact(path: Path, rows: list[ContactRow], title: str) -> None:
+    """Plot penetration at impact and at rest against time per frame, one point per penalty (PNG)."""
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 5), layout="constrained")
     cost = np.array([r.ms_per_frame for r in rows])
@@ -515,10 +530,7 @@ def read_csv(path: Path) -> list[SimpleNamespace]:
 
 def plot(path: Path, rows: list[Row], title: str) -> None:
     """Plot trajectory error and sag error against time per frame (log-log), the Pareto front marked (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.5), layout="constrained")
     knobs = list(dict.fromkeys(r.run.setting.knob for r in rows))
