@@ -24,6 +24,7 @@ import re
 import subprocess
 import sys
 import time
+import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -476,7 +477,7 @@ def main(argv=None) -> int:
         work = []
         if "paper" not in skip:
             for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
-                scene = with_assets(warpfem.load_scene(ROOT / "scenes" / f"{name}.toml"), args.assets)
+                scene = load_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
                 work.append((name, len(scene.objects), scene))
                 for k in args.paper_substeps:
                     if k != scene.substeps:
@@ -527,10 +528,12 @@ def main(argv=None) -> int:
     return 0
 
 
-def with_assets(scene: warpfem.Scene, assets: Path) -> warpfem.Scene:
-    """``scene`` with each object's mesh taken from the folder ``assets`` (same file name)."""
-    objects = [dataclasses.replace(o, mesh=str((assets / Path(o.mesh).name).resolve())) for o in scene.objects]
-    return dataclasses.replace(scene, objects=objects)
+def load_with_assets(path: Path, assets: Path) -> warpfem.Scene:
+    """The scene file at ``path`` with each object's mesh taken from the folder ``assets`` (same file name)."""
+    doc = tomllib.loads(path.read_text())
+    for obj in doc.get("object", []):
+        obj["mesh"] = str((assets / Path(obj["mesh"]).name).resolve())
+    return warpfem.Scene.from_dict(doc, base_dir=path.parent, name=path.name)
 
 
 if __name__ == "__main__":
