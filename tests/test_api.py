@@ -163,3 +163,21 @@ def test_a_run_preprocesses_each_mesh_once(ball_dir, monkeypatch, cache):
     assert main([*args, "--frames", "1", *flags]) == 0
     assert sorted(calls) == ["ball.obj", "box.obj"]
     assert (ball_dir / "cache").exists() == cache
+
+
+def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path):
+    """The summary's ground figure is the lowest dense point of the written file over all frames (NumPy)."""
+    from pxr import Usd, UsdGeom
+
+    scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
+    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device="cpu", cache=False)
+    stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
+    lowest = {}
+    for name in ("ball", "top"):
+        attr = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}")).GetPointsAttr()
+        lowest[name] = min(np.asarray(attr.Get(t))[:, 1].min() for t in range(scene.frames + 1))
+    below = max(0.0, -min(lowest.values()))
+    assert summary.penetration.below_ground == pytest.approx(below, abs=1e-7)
+    assert summary.penetration_end.below_ground <= summary.penetration.below_ground
+    assert summary.penetration_frames >= 1 and summary.penetration.relative >= summary.penetration_end.relative
+    assert summary.penetration.inside in ("", "ball in top", "top in ball")

@@ -42,7 +42,7 @@ def test_paper_scene_runs_two_seconds(tmp_path, capsys, asset, scene, mesh, bodi
     assert summary["frames"] == 120 and summary["simulated_seconds"] == pytest.approx(2.0)
     assert summary["bodies"] == bodies
     assert summary["contacts_per_step"] > 0  # the bodies met
-    assert summary["dense_penetration_relative"] < 0.05  # no dense vertex ends deeper than 5 % inside another
+    assert summary["penetration_end"]["relative"] < 0.05  # no dense vertex ends deeper than 5 % inside another
     stage = Usd.Stage.Open(str(out))
     assert stage.GetEndTimeCode() == 120
 

@@ -32,6 +32,7 @@ _EXPORTS = {
     "RunTotals": "warpfem.simulation",
     "run": "warpfem.runner",
     "RunSummary": "warpfem.runner",
+    "Penetration": "warpfem.io.penetration",
     "add_body": "warpfem.build",
     "Model": "warpfem.sim.model",
     "ModelBuilder": "warpfem.sim.model",
@@ -53,6 +54,7 @@ __all__ = [
     "RunTotals",
     "run",
     "RunSummary",
+    "Penetration",
     "add_body",
     "Model",
     "ModelBuilder",
@@ -65,6 +67,7 @@ __all__ = [
 if TYPE_CHECKING:
     from warpfem.build import add_body
     from warpfem.errors import InputError, SimulationError
+    from warpfem.io.penetration import Penetration
     from warpfem.prep.pipeline import PreparedBody, prepare
     from warpfem.runner import RunSummary, run
     from warpfem.scene import Scene, default_scene_path, load_scene

@@ -291,18 +291,6 @@ class Simulation:
         """The current state (positions, velocities) on the device."""
         return self.states[0]
 
-    def dense_penetration(self, points: list[np.ndarray] | None = None) -> float:
-        """Deepest dense vertex inside another body's tet mesh now (m); 0 without collisions.
-
-        ``points``: the dense meshes as :meth:`dense_points` returns them (mapped here when not given).
-        """
-        collider = self.solver.collider
-        if collider is None:
-            return 0.0
-        points = self.dense_points() if points is None else points
-        owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])
-        return collider.deepest(self.states[0].x, self.solver.rotation, np.concatenate(points), owner)
-
     def check_finite(self) -> None:
         """Raise :class:`SimulationError` naming the frame and body if the state became NaN/Inf (one sync)."""
         bad = self.solver.first_bad_vertex()

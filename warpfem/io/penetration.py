@@ -1,0 +1,151 @@
+"""How far the visible (dense) surfaces sink into each other and into the ground, measured on the meshes alone.
+
+An independent check of what a user sees in the output: it takes only the dense meshes' points and
+triangles (as written to the USD file), never the simulator's contact buffers. A dense vertex of one body
+is inside another when the other's dense surface winds around it (libigl's fast winding number), and its
+depth is its distance to that surface.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Penetration:
+    """The deepest penetrations of one frame (or the worst over several: :meth:`worst`).
+
+    Attributes:
+        depth: Deepest dense vertex of a body inside another body's dense surface (m); 0 if none.
+        relative: That depth over the size (bounding-box diagonal) of the body it is inside.
+        inside: ``"a in b"``: which body's vertex is inside which ("" if none).
+        below_ground: Deepest dense point below the ground plane or inside a static obstacle (m); 0 if none.
+        below_relative: That depth over the size of its body.
+    """
+
+    depth: float = 0.0
+    relative: float = 0.0
+    inside: str = ""
+    below_ground: float = 0.0
+    below_relative: float = 0.0
+
+    def worst(self, other: Penetration) -> Penetration:
+        """The worse of the two for each measure (relative depths decide)."""
+        body = self if self.relative >= other.relative else other
+        ground = self if self.below_relative >= other.below_relative else other
+        return Penetration(body.depth, body.relative, body.inside, ground.below_ground, ground.below_relative)
+
+
+def _sizes(points: Sequence[np.ndarray]) -> list[float]:
+    return [float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if len(p) else 0.0 for p in points]
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A static sphere (``half_extents`` None) or axis-aligned box: ``center``, ``radius`` or ``half_extents`` (m)."""
+
+    center: tuple[float, float, float]
+    radius: float = 0.0
+    half_extents: tuple[float, float, float] | None = None
+
+    def depth(self, p: np.ndarray) -> np.ndarray:
+        """How deep each point is inside (m; <= 0 outside)."""
+        d = p - np.asarray(self.center)
+        if self.half_extents is None:
+            return self.radius - np.linalg.norm(d, axis=1)
+        return np.min(np.asarray(self.half_extents) - np.abs(d), axis=1)
+
+
+def scene_colliders(scene: Any) -> tuple[tuple[float, tuple[float, float, float]] | None, list[Obstacle]]:
+    """The ground ``(height, up)`` (None without one) and the static obstacles of a :class:`warpfem.Scene`."""
+    up = (0.0, 1.0, 0.0) if scene.up_axis == "Y" else (0.0, 0.0, 1.0)
+    ground = (scene.ground.height, up) if scene.ground.enabled else None
+    obstacles = [
+        Obstacle(o.center, radius=o.radius) if o.kind == "sphere" else Obstacle(o.center, half_extents=o.half_extents)
+        for o in scene.obstacles
+    ]
+    return ground, obstacles
+
+
+def measure(
+    points: Sequence[np.ndarray],
+    faces: Sequence[np.ndarray],
+    names: Sequence[str],
+    ground: tuple[float, tuple[float, float, float]] | None = None,
+    obstacles: Sequence[Obstacle] = (),
+    bodies: bool = True,
+) -> Penetration:
+    """Measure one frame's dense meshes.
+
+    Args:
+        points: Each body's dense vertices (V_i, 3), metres, world frame.
+        faces: Each body's closed, outward-wound triangles (F_i, 3).
+        names: The bodies' names.
+        ground: ``(height, up)`` of the ground plane, or None.
+        obstacles: Static spheres and boxes.
+        bodies: Whether to measure bodies inside each other (the costly part); False: the ground and
+            obstacles only.
+    """
+    sizes = _sizes(points)
+    worst = Penetration()
+    for p, size in zip(points, sizes, strict=True):
+        below = _below(np.asarray(p, np.float64), ground, obstacles) if len(p) else 0.0
+        if below > 0 and below / max(size, 1e-30) > worst.below_relative:
+            worst = Penetration(below_ground=below, below_relative=below / max(size, 1e-30))
+    if not bodies:
+        return worst
+    boxes = [(p.min(axis=0), p.max(axis=0)) if len(p) else None for p in points]
+    for j, (v_j, f_j) in enumerate(zip(points, faces, strict=True)):
+        if boxes[j] is None or len(f_j) == 0:
+            continue
+        lo, hi = boxes[j]
+        owner, near = [], []
+        for i, v_i in enumerate(points):
+            if i == j or boxes[i] is None or (boxes[i][0] > hi).any() or (boxes[i][1] < lo).any():
+                continue
+            q = v_i[np.all((v_i >= lo) & (v_i <= hi), axis=1)]
+            owner.append(np.full(len(q), i))
+            near.append(q)
+        if not near:
+            continue
+        owner, depth = np.concatenate(owner), _depth_inside(np.concatenate(near), v_j, f_j)
+        k = int(np.argmax(depth)) if len(depth) else 0
+        relative = depth[k] / max(sizes[j], 1e-30) if len(depth) else 0.0
+        if len(depth) and depth[k] > 0 and relative > worst.relative:
+            inside = f"{names[owner[k]]} in {names[j]}"
+            worst = Penetration(float(depth[k]), float(relative), inside, worst.below_ground, worst.below_relative)
+    return worst
+
+
+def _below(
+    p: np.ndarray, ground: tuple[float, tuple[float, float, float]] | None, obstacles: Sequence[Obstacle]
+) -> float:
+    """Deepest of the points below the ground or inside an obstacle (m; 0 if none)."""
+    deepest = 0.0
+    if ground is not None:
+        height, up = ground
+        deepest = float(height - (p @ (np.asarray(up, np.float64) / np.linalg.norm(up))).min())
+    for obstacle in obstacles:
+        deepest = max(deepest, float(obstacle.depth(p).max()))
+    return max(deepest, 0.0)
+
+
+def _depth_inside(query: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each query point's distance to the surface (vertices, faces) where the surface winds around it, else 0."""
+    import igl
+
+    depth = np.zeros(len(query))
+    if len(query) == 0:
+        return depth
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    q = np.asarray(query, dtype=np.float64)
+    inside = igl.fast_winding_number(v, f, q) > 0.5
+    if inside.any():
+        distance, *_ = igl.signed_distance(q[inside], v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED)
+        depth[inside] = np.abs(distance)
+    return depth
