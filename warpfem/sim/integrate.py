@@ -98,6 +98,7 @@ def build_system(
     diag_inv_out: wp.array,
     v_guess_out: wp.array,
     direction_out: wp.array,
+    momentum: wp.array,
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
@@ -106,6 +107,15 @@ def build_system(
     CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
     pinned vertices and where not finite).
     """
+    momentum.zero_()
+    wp.launch(
+        K.body_momentum,
+        dim=model.vertex_count,
+        inputs=[state.v, model.mass, model.vertex_body],
+        outputs=[momentum],
+        device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
+    )
     wp.launch(
         K.build_system,
         dim=model.vertex_count,
@@ -123,6 +133,9 @@ def build_system(
             colliders.size,
             colliders.response,
             state.dv,
+            model.vertex_body,
+            momentum,
+            model.body_mass,
             dt,
         ],
         outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out],

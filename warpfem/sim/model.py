@@ -90,6 +90,8 @@ class Model:
     vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
     vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
     tet_body: wp.array  # int32, body of each tet
+    vertex_body: wp.array  # int32, body of each tet vertex
+    body_mass: wp.array  # float, each body's mass (kg)
     tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
     tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
     body_self: wp.array  # int32, 1 where a body collides with itself
@@ -357,6 +359,8 @@ class ModelBuilder:
             vertex_depth=arr("depth", float),
             vertex_grad=arr("grad", wp.vec3),
             tet_body=arr("tet_body", wp.int32, i32),
+            vertex_body=arr("vertex_body", wp.int32, i32),
+            body_mass=arr_of(np.array([b["mass"].sum() for b in self._bodies], np.float32), float),
             tet_face_start=arr("tet_face_start", wp.int32, i32),
             tet_faces=arr("tet_faces", wp.vec3i, i32),
             body_self=arr_of(np.array([b["self_collision"] for b in self._bodies], i32), wp.int32),
@@ -394,6 +398,7 @@ class ModelBuilder:
             add("point_anchor", np.where(b["point_anchor"] >= 0, b["point_anchor"] + v0, -1))
             add("point_body", np.full(len(b["point_tet"]), index))
             add("tet_body", np.full(len(b["tets"]), index))
+            add("vertex_body", np.full(len(b["x"]), index))
             add("leaf_tets", np.where(b["leaf_tets"] >= 0, b["leaf_tets"] + t0, -1))
             leaves += len(b["leaf_tets"])
             add("leaf_start", np.array([leaves]))

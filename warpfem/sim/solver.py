@@ -62,6 +62,8 @@ class Solver:
         self.matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev)
         self.rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
+        self.momentum = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
@@ -133,6 +135,7 @@ class Solver:
                 self.diag_inv,
                 state_out.v,
                 self.direction,
+                self.momentum,
             )
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
             integrate.advance_positions(
