@@ -3,7 +3,8 @@
 The linearised backward-Euler step solves for the new velocity v+:
 ``((1 + dt alpha) M + (dt^2 + dt beta) K + dt^2 K_c + dt C_friction) v+ = M v + dt (f_el + M g + f_c)``
 where K is the warped stiffness (assembled by the FEM kernel), alpha/beta the Rayleigh coefficients and
-K_c, C_friction, f_c the static colliders' penalty and friction (the ground is a plane collider).
+K_c, C_friction, f_c the static colliders' penalty and friction (the ground is a plane collider), on the
+tet vertices and on the skin (the dense vertices outside the tets, whose terms reach the tet's corners).
 """
 
 import warp as wp
@@ -135,6 +136,74 @@ def build_system(
         d = dv[i]
         direction_out[i] = wp.where(wp.isfinite(d), d, wp.vec3())  # a blown-up step must not poison the next
         diag_inv_out[i] = wp.inverse(block)
+
+
+@wp.func
+def add_symmetric(
+    matrix_out: wp.array(dtype=wp.mat33),
+    tet_slots: wp.array(dtype=wp.int32),
+    e: int,
+    w: wp.vec4,
+    block: wp.mat33,
+):
+    """Add ``w_a w_b block`` to every stored block (a, b) of tet ``e`` (a symmetric term of one embedded point)."""
+    for a in range(4):
+        for b in range(4):
+            slot = tet_slots[e * 16 + a * 4 + b]
+            if slot >= 0:
+                wp.atomic_add(matrix_out, slot, (w[a] * w[b]) * block)
+
+
+@wp.kernel
+def skin_colliders(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    tet_slots: wp.array(dtype=wp.int32),
+    skin_tet: wp.array(dtype=wp.int32),
+    skin_bary: wp.array(dtype=wp.vec4),
+    skin_mass: wp.array(dtype=float),
+    tet_body: wp.array(dtype=wp.int32),
+    body_momentum: wp.array(dtype=wp.vec3),
+    body_mass: wp.array(dtype=float),
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_center: wp.array(dtype=wp.vec3),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_response: wp.array(dtype=wp.vec2),
+    dt: float,
+    force_out: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
+):
+    """The static colliders acting on the skin: dense vertices that lie outside the coarse tets.
+
+    The same speculative penalty and friction as :func:`build_system` gives a vertex, at a point embedded in
+    a tet (``x_p = sum w_k x_k``): its force goes to the corners by the weights ``w`` and its matrix term
+    ``S`` to the tet's blocks as ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
+    negative; the term stays symmetric positive semi-definite).
+    """
+    i = wp.tid()
+    e = skin_tet[i]
+    t = tets[e]
+    w = skin_bary[i]
+    xp = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
+    vp = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
+    ident = wp.identity(n=3, dtype=float)
+    body = tet_body[e]
+    v_body = body_momentum[body] / body_mass[body]
+    for o in range(collider_kind.shape[0]):
+        dn = collider_distance(collider_kind[o], collider_center[o], collider_size[o], xp)
+        n = wp.vec3(dn[1], dn[2], dn[3])
+        depth = -dn[0]
+        if depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0:
+            k = collider_response[o][0] * skin_mass[i]
+            pen = wp.max(depth, 0.0)
+            f = k * pen * n
+            for c in range(4):
+                wp.atomic_add(force_out, t[c], w[c] * f)
+            nn = wp.outer(n, n)
+            vt = vp - wp.dot(vp, n) * n
+            fr = collider_response[o][1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
+            add_symmetric(matrix_out, tet_slots, e, w, dt * dt * k * nn + dt * fr * (ident - nn))
 
 
 @wp.kernel

@@ -1,7 +1,7 @@
 """`warpfem run` reproduces a reference run: two balls landing on the ground and on each other (CPU).
 
 The reference (tests/data/golden/two_balls_frames.npz) was written by the code of the commit that last changed
-the physics on purpose (static contacts that count the body's speed); such a change regenerates it and says so.
+the physics on purpose (static colliders acting on the dense skin); such a change regenerates it and says so.
 """
 
 from pathlib import Path

@@ -217,3 +217,45 @@ def test_a_body_landing_fast_stays_within_a_fraction_of_a_step_of_the_ground(dev
         sim.step_frame()
         deepest = max(deepest, -float(sim.state().x.numpy()[:, 1].min()))
     assert deepest < 5.0 / 240.0 / 3.0, deepest  # before the body speed counted: two steps (42.6 mm)
+
+
+def test_the_visible_surface_rests_on_the_ground_where_it_bulges_out_of_the_tets(device):
+    """A dense sphere around a coarse cube pokes 20 mm out of each face.
+
+    Its lowest point (NumPy, on the mapped dense mesh) must stay on the ground, not 20 mm under it with the
+    cube's face on the ground.
+    """
+    import trimesh
+
+    from warpfem.prep.embedding import embed
+    from warpfem.prep.tetmesh import boundary_faces
+    from warpfem.simulation import Simulation
+
+    V, T = box_tet_mesh((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), (3, 3, 3))
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.17)
+    dense = np.asarray(sphere.vertices)
+    lift = np.array([0.0, 0.25, 0.0])
+    tet, bary = embed(dense, V, T, boundary_faces(T))
+    b = ModelBuilder()
+    add_body(
+        b,
+        "ball",
+        V + lift,
+        T,
+        1e6,
+        0.3,
+        1000.0,
+        damping_mass=2.0,
+        embed_tet=tet,
+        embed_bary=bary,
+        dense_faces=np.asarray(sphere.faces),
+    )
+    model = b.finalize(device)
+    solver = Solver(model, ground=Ground(), collision=None, cg_iterations=200, cg_tolerance=1e-5)
+    sim = Simulation.from_model(model, solver, substeps=4, fps=60.0)
+    lowest = []
+    for _ in range(90):
+        sim.step_frame()
+        lowest.append(float(sim.dense_points("ball")[:, 1].min()))
+    assert min(lowest) > -0.005, min(lowest)  # through the landing: within 5 mm (a quarter of the bulge)
+    assert lowest[-1] > -0.001, lowest[-1]  # at rest: within 1 mm of the ground

@@ -54,6 +54,7 @@ whose refit is a launch of its own each step (docs/decisions.md)."""
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
+
 class Collider:
     """Buffers and launches of the collision stage for a model with collision points.
 

@@ -86,6 +86,19 @@ class StaticColliders:
         self.response = arr(response, wp.vec2, (n, 2))
 
 
+def body_momentum(model: Model, state: State, momentum_out: wp.array) -> None:
+    """Each body's momentum (kg m/s) into ``momentum_out`` (zeroed here): the static contacts' body speed."""
+    momentum_out.zero_()
+    wp.launch(
+        K.body_momentum,
+        dim=model.vertex_count,
+        inputs=[state.v, model.mass, model.vertex_body],
+        outputs=[momentum_out],
+        device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
+    )
+
+
 def build_system(
     model: Model,
     state: State,
@@ -107,15 +120,6 @@ def build_system(
     CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
     pinned vertices and where not finite).
     """
-    momentum.zero_()
-    wp.launch(
-        K.body_momentum,
-        dim=model.vertex_count,
-        inputs=[state.v, model.mass, model.vertex_body],
-        outputs=[momentum],
-        device=model.device,
-        block_dim=spread_block_dim(model.vertex_count, model.device),
-    )
     wp.launch(
         K.build_system,
         dim=model.vertex_count,
@@ -141,6 +145,47 @@ def build_system(
         outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
+    )
+
+
+def skin_colliders(
+    model: Model,
+    state: State,
+    colliders: StaticColliders,
+    momentum: wp.array,
+    dt: float,
+    force_out: wp.array,
+    matrix_out: wp.array,
+) -> None:
+    """Add the static colliders' penalty and friction on the model's skin points to the forces and the matrix.
+
+    A launch over the skin points (dense vertices outside the coarse tets), none where there are none.
+    """
+    count = model.skin_tet.shape[0]
+    if count == 0 or colliders.kind.shape[0] == 0:
+        return
+    wp.launch(
+        K.skin_colliders,
+        dim=count,
+        inputs=[
+            state.x,
+            state.v,
+            model.tets,
+            model.tet_slots,
+            model.skin_tet,
+            model.skin_bary,
+            model.skin_mass,
+            model.tet_body,
+            momentum,
+            model.body_mass,
+            colliders.kind,
+            colliders.center,
+            colliders.size,
+            colliders.response,
+            dt,
+        ],
+        outputs=[force_out, matrix_out],
+        device=model.device,
     )
 
 

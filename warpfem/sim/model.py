@@ -100,6 +100,9 @@ class Model:
     point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
     point_body: wp.array  # int32
     point_mass: wp.array  # float, lumped vertex mass interpolated at each collision point (kg)
+    skin_tet: wp.array  # int32, global tet of each skin point: a dense vertex outside the coarse tets
+    skin_bary: wp.array  # vec4, its (extrapolated) barycentric weights there
+    skin_mass: wp.array  # float, its share of its body's mass (kg): the body's mass over its dense vertices
     tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
     tree_leaf_start: wp.array  # int32 (bodies+1), leaf offsets (a body's leaves are its last nodes)
     tree_leaf_tets: wp.array  # vec4i, global tets of each leaf (-1: none)
@@ -180,6 +183,12 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
         np.searchsorted(unique, diag).astype(np.int32),
         np.where(upper, np.searchsorted(unique, keys), -1).astype(np.int32),
     )
+
+
+SKIN_WEIGHT = 1.0e-4
+"""A dense vertex whose most negative barycentric weight is below minus this lies outside the coarse tets: a
+skin point, which the static colliders act on (inside the tets, where the weights are convex, the corners'
+own contacts already keep it out of the ground)."""
 
 
 def _checked_tets(
@@ -288,6 +297,9 @@ class ModelBuilder:
             free &= ~np.asarray(pinned, dtype=bool)
         g = geometry
         point_bary = np.asarray(g.point_bary, np.float64)
+        embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
+        embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
+        skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
         self._bodies.append(
             dict(
                 name=name,
@@ -303,8 +315,11 @@ class ModelBuilder:
                 free=free.astype(np.int32),
                 v=np.tile(np.asarray(velocity, dtype=np.float64), (len(vertices), 1)),
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
-                embed_tet=np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32),
-                embed_bary=np.zeros((0, 4)) if embed_tet is None else np.asarray(embed_bary, np.float64),
+                embed_tet=embed_tet,
+                embed_bary=embed_bary,
+                skin_tet=embed_tet[skin],
+                skin_bary=embed_bary[skin],
+                skin_mass=np.full(int(skin.sum()), mass.sum() / max(len(embed_tet), 1)),
                 depth=np.asarray(g.vertex_depth, np.float64),
                 grad=np.asarray(g.vertex_grad, np.float64),
                 size=size,
@@ -369,6 +384,9 @@ class ModelBuilder:
             point_anchor=arr("point_anchor", wp.vec3i, i32),
             point_body=arr("point_body", wp.int32, i32),
             point_mass=arr("point_mass", float),
+            skin_tet=arr("skin_tet", wp.int32, i32),
+            skin_bary=arr("skin_bary", wp.vec4),
+            skin_mass=arr("skin_mass", float),
             tree_node_start=arr("node_start", wp.int32, i32),
             tree_leaf_start=arr("leaf_start", wp.int32, i32),
             tree_leaf_tets=arr("leaf_tets", wp.vec4i, i32),
@@ -386,7 +404,16 @@ class ModelBuilder:
         for index, b in enumerate(self._bodies):
             for key in ("x", "v", "dm_inv", "volume", "mu", "lam", "beta", "mass", "alpha", "free"):
                 add(key, b[key])
-            for key in ("embed_bary", "depth", "grad", "point_bary", "point_mass", "tet_extent"):
+            for key in (
+                "embed_bary",
+                "depth",
+                "grad",
+                "point_bary",
+                "point_mass",
+                "tet_extent",
+                "skin_bary",
+                "skin_mass",
+            ):
                 add(key, b[key])
             start, flat = b["tet_faces"]
             add("tet_face_start", start[1:] + f0)
@@ -394,6 +421,7 @@ class ModelBuilder:
             f0 += len(flat)
             add("tets", b["tets"] + v0)
             add("embed_tet", b["embed_tet"] + t0)
+            add("skin_tet", b["skin_tet"] + t0)
             add("point_tet", b["point_tet"] + t0)
             add("point_anchor", np.where(b["point_anchor"] >= 0, b["point_anchor"] + v0, -1))
             add("point_body", np.full(len(b["point_tet"]), index))
@@ -410,6 +438,7 @@ class ModelBuilder:
         for key in ("tet_face_start", "leaf_start", "node_start"):
             flat[key] = np.concatenate([[0], flat[key]])
         flat["embed_bary"] = flat["embed_bary"].reshape(-1, 4)
+        flat["skin_bary"] = flat["skin_bary"].reshape(-1, 4)
         flat["grad"] = flat["grad"].reshape(-1, 3)
         flat["tet_faces"] = flat["tet_faces"].reshape(-1, 3)
         return bodies, flat
