@@ -136,6 +136,35 @@ def quad_sum(value: wp.vec3) -> wp.vec3:
     ...
 
 
+WARP_SUM_AT = r"""
+wp::vec3* slot = wp::address(totals, key);
+#if defined(__CUDA_ARCH__)
+unsigned int lanes = __activemask();
+if (lanes == 0xffffffffu && __all_sync(lanes, key == __shfl_sync(lanes, key, 0))) {
+    float x = value[0], y = value[1], z = value[2];
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        x += __shfl_xor_sync(lanes, x, offset);
+        y += __shfl_xor_sync(lanes, y, offset);
+        z += __shfl_xor_sync(lanes, z, offset);
+    }
+    if ((threadIdx.x & 31) == 0)
+        wp::atomic_add(slot, wp::vec3(x, y, z));
+    return;
+}
+#endif
+wp::atomic_add(slot, value);
+"""
+
+
+@wp.func_native(WARP_SUM_AT)
+def warp_sum_at(value: wp.vec3, key: int, totals: wp.array(dtype=wp.vec3)):
+    """``totals[key] += value``, one atomic per warp where the whole warp shares ``key`` (register shuffles).
+
+    Threads adding into a few slots serialise there; other warps, and the CPU, add per thread.
+    """
+    ...
+
+
 WARP_MAX_AT = r"""
 float* slot = wp::address(maxima, key);
 #if defined(__CUDA_ARCH__)

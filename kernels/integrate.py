@@ -9,6 +9,8 @@ tet vertices and on the skin (the dense vertices outside the tets, whose terms r
 
 import warp as wp
 
+from .grid import warp_sum_at
+
 # static collider kinds
 PLANE = wp.constant(0)
 SPHERE = wp.constant(1)
@@ -58,9 +60,9 @@ def body_momentum(
     vertex_body: wp.array(dtype=wp.int32),
     momentum_out: wp.array(dtype=wp.vec3),
 ):
-    """Each body's momentum (kg m/s), summed over its vertices by atomic adds into a zeroed array."""
+    """Each body's momentum (kg m/s), summed over its vertices into a zeroed array (one atomic per warp)."""
     i = wp.tid()
-    wp.atomic_add(momentum_out, vertex_body[i], mass[i] * v[i])
+    warp_sum_at(mass[i] * v[i], vertex_body[i], momentum_out)
 
 
 @wp.kernel

@@ -185,7 +185,7 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
     )
 
 
-SKIN_WEIGHT = 1.0e-4
+SKIN_WEIGHT = 1.0e-2
 """A dense vertex whose most negative barycentric weight is below minus this lies outside the coarse tets: a
 skin point, which the static colliders act on (inside the tets, where the weights are convex, the corners'
 own contacts already keep it out of the ground)."""
