@@ -26,3 +26,16 @@ def test_run_output_matches_the_reference_run(tmp_path):
         np.testing.assert_allclose(points, reference[key], rtol=0, atol=1e-6, err_msg=key)
     # the reference itself is a real landing: the lower ball rests on the ground, the upper one on it
     assert reference["ball_20"][:, 1].min() > -0.01 and reference["top_20"][:, 1].min() < 0.3
+
+
+def test_every_nth_frame_writes_those_frames_of_the_same_run(tmp_path):
+    """--every 3: samples at 0, 3, ..., 18 and the last frame, 20, equal to the reference run's."""
+    out = tmp_path / "sparse.usdc"
+    args = ["run", str(GOLDEN / "two_balls.toml"), "--out", str(out), "--device", "cpu", "--no-cache", "--quiet"]
+    assert main([*args, "--every", "3"]) == 0
+    stage = Usd.Stage.Open(str(out))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/top")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [0.0, 3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 20.0]
+    reference = np.load(GOLDEN / "two_balls_frames.npz")
+    np.testing.assert_allclose(np.array(attr.Get(20)), reference["top_20"], rtol=0, atol=1e-6)
+    assert main([*args, "--every", "0", "--overwrite"]) == 2

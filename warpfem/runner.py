@@ -85,6 +85,7 @@ def run(
     save_every: float | None = 10.0,
     progress: Callable[[str, str], None] | None = None,
     warn: Callable[[str], None] | None = None,
+    every: int = 1,
 ) -> RunSummary:
     """Run ``scene`` and write its dense meshes to ``out`` (USD), as ``warpfem run`` does.
 
@@ -101,6 +102,8 @@ def run(
         overwrite: Whether an existing ``out`` may be replaced.
         save_every: Shortest time between snapshots of the file (s), so a killed process keeps the frames up
             to the last one; None: write only at the end.
+        every: Write every ``every``-th frame and the last (time codes stay frame numbers); the simulation
+            still steps every frame.
 
     Returns:
         The run's summary.
@@ -120,8 +123,10 @@ def run(
         raise InputError(f"{out}: folder {out.resolve().parent} does not exist")
     if out.exists() and not overwrite:
         raise InputError(f"{out}: the file exists; pass overwrite=True to replace it")
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise InputError(f"every must be an integer >= 1, got {every!r}")
     sim = Simulation(scene, device=device, cache_dir=cache_dir, cache=cache, progress=progress, warn=warn)
-    return record(sim, out, overwrite=overwrite, save_every=save_every)
+    return record(sim, out, overwrite=overwrite, save_every=save_every, every=every)
 
 
 def record(
@@ -131,8 +136,9 @@ def record(
     save_every: float | None = 10.0,
     on_frame: Callable[[], None] | None = None,
     on_points: Callable[[int, list[np.ndarray]], None] | None = None,
+    every: int = 1,
 ) -> RunSummary:
-    """Step ``sim`` through its scene's frames from where it is, writing every frame's dense meshes to ``out``.
+    """Step ``sim`` through its scene's frames from where it is, writing the dense meshes to ``out``.
 
     Args:
         sim: A simulation at frame 0.
@@ -140,8 +146,9 @@ def record(
         overwrite: Whether an existing ``out`` may be replaced.
         save_every: Shortest time between snapshots of the file (s); None: write only at the end.
         on_frame: Called once per finished frame.
-        on_points: Called as ``on_points(frame, points)`` with each frame's dense points (one (n_i, 3) array
-            per body), frame 0 included, after the frame is written; its time is not in the summary.
+        on_points: Called as ``on_points(frame, points)`` with each written frame's dense points (one (n_i, 3)
+            array per body), frame 0 included, after the frame is written; its time is not in the summary.
+        every: Write (map, check, hand to ``on_points``) every ``every``-th frame and the last.
     """
     from warpfem.io.usd import UsdWriter
 
@@ -166,6 +173,11 @@ def record(
             t0 = time.perf_counter()
             sim.step_frame(profile=not sim.device.is_cuda or frame == 1)
             t1 = time.perf_counter()
+            if frame % every and frame != scene.frames:
+                seconds["simulate"] += t1 - t0
+                if on_frame:
+                    on_frame()
+                continue
             points = sim.dense_points()
             t2 = time.perf_counter()
             writer.add_frame(frame, points)

@@ -59,6 +59,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "longer when a save would take over 5%% of the run)",
     )
     run.add_argument("--frames", type=int, help="override the scene's frame count")
+    run.add_argument(
+        "--every", type=int, default=1, metavar="N", help="write every Nth frame and the last (all are simulated)"
+    )
     run.add_argument("--device", help="cpu or cuda:N (default: cuda:0 when a GPU is present, else cpu)")
     run.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     run.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
@@ -151,6 +154,7 @@ def _simulate(
             save_every=args.save_every,
             on_frame=on_frame,
             on_points=on_points if preview else None,
+            every=args.every,
         )
         if preview is not None:
             preview.close()
@@ -183,6 +187,8 @@ def main(args: argparse.Namespace) -> int:
     for option, path in (("--out", out), ("--preview", args.preview)):
         if path is not None and path.is_file() and not args.overwrite:
             raise InputError(f"{option} {path}: the file exists; pass --overwrite to replace it")
+    if args.every < 1:
+        raise InputError(f"--every must be >= 1, got {args.every}")
     if not (args.save_every >= 0 and args.save_every < float("inf")):
         raise InputError(f"--save-every must be a number of seconds >= 0, got {args.save_every}")
     size = parse_size(args.size)
