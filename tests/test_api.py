@@ -181,3 +181,25 @@ def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path):
     assert summary.penetration_end.below_ground <= summary.penetration.below_ground
     assert summary.penetration_frames >= 1 and summary.penetration.relative >= summary.penetration_end.relative
     assert summary.penetration.inside in ("", "ball in top", "top in ball")
+
+
+def test_cg_stopping_at_its_cap_is_said_once_and_counted(ball_dir, capsys):
+    """Three iterations cannot reach 1e-6 on a landing ball: one warning, and the summary counts the frames."""
+    from warpfem.cli import main
+
+    doc = {**SCENE, "scene": {"frames": 4, "substeps": 2}, "solver": {"cg_iterations": 3, "cg_tolerance": 1e-6}}
+    (ball_dir / "capped.toml").write_text(_toml(doc))
+    args = ["run", str(ball_dir / "capped.toml"), "--out", str(ball_dir / "c.usdc"), "--device", "cpu", "--json"]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    warnings = [line for line in captured.err.splitlines() if "stopped at its cap of 3 iterations" in line]
+    assert len(warnings) == 1 and "cg_iterations" in warnings[0]
+    import json
+
+    summary = json.loads(captured.out)
+    assert summary["cg_capped_frames"] == 4 and summary["cg_residual_max"] > 1e-6
+    doc["solver"] = {"cg_iterations": 200, "cg_tolerance": 1e-6}  # enough iterations: nothing said
+    (ball_dir / "capped.toml").write_text(_toml(doc))
+    assert main([*args, "--overwrite"]) == 0
+    captured = capsys.readouterr()
+    assert "stopped at its cap" not in captured.err and json.loads(captured.out)["cg_capped_frames"] == 0

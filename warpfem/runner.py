@@ -32,6 +32,7 @@ class RunSummary:
         dense_triangles: Dense triangles over all bodies.
         cg_iterations_per_step: Mean CG iterations per step.
         cg_residual_max: Largest final relative CG residual.
+        cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
         seconds: Wall time per phase (s): prepare, build, simulate, map, write.
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
@@ -58,6 +59,7 @@ class RunSummary:
     dense_triangles: int
     cg_iterations_per_step: float
     cg_residual_max: float
+    cg_capped_frames: int
     seconds: dict[str, float] = field(default_factory=dict)
     step_ms: dict[str, float] = field(default_factory=dict)
     contacts_per_step: float = 0.0
@@ -244,6 +246,7 @@ def _summary(sim: Simulation, out: Path, seconds: dict[str, float], check: _Chec
         dense_triangles=sum(len(b.dense_faces) for b in model.bodies),
         cg_iterations_per_step=totals.cg_iterations / max(totals.cg_solves, 1),
         cg_residual_max=totals.cg_residual_max,
+        cg_capped_frames=totals.cg_capped_frames,
         seconds=seconds,
         step_ms={k: 1000.0 * v / max(timer.frames, 1) for k, v in timer.seconds.items()},
         contacts_per_step=totals.contacts / max(totals.steps, 1),

@@ -25,6 +25,9 @@ from warpfem.sim.fem import RotationWatch
 from warpfem.sim.model import Body, Model, ModelBuilder, State
 from warpfem.sim.solver import Solver
 
+CAP_SLACK = 1.01
+"""A final residual this much above the tolerance (float32 rounding aside) means CG stopped at its cap."""
+
 FAST_TURN = 0.03
 """Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
 
@@ -57,6 +60,7 @@ class RunTotals:
         cg_solves: CG solves (one per step).
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
+        cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
         contacts: Contacts summed over steps.
         contacts_max: Most contacts in one step.
         deepest_contact: Deepest contact (m).
@@ -66,6 +70,7 @@ class RunTotals:
     cg_solves: int = 0
     cg_iterations: int = 0
     cg_residual_max: float = 0.0
+    cg_capped_frames: int = 0
     contacts: int = 0
     contacts_max: int = 0
     deepest_contact: float = 0.0
@@ -314,6 +319,15 @@ class Simulation:
         t.cg_solves += cg.solves
         t.cg_iterations += cg.iterations
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)
+        cap, tolerance = self.solver.cg.limits
+        if tolerance > 0 and cg.residual_max > tolerance * CAP_SLACK:
+            t.cg_capped_frames += frames
+            self._warn_once(
+                "cg-cap",
+                f"warning: frame {self.frame}: CG stopped at its cap of {cap} iterations with a relative residual "
+                f"of {cg.residual_max:.2g}, above its tolerance {tolerance:g}: raise [solver] cg_iterations or "
+                "substeps (the run's summary counts such frames)",
+            )
         total, most, deepest = 0, 0, 0.0
         collider = self.solver.collider
         if collider is not None:

@@ -235,6 +235,8 @@ class CGSolver:
             raise ValueError(f"tolerance must be in [0, 1), got {tolerance}")
         self.max_iterations.assign(np.array([max_iterations], dtype=np.int32))
         self.tolerance.assign(np.array([tolerance], dtype=np.float32))
+        self.limits = (int(max_iterations), float(tolerance))
+        """The cap and tolerance as set (host copies, for reports)."""
 
     def _matrix(self, values: wp.array) -> BlockMatrix:
         """The product kernels' matrix argument: the chunk table and entries with the blocks ``values``."""
