@@ -203,3 +203,25 @@ def test_cg_stopping_at_its_cap_is_said_once_and_counted(ball_dir, capsys):
     assert main([*args, "--overwrite"]) == 0
     captured = capsys.readouterr()
     assert "stopped at its cap" not in captured.err and json.loads(captured.out)["cg_capped_frames"] == 0
+
+
+def test_angular_velocity_spins_the_body_about_its_centre_of_mass(ball_dir):
+    """The initial state's momentum is the body's mass times its velocity and its angular momentum about the
+    centre of mass is I w (NumPy, from the lumped masses), the spin's axis and rate as given."""
+    omega, v0 = np.array([0.0, 0.0, 12.0]), np.array([1.0, 0.0, 0.0])
+    doc = {
+        "scene": {"frames": 1},
+        "object": [{**SCENE["object"][1], "velocity": list(v0), "angular_velocity": list(omega)}],
+    }
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, base_dir=ball_dir), device="cpu", cache=False)
+    x, v, m = sim.state().x.numpy(), sim.state().v.numpy(), sim.model.mass.numpy()
+    centre = (m[:, None] * x).sum(0) / m.sum()
+    r = x - centre
+    np.testing.assert_allclose((m[:, None] * v).sum(0), m.sum() * v0, rtol=1e-5, atol=1e-6)
+    inertia = (m[:, None, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+    momentum = (m[:, None] * np.cross(r, v)).sum(0)
+    np.testing.assert_allclose(momentum, inertia @ omega, rtol=1e-4, atol=1e-7)
+    with pytest.raises(warpfem.InputError, match="angular_velocity"):
+        warpfem.Scene.from_dict(
+            {**doc, "object": [{**doc["object"][0], "angular_velocity": [1, 2]}]}, base_dir=ball_dir
+        )

@@ -94,13 +94,26 @@ def add_prepared_body(
         density=obj.density,
         damping_mass=obj.damping_mass,
         damping_stiffness=obj.damping_stiffness,
-        velocity=obj.velocity,
+        velocity=initial_velocity(tet_x, prepared.tets, obj.velocity, obj.angular_velocity),
         pinned=pinned,
         dense_faces=prepared.dense_faces,
         embed_tet=prepared.embed_tet,
         embed_bary=prepared.embed_bary,
         self_collision=obj.self_collision,
     )
+
+
+def initial_velocity(
+    x: np.ndarray, tets: np.ndarray, velocity: tuple[float, float, float], spin: tuple[float, float, float]
+) -> np.ndarray:
+    """Each vertex's velocity (m/s) for a body moving at ``velocity`` and spinning at ``spin`` (rad/s).
+
+    The spin is about the centre of mass of the tets (uniform density: their centroids weighted by volume).
+    """
+    d = x[tets[:, 1:]] - x[tets[:, :1]]
+    volume = np.linalg.det(d) / 6.0
+    centre = (volume[:, None] * x[tets].mean(axis=1)).sum(axis=0) / volume.sum()
+    return np.asarray(velocity, np.float64) + np.cross(np.asarray(spin, np.float64), x - centre)
 
 
 def add_body(

@@ -321,7 +321,8 @@ class ObjectConfig:
         scale: Uniform scale factor (> 0).
         rotate: XYZ Euler angles (degrees).
         translate: Translation (m).
-        velocity: Initial velocity of every vertex (m/s).
+        velocity: Initial velocity of the body (m/s).
+        angular_velocity: Initial angular velocity about the body's centre of mass (rad/s, world axes).
         faces: Target triangle count of the QEM-simplified coarse surface (100..20000).
         maxh: Netgen's maximum element size, relative to the coarse surface's bounding box
             diagonal (0 < maxh <= 1).
@@ -342,6 +343,7 @@ class ObjectConfig:
     rotate: Vec3 = (0.0, 0.0, 0.0)
     translate: Vec3 = (0.0, 0.0, 0.0)
     velocity: Vec3 = (0.0, 0.0, 0.0)
+    angular_velocity: Vec3 = (0.0, 0.0, 0.0)
     faces: int = 1000
     maxh: float = 0.2
     young: float = 1e5
@@ -371,7 +373,7 @@ class ObjectConfig:
         self._validate_mesh(err)
         _check_int(err, "subdivide", self.subdivide, 0, 4)
         _check_range(err, "scale", self.scale, gt=0.0)
-        for key in ("rotate", "translate", "velocity"):
+        for key in ("rotate", "translate", "velocity", "angular_velocity"):
             _check_vec3(err, key, getattr(self, key))
         _check_int(err, "faces", self.faces, 100, 20000)
         _check_range(err, "maxh", self.maxh, gt=0.0, le=1.0)

@@ -256,7 +256,7 @@ class ModelBuilder:
         density: float,
         damping_mass: float = 0.0,
         damping_stiffness: float = 0.0,
-        velocity: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        velocity: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
         pinned: np.ndarray | None = None,
         dense_faces: np.ndarray | None = None,
         embed_tet: np.ndarray | None = None,
@@ -275,7 +275,7 @@ class ModelBuilder:
             density: Density (kg/m^3).
             damping_mass: Rayleigh mass damping alpha (1/s).
             damping_stiffness: Rayleigh stiffness damping beta (s).
-            velocity: Initial velocity (m/s).
+            velocity: Initial velocity (m/s): one for every vertex, or (p, 3), one each.
             pinned: Optional (p,) bool mask of fixed vertices.
             dense_faces: Optional (m, 3) dense triangles.
             embed_tet: (n,) tet of each dense vertex (local index); None: no dense mesh.
@@ -313,7 +313,7 @@ class ModelBuilder:
                 mass=mass,
                 alpha=np.full(len(vertices), damping_mass),
                 free=free.astype(np.int32),
-                v=np.tile(np.asarray(velocity, dtype=np.float64), (len(vertices), 1)),
+                v=np.broadcast_to(np.asarray(velocity, dtype=np.float64), (len(vertices), 3)).copy(),
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
                 embed_tet=embed_tet,
                 embed_bary=embed_bary,
