@@ -48,12 +48,18 @@ def prepare_scene(
     done: dict[tuple[Any, ...], PreparedBody] = {}
     prepared = []
     for obj in scene.objects:
-        key = (obj.mesh, obj.faces, obj.subdivide, obj.maxh)
+        key = (obj.mesh, obj.prim, obj.faces, obj.subdivide, obj.maxh)
         if key not in done:
             say = None if progress is None else (lambda message, name=obj.name: progress(name, message))
             try:
                 done[key] = prepare(
-                    obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir, progress=say
+                    obj.mesh,
+                    faces=obj.faces,
+                    subdivide=obj.subdivide,
+                    maxh=obj.maxh,
+                    cache_dir=cache_dir,
+                    progress=say,
+                    prim=obj.prim,
                 )
             except InputError as err:
                 raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None

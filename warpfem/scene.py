@@ -315,7 +315,8 @@ class ObjectConfig:
         name: Unique name, also the USD prim name: letters, digits and underscores, not starting
             with a digit.
         mesh: ``"builtin:bunny"`` or the absolute path of a surface mesh file (a relative path in
-            the scene file resolves against the scene file's folder).
+            the scene file resolves against the scene file's folder): OBJ, PLY, STL, OFF or USD.
+        prim: For a USD mesh file, the ``UsdGeom.Mesh`` prim to use (default: the file's only mesh).
         subdivide: Loop subdivision iterations applied to the dense mesh (0..4; each multiplies
             the triangle count by 4).
         scale: Uniform scale factor (> 0).
@@ -338,6 +339,7 @@ class ObjectConfig:
 
     name: str
     mesh: str
+    prim: str | None = None
     subdivide: int = 0
     scale: float = 1.0
     rotate: Vec3 = (0.0, 0.0, 0.0)
@@ -405,6 +407,11 @@ class ObjectConfig:
                 raise err("mesh", f'is an unknown built-in mesh "{self.mesh}" (known: {BUILTIN_BUNNY})')
         elif not Path(self.mesh).is_file():
             raise err("mesh", f"file not found: {self.mesh}")
+        if self.prim is not None:
+            if Path(self.mesh).suffix.lower() not in (".usd", ".usda", ".usdc"):
+                raise err("prim", "names a prim of a USD mesh file; this object's mesh is not one")
+            if not isinstance(self.prim, str) or not self.prim.startswith("/"):
+                raise err("prim", f'must be a prim path such as "/World/Mesh", got {_shown(self.prim)}')
 
 
 @dataclass

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    prep.add_argument("mesh", help="OBJ, PLY, STL or OFF file, or builtin:bunny")
+    prep.add_argument("mesh", help="OBJ, PLY, STL, OFF or USD file, or builtin:bunny")
+    prep.add_argument("--prim", help="the UsdGeom.Mesh prim of a USD file (default: its only mesh)")
     prep.add_argument("--faces", type=int, default=1000, help="coarse surface target face count (default 1000)")
     prep.add_argument("--subdivide", type=int, default=0, help="Loop subdivision iterations first (default 0)")
     prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
@@ -72,6 +73,7 @@ def main(args: argparse.Namespace) -> int:
         timeout_s=args.timeout,
         shells=shells,
         max_hole=args.max_hole,
+        prim=args.prim,
     )
     rows = [(key, f"{value:.4g}" if isinstance(value, float) else str(value)) for key, value in body.stats.items()]
     print_summary(rows, body.stats, args.json)

@@ -400,6 +400,7 @@ def prepare(
     progress: Callable[[str], None] | None = None,
     shells: str | int = "merge",
     max_hole: float | None = None,
+    prim: str | None = None,
 ) -> PreparedBody:
     """Preprocess one body, or load it from the cache.
 
@@ -415,6 +416,7 @@ def prepare(
             ``"error"``, or an int k to keep the k-th largest (one body per shell: prepare each k).
         max_hole: Largest hole closed automatically, relative to the bounding-box diagonal (None: the
             default :data:`warpfem.prep.repair.MAX_HOLE_FRACTION`; 0: none).
+        prim: For a USD file, the ``UsdGeom.Mesh`` prim's path (None: the file's only mesh).
 
     Returns:
         The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off),
@@ -440,12 +442,12 @@ def prepare(
         raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
     clock = time.perf_counter()
     say(f"{mesh}: loading")
-    surface = load_surface(mesh, max_hole=max_hole, shells=shells)
+    surface = load_surface(mesh, max_hole=max_hole, shells=shells, prim=prim)
     seconds_load = time.perf_counter() - clock
 
     path = None
     if cache_dir is not None:
-        options = f"shells={shells!r} max_hole={max_hole!r}"
+        options = f"shells={shells!r} max_hole={max_hole!r}" + (f" prim={prim!r}" if prim is not None else "")
         path = Path(cache_dir) / f"{cache_key(surface, faces, subdivide, maxh, options)}.npz"
         clock = time.perf_counter()
         cached = _read_cache(path)

@@ -24,7 +24,7 @@ BUILTIN_BUNNY = "builtin:bunny"
 WELD_TOLERANCE = 1e-9
 """Vertices closer than this fraction of the bounding-box diagonal are welded into one."""
 
-SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off")
+SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".usd", ".usda", ".usdc")
 
 MAX_EXTENT = 1e30
 """Largest accepted bounding-box diagonal, in file units (cubed volumes must stay finite in float64)."""
@@ -127,7 +127,63 @@ def _read_usd_bunny() -> tuple[np.ndarray, np.ndarray]:
     return points, indices.reshape(-1, 3)
 
 
-def _read_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
+
+
+def read_usd_mesh(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A ``UsdGeom.Mesh`` of a USD file as points in metres, world frame at time 0, and triangles.
+
+    Polygons are split into fans; the prim's world transform at time 0 and the stage's ``metersPerUnit``
+    apply; a left-handed mesh's triangles are turned to the right-handed winding.
+
+    Args:
+        path: The USD file.
+        prim: The mesh prim's path; None: the file's only mesh.
+
+    Raises:
+        InputError: An unreadable stage, a ``prim`` that is not a mesh, no mesh, or several without ``prim``
+            (the message lists them), or a mesh without faces.
+    """
+    from pxr import Tf, Usd, UsdGeom
+
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:
+        raise InputError(f"{path}: unreadable USD file ({str(exc).strip().splitlines()[-1]})") from None
+    meshes = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    if prim is not None:
+        if prim not in meshes:
+            raise InputError(f"{path}: prim {prim} is not a UsdGeom.Mesh here (meshes: {', '.join(meshes) or 'none'})")
+        chosen = prim
+    elif len(meshes) != 1:
+        listed = ", ".join(meshes)
+        found = (
+            f"{len(meshes)} meshes ({listed}): name one with prim (--prim for prepare)" if meshes else "no UsdGeom.Mesh"
+        )
+        raise InputError(f"{path}: {found}")
+    else:
+        chosen = meshes[0]
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(chosen))
+    time = Usd.TimeCode(0)
+    points = np.asarray(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    if len(counts) == 0 or counts.min() < 3 or counts.sum() != len(indices):
+        raise InputError(f"{path}: {chosen} has no faces, or faces of fewer than 3 vertices")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    fans = [
+        np.stack([indices[s0].repeat(n - 2), indices[s0 + 1 : s0 + n - 1], indices[s0 + 2 : s0 + n]], axis=1)
+        for s0, n in zip(starts, counts, strict=True)
+    ]
+    faces = np.concatenate(fans)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        faces = faces[:, ::-1]
+    world = np.asarray(UsdGeom.Xformable(mesh.GetPrim()).ComputeLocalToWorldTransform(time), dtype=np.float64)
+    points = (np.c_[points, np.ones(len(points))] @ world)[:, :3] * UsdGeom.GetStageMetersPerUnit(stage)
+    return points, faces
+
+
+def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     if not path.exists():
@@ -138,6 +194,10 @@ def _read_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"{path}: unsupported mesh format (use {', '.join(SUPPORTED_SUFFIXES)})")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: mesh file is empty")
+    if path.suffix.lower() in USD_SUFFIXES:
+        return read_usd_mesh(path, prim)
+    if prim is not None:
+        raise InputError(f"{path}: prim is only for USD files")
     try:
         if path.suffix.lower() == ".obj":
             vertices, faces = _read_obj(path)
@@ -241,17 +301,22 @@ def subdivide_surface(surface: Surface, iterations: int) -> Surface:
 
 
 def load_surface(
-    path: str | Path, subdivide: int = 0, max_hole: float | None = None, shells: str | int = "merge"
+    path: str | Path,
+    subdivide: int = 0,
+    max_hole: float | None = None,
+    shells: str | int = "merge",
+    prim: str | None = None,
 ) -> Surface:
     """Load, repair and validate a closed triangle surface.
 
     Args:
-        path: An OBJ, PLY, STL or OFF file, or ``"builtin:bunny"`` for Warp's bunny.
+        path: An OBJ, PLY, STL, OFF or USD file, or ``"builtin:bunny"`` for Warp's bunny.
         subdivide: Rounds of Loop subdivision applied after repair (each gives 4x the faces).
         max_hole: Largest hole closed, as its boundary loop's bounding-box diagonal over the mesh's
             (None: :data:`warpfem.prep.repair.MAX_HOLE_FRACTION`; 0 closes none).
         shells: Several shells: ``"merge"`` into one body, keep the ``"largest"``, ``"error"``, or an
             int k to keep the k-th largest (see :func:`warpfem.prep.repair.select_shells`).
+        prim: For a USD file, the mesh prim's path (None: its only mesh; see :func:`read_usd_mesh`).
 
     Returns:
         The repaired surface, every shell oriented so that its signed volume is positive.
@@ -267,7 +332,7 @@ def load_surface(
     if name == BUILTIN_BUNNY:
         vertices, faces = _read_usd_bunny()
     else:
-        vertices, faces = _read_file(Path(path))
+        vertices, faces = _read_file(Path(path), prim)
     if len(faces) == 0:
         raise InputError(f"{name}: mesh has no faces")
     if not np.all(np.isfinite(vertices)):
