@@ -186,6 +186,8 @@ def read_usd_mesh(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.n
 def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
+    from warpfem.prep.ply_strips import has_strips, read_strip_ply
+
     if not path.exists():
         raise InputError(f"{path}: mesh file not found")
     if not path.is_file():
@@ -201,6 +203,8 @@ def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndar
     try:
         if path.suffix.lower() == ".obj":
             vertices, faces = _read_obj(path)
+        elif path.suffix.lower() == ".ply" and has_strips(path):
+            vertices, faces = read_strip_ply(path)
         else:
             mesh = trimesh.load(path, force="mesh", process=False)
             vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
