@@ -87,9 +87,11 @@ def test_nan_coordinate(tmp_path):
 def test_large_hole_is_reported_small_hole_is_closed(tmp_path):
     sphere = trimesh.creation.icosphere(subdivisions=1)
     path = _write_obj(tmp_path / "hole.obj", sphere.vertices, sphere.faces[1:])
-    with pytest.raises(InputError, match="hole.obj: not closed: 1 holes, the largest spans .* of the bounding-box"):
+    holes = "hole.obj: open surface, it encloses no volume: 1 holes, the largest spans .* of the bounding-box"
+    with pytest.raises(InputError, match=holes):
         load_surface(path, max_hole=0.1)
-    with pytest.raises(InputError, match="hole.obj: not closed: 3 boundary edges"):
+    edges = "hole.obj: open surface, it encloses no volume: not closed: 3 boundary edges"
+    with pytest.raises(InputError, match=edges):
         load_surface(path, max_hole=0.0)
     surface = load_surface(path)  # the default limit closes it: the same triangle comes back
     assert any("closed 1 holes" in r for r in surface.repairs)
@@ -186,3 +188,14 @@ def test_stanford_bunny_holes_are_closed(asset):
     closed = trimesh.Trimesh(surface.vertices, surface.faces, process=False)
     assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
     assert len(surface.vertices) == len(raw.vertices)  # ear-clipped caps: no new vertices
+
+
+def test_a_flat_sheet_is_refused_as_having_no_volume(tmp_path):
+    """Every vertex in one (tilted) plane: one line saying it is flat, not a hole count."""
+    grid = trimesh.creation.box().vertices[:, :2]
+    sheet = trimesh.Trimesh(np.c_[grid, np.zeros(len(grid))], [[0, 1, 2], [1, 3, 2], [4, 5, 6], [5, 7, 6]])
+    sheet.apply_transform(trimesh.transformations.rotation_matrix(0.7, [1, 2, 3]))
+    sheet.export(tmp_path / "sheet.obj")
+    with pytest.raises(InputError, match=r"sheet.obj: flat surface: .* zero volume") as err:
+        load_surface(tmp_path / "sheet.obj")
+    assert "\n" not in str(err.value)

@@ -171,8 +171,8 @@ def close_small_holes(
     spans = [float(np.linalg.norm(np.ptp(vertices[loop], axis=0))) / diag for loop in loops]
     if max(spans) > max_fraction:
         raise InputError(
-            f"{name}: not closed: {len(loops)} holes, the largest spans {max(spans):.3g} of the bounding-box"
-            f" diagonal (holes up to {max_fraction:g} are closed automatically)"
+            f"{name}: open surface, it encloses no volume: {len(loops)} holes, the largest spans {max(spans):.3g} of"
+            f" the bounding-box diagonal (holes up to {max_fraction:g} are closed automatically)"
         )
     new_vertices, new_faces = [vertices], [faces]
     count = len(vertices)

@@ -24,6 +24,10 @@ BUILTIN_BUNNY = "builtin:bunny"
 WELD_TOLERANCE = 1e-9
 """Vertices closer than this fraction of the bounding-box diagonal are welded into one."""
 
+FLAT = 1.0e-6
+"""A surface whose vertices' root-mean-square distance from their best-fitting plane is below this fraction
+of its bounding-box diagonal is flat: it has no volume."""
+
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".usd", ".usda", ".usdc")
 
 MAX_EXTENT = 1e30
@@ -350,6 +354,12 @@ def load_surface(
         raise InputError(f"{name}: coordinates too large (bounding box beyond {MAX_EXTENT:g} units)")
     if diag == 0.0:
         raise InputError(f"{name}: all vertices are at the same position")
+    sample = vertices[:: max(1, len(vertices) // 100_000)]
+    thinnest = np.linalg.svd(sample - sample.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(sample))
+    if thinnest <= FLAT * diag:
+        raise InputError(
+            f"{name}: flat surface: all its vertices lie in one plane, so it encloses zero volume (nothing to simulate)"
+        )
 
     repairs: list[str] = []
     vertices, faces = _weld(vertices, faces, repairs)
@@ -363,6 +373,8 @@ def load_surface(
         if limit > 0:
             vertices, faces = close_small_holes(vertices, faces, limit, name, repairs)
             defect = topology_defects(faces)
+    if defect is not None and defect.startswith("not closed"):
+        raise InputError(f"{name}: open surface, it encloses no volume: {defect}")
     if defect is not None:
         raise InputError(f"{name}: {defect}")
     faces, overlapping = select_shells(vertices, faces, shells, name, repairs)
