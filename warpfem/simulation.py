@@ -34,7 +34,7 @@ FAST_TURN = 0.03
 
 @dataclass(frozen=True)
 class FrameStats:
-    """What the solver did over the last frame (all zero before the first).
+    """What the solver did over the frames of the last read (one for :meth:`Simulation.step_frame`; zero before).
 
     Attributes:
         cg_iterations: Mean CG iterations per step.
