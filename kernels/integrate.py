@@ -9,6 +9,7 @@ tet vertices and on the skin (the dense vertices outside the tets, whose terms r
 
 import warp as wp
 
+from .embedding import interpolate
 from .grid import warp_sum_at
 
 # static collider kinds
@@ -51,6 +52,42 @@ def collider_distance(kind: int, center: wp.vec3, size: wp.vec3, p: wp.vec3) -> 
     n = wp.vec3()
     n[axis] = s[axis]
     return wp.vec4(q[axis], n[0], n[1], n[2])
+
+
+@wp.func
+def static_contact(
+    kind: int,
+    center: wp.vec3,
+    size: wp.vec3,
+    response: wp.vec2,
+    p: wp.vec3,
+    vp: wp.vec3,
+    v_body: wp.vec3,
+    m: float,
+    dt: float,
+):
+    """A static collider's penalty force ``k pen n`` and matrix term on a point of mass ``m`` (both zero if none).
+
+    The collider (stiffness k per unit mass and friction mu in ``response``) acts on a point below its
+    surface, or about to cross it within this step at its own speed or at its body's, which drags it along
+    (speculative contact): the penalty k m depth n, dt^2 k m n n^T in the matrix (above the surface only this
+    velocity term acts, which damps the approach and never attracts), and implicit friction dt c (I - n n^T),
+    c = mu k m depth / |v_t|.
+    """
+    dn = collider_distance(kind, center, size, p)
+    n = wp.vec3(dn[1], dn[2], dn[3])
+    depth = -dn[0]
+    force = wp.vec3()
+    block = wp.mat33()
+    if depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0:
+        k = response[0] * m
+        pen = wp.max(depth, 0.0)
+        force = k * pen * n
+        nn = wp.outer(n, n)
+        vt = vp - wp.dot(vp, n) * n
+        c = response[1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
+        block = dt * dt * k * nn + dt * c * (wp.identity(n=3, dtype=float) - nn)
+    return force, block
 
 
 @wp.kernel
@@ -96,10 +133,8 @@ def build_system(
 ):
     """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
 
-    A collider (stiffness k per unit mass and friction mu in ``collider_response``) acts on a vertex below its
-    surface, or about to cross it within this step (speculative contact): the penalty k m depth n on the
-    right-hand side, dt^2 k m n n^T in the matrix (above the surface only this velocity term acts, which damps
-    the approach and never attracts), and implicit friction dt c (I - n n^T), c = mu k m depth / |v_t|.
+    Each static collider acts on the vertex as :func:`static_contact` says: its force on the right-hand side,
+    its matrix term in the diagonal block.
     """
     i = wp.tid()
     m = mass[i]
@@ -113,18 +148,11 @@ def build_system(
     b = vertex_body[i]
     v_body = body_momentum[b] / body_mass[b]
     for o in range(collider_kind.shape[0]):
-        dn = collider_distance(collider_kind[o], collider_center[o], collider_size[o], xi)
-        n = wp.vec3(dn[1], dn[2], dn[3])
-        depth = -dn[0]
-        # speculative: about to cross within the step at its own speed or at its body's (which drags it along)
-        if depth - dt * wp.min(wp.dot(n, vi), wp.dot(n, v_body)) > 0.0:
-            k = collider_response[o][0] * m
-            pen = wp.max(depth, 0.0)
-            rhs += dt * k * pen * n
-            nn = wp.outer(n, n)
-            vt = vi - wp.dot(vi, n) * n
-            c = collider_response[o][1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
-            block += dt * dt * k * nn + dt * c * (ident - nn)
+        f, s = static_contact(
+            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], xi, vi, v_body, m, dt
+        )
+        rhs += dt * f
+        block += s
 
     matrix_out[slot] = block
     if free[i] == 0:
@@ -178,34 +206,35 @@ def skin_colliders(
 ):
     """The static colliders acting on the skin: dense vertices that lie outside the coarse tets.
 
-    The same speculative penalty and friction as :func:`build_system` gives a vertex, at a point embedded in
-    a tet (``x_p = sum w_k x_k``): its force goes to the corners by the weights ``w`` and its matrix term
-    ``S`` to the tet's blocks as ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
+    The same :func:`static_contact` as a vertex gets, at a point embedded in a tet (``x_p = sum w_k x_k``):
+    its force goes to the corners by the weights ``w`` and its matrix term ``S`` to the tet's blocks as
+    ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
     negative; the term stays symmetric positive semi-definite).
     """
     i = wp.tid()
     e = skin_tet[i]
     t = tets[e]
     w = skin_bary[i]
-    xp = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]] + w[3] * x[t[3]]
-    vp = w[0] * v[t[0]] + w[1] * v[t[1]] + w[2] * v[t[2]] + w[3] * v[t[3]]
-    ident = wp.identity(n=3, dtype=float)
+    xp = interpolate(x, t, w)
+    vp = interpolate(v, t, w)
     body = tet_body[e]
     v_body = body_momentum[body] / body_mass[body]
     for o in range(collider_kind.shape[0]):
-        dn = collider_distance(collider_kind[o], collider_center[o], collider_size[o], xp)
-        n = wp.vec3(dn[1], dn[2], dn[3])
-        depth = -dn[0]
-        if depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0:
-            k = collider_response[o][0] * skin_mass[i]
-            pen = wp.max(depth, 0.0)
-            f = k * pen * n
+        f, s = static_contact(
+            collider_kind[o],
+            collider_center[o],
+            collider_size[o],
+            collider_response[o],
+            xp,
+            vp,
+            v_body,
+            skin_mass[i],
+            dt,
+        )
+        if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
-            nn = wp.outer(n, n)
-            vt = vp - wp.dot(vp, n) * n
-            fr = collider_response[o][1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
-            add_symmetric(matrix_out, tet_slots, e, w, dt * dt * k * nn + dt * fr * (ident - nn))
+            add_symmetric(matrix_out, tet_slots, e, w, s)
 
 
 @wp.kernel

@@ -123,7 +123,8 @@ class Solver:
             self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
 
         def solve() -> None:
-            integrate.body_momentum(model, state_in, self.momentum)
+            if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
+                integrate.body_momentum(model, state_in, self.momentum)
             integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix)
             integrate.build_system(
                 model,
