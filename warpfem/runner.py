@@ -119,16 +119,25 @@ def run(
             raise InputError(f"frames must be >= 1, got {frames}")
         scene = scene.with_frames(frames)
     out = Path(out)
-    if out.suffix.lower() not in (".usdc", ".usda", ".usd"):
-        raise InputError(f"{out}: the output must end in .usdc or .usda")
-    if not out.resolve().parent.is_dir():
-        raise InputError(f"{out}: folder {out.resolve().parent} does not exist")
-    if out.exists() and not overwrite:
-        raise InputError(f"{out}: the file exists; pass overwrite=True to replace it")
+    check_output(out, overwrite)
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise InputError(f"every must be an integer >= 1, got {every!r}")
     sim = Simulation(scene, device=device, cache_dir=cache_dir, cache=cache, progress=progress, warn=warn)
     return record(sim, out, overwrite=overwrite, save_every=save_every, every=every)
+
+
+def check_output(out: Path, overwrite: bool, option: str = "out", overwrite_flag: str = "overwrite=True") -> None:
+    """Raise :class:`InputError` (naming ``option``) before anything runs if ``out`` cannot be written.
+
+    It must end in ``.usdc`` or ``.usda``, its folder exist, and a file there may be replaced only with
+    ``overwrite`` (``overwrite_flag`` names how to ask for it).
+    """
+    if out.suffix.lower() not in (".usdc", ".usda"):
+        raise InputError(f"{option} {out}: the output must end in .usdc or .usda")
+    if not out.resolve().parent.is_dir():
+        raise InputError(f"{option} {out}: folder {out.resolve().parent} does not exist")
+    if out.is_file() and not overwrite:
+        raise InputError(f"{option} {out}: the file exists; pass {overwrite_flag} to replace it")
 
 
 def record(

@@ -140,8 +140,7 @@ class Simulation:
     ) -> None:
         self.scene = scene
         self.warn = warn
-        if device is not None:
-            _check_device(device)
+        check_device(device)
         dev = wp.get_device(device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
         clock = time.perf_counter()
         folder = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) if cache else None
@@ -380,10 +379,12 @@ class Simulation:
             self.warn(message)
 
 
-def _check_device(name: str) -> None:
-    """Raise :class:`InputError` if ``name`` is not a Warp device here."""
+def check_device(name: str | None, option: str = "device") -> None:
+    """Raise :class:`InputError` naming ``option`` if ``name`` is not a Warp device here (None: the default)."""
+    if name is None:
+        return
     try:
         wp.get_device(name)
     except (ValueError, RuntimeError):
         available = ", ".join(d.alias for d in wp.get_devices())
-        raise InputError(f"device {name}: no such device (available: {available})") from None
+        raise InputError(f"{option} {name}: no such device (available: {available})") from None

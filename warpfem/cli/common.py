@@ -101,16 +101,10 @@ def cache_dir_of(args: argparse.Namespace) -> Path | None:
 
 
 def check_device(name: str | None) -> None:
-    """Raise :class:`InputError` if ``name`` is not a Warp device here (None: the default, always fine)."""
-    import warp as wp
+    """Raise :class:`InputError` naming ``--device`` if ``name`` is not a Warp device here (None: fine)."""
+    from warpfem.simulation import check_device as check
 
-    if name is None:
-        return
-    try:
-        wp.get_device(name)
-    except (ValueError, RuntimeError):
-        available = ", ".join(d.alias for d in wp.get_devices())
-        raise InputError(f"--device {name}: no such device (available: {available})") from None
+    check(name, "--device")
 
 
 def add_output_flags(parser: argparse.ArgumentParser, progress: bool = True) -> None:

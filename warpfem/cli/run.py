@@ -172,6 +172,7 @@ def _identity(path: Path | None) -> tuple[int, int, int] | None:
 def main(args: argparse.Namespace) -> int:
     """Run the scene named by ``args``; returns the exit code."""
     from warpfem.io.render import parse_size, preview_kind
+    from warpfem.runner import check_output
     from warpfem.scene import default_scene_path, load_scene
 
     scene = load_scene(args.scene or default_scene_path())
@@ -180,13 +181,9 @@ def main(args: argparse.Namespace) -> int:
             raise InputError(f"--frames must be >= 1, got {args.frames}")
         scene = scene.with_frames(args.frames)
     out = args.out or Path(Path(scene.path).stem + ".usdc")
-    if out.suffix not in (".usdc", ".usda"):
-        raise InputError(f"--out {out}: the output must end in .usdc or .usda")
-    if not out.resolve().parent.is_dir():
-        raise InputError(f"--out {out}: folder {out.resolve().parent} does not exist")
-    for option, path in (("--out", out), ("--preview", args.preview)):
-        if path is not None and path.is_file() and not args.overwrite:
-            raise InputError(f"{option} {path}: the file exists; pass --overwrite to replace it")
+    check_output(out, args.overwrite, "--out", "--overwrite")
+    if args.preview is not None and args.preview.is_file() and not args.overwrite:
+        raise InputError(f"--preview {args.preview}: the file exists; pass --overwrite to replace it")
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
     if not (args.save_every >= 0 and args.save_every < float("inf")):
