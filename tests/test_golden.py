@@ -1,7 +1,7 @@
 """`warpfem run` reproduces a reference run: two balls landing on the ground and on each other (CPU).
 
-The reference (tests/data/golden/two_balls_frames.npz) was written by the code of the commit that last changed
-the physics on purpose (static colliders acting on the dense skin); such a change regenerates it and says so.
+The reference (tests/data/golden/two_balls_frames.npz) is a run of the current physics: a change that alters
+the physics on purpose regenerates it and says so in its commit; any other change must leave it as it is.
 """
 
 from pathlib import Path
@@ -38,4 +38,12 @@ def test_every_nth_frame_writes_those_frames_of_the_same_run(tmp_path):
     assert attr.GetTimeSamples() == [0.0, 3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 20.0]
     reference = np.load(GOLDEN / "two_balls_frames.npz")
     np.testing.assert_allclose(np.array(attr.Get(20)), reference["top_20"], rtol=0, atol=1e-6)
-    assert main([*args, "--every", "0", "--overwrite"]) == 2
+
+
+def test_every_below_one_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "none.usdc"
+    args = ["run", str(GOLDEN / "two_balls.toml"), "--out", str(out), "--device", "cpu", "--no-cache", "--every", "0"]
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warpfem:")]
+    assert len(err) == 1 and "--every must be >= 1" in err[0]
+    assert list(tmp_path.iterdir()) == []

@@ -51,3 +51,14 @@ def test_a_tetrahedron_in_one_strip_is_closed_and_consistently_wound(tmp_path):
     mesh = trimesh.Trimesh(surface.vertices, surface.faces, process=False)
     assert len(surface.faces) == 4 and mesh.is_watertight and mesh.is_winding_consistent
     assert mesh.volume == pytest.approx(1 / 6)
+
+
+def test_a_truncated_strip_file_is_a_one_line_error(tmp_path):
+    from warpfem.errors import InputError
+
+    path = tmp_path / "cut.ply"
+    _write_ply(path, np.eye(3), [np.array([0, 1, 2])], binary=True)
+    path.write_bytes(path.read_bytes()[:-6])  # the strip's indices cut short
+    with pytest.raises(InputError, match="cut.ply: unreadable mesh file") as err:
+        load_surface(path)
+    assert "\n" not in str(err.value)

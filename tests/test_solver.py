@@ -216,7 +216,7 @@ def test_a_body_landing_fast_stays_within_a_fraction_of_a_step_of_the_ground(dev
     for _ in range(30):
         sim.step_frame()
         deepest = max(deepest, -float(sim.state().x.numpy()[:, 1].min()))
-    assert deepest < 5.0 / 240.0 / 3.0, deepest  # before the body speed counted: two steps (42.6 mm)
+    assert deepest < 5.0 / 240.0 / 3.0, deepest
 
 
 def test_the_visible_surface_rests_on_the_ground_where_it_bulges_out_of_the_tets(device):

@@ -85,3 +85,31 @@ def test_a_scene_object_from_usd_runs(tmp_path):
     trimesh.creation.box().export(tmp_path / "box.obj")
     with pytest.raises(InputError, match="prim"):
         warpfem.Scene.from_dict({**doc, "object": [{**doc["object"][0], "mesh": "box.obj"}]}, base_dir=tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('#usda 1.0\ndef Mesh "M" {\n  point3f[] points = [(0, 0\n', "unreadable USD file"),
+        ('#usda 1.0\ndef Xform "World" {}\n', "no UsdGeom.Mesh"),
+        (
+            '#usda 1.0\ndef Mesh "M" {\n  int[] faceVertexCounts = [2]\n  int[] faceVertexIndices = [0, 1]\n'
+            "  point3f[] points = [(0, 0, 0), (1, 0, 0)]\n}\n",
+            "no faces, or faces of fewer than 3",
+        ),
+        (
+            '#usda 1.0\ndef Mesh "M" {\n  int[] faceVertexCounts = [3, 3, 3, 3]\n'
+            "  int[] faceVertexIndices = [0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3]\n"
+            "  point3f[] points = [(0, 0, 0), (1, 0, 0), (0, nan, 0), (0, 0, 1)]\n}\n",
+            "NaN or Inf",
+        ),
+    ],
+)
+def test_broken_usd_meshes_are_one_line_errors(tmp_path, capsys, text, message):
+    from warpfem.cli import main
+
+    (tmp_path / "bad.usda").write_text(text)
+    assert main(["prepare", str(tmp_path / "bad.usda"), "--no-cache"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warpfem:")]
+    assert len(err) == 1 and "bad.usda" in err[0] and message in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.usda"]
