@@ -25,10 +25,10 @@ if TYPE_CHECKING:
     from warpfem.prep.pipeline import PreparedBody
     from warpfem.scene import Scene
 
-VERTEX_BYTES = 280
+VERTEX_BYTES = 284
 """Device bytes per tet vertex: rest/initial x and v, 2 states (x, v, dv), mass, damping, pins, depth and gradient,
 CSR row and diagonal slot, force, rhs, CG direction, inverse diagonal block, 5 CG vectors and zero ones,
-collision gradient."""
+collision gradient, body index."""
 
 TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
@@ -42,8 +42,9 @@ GATHER_BLOCK_BYTES = 18
 counted there on the CPU too, an upper bound): the entries (column and slot, about 1.9 per stored block: the
 block and its mirror) and their longer chunk table."""
 
-DENSE_BYTES = 32
-"""Device bytes per dense vertex: embedding tet and barycentric weights, mapped position."""
+DENSE_BYTES = 56
+"""Device bytes per dense vertex at most: embedding tet and barycentric weights, mapped position, and where it
+lies outside the tets, its skin point's tet, weights and mass."""
 
 POINT_BYTES = 40
 """Model bytes per collision point: tet, weights, anchors, body, mass (allocated even without collisions)."""
