@@ -2,15 +2,18 @@
 
 Depth and direction: in a tet touching the body's surface (a corner on it), the point's distance below the
 plane of the surface face it came in through (of the faces around the tet's corners, the one it was outside
-of a step ago, relative to the tet; else the nearest), along that face's current outward normal: flat on
-faces, so a body resting on a face is pushed straight out, not sideways by the averaged normals at edges;
-in a tet deep inside, the paper's interpolated distance field and rotated gradients.
+of a step ago, relative to the tet; else the nearest), corrected by how far that face lies outside the
+visible surface, along that face's current outward normal: flat on faces, so a body resting on a face is
+pushed straight out, not sideways by the averaged normals at edges; in a tet deep inside, the paper's
+interpolated distance field and rotated gradients. The distance field is the depth below the visible
+(dense) surface, so contacts start where the visible surfaces meet, not at the coarse cage around them.
 
-Collision points are the coarse surface vertices of every colliding body plus optional surface samples
-(points embedded in a tet with barycentric weights, like the dense vertices), so thin parts whose vertices
-never enter another body are still caught. A point ``p`` inside tet ``t`` of another body (or of its own
-body, outside ``t``'s one-ring) gets the penalty force ``f = a d g`` with depth ``d`` and direction ``g``
-interpolated from ``t``'s vertex depths and rotated gradients (Kondo & Kanai, after Fisher & Lin); the
+Collision points are samples of each body's dense surface (embedded in a tet with barycentric weights,
+like every dense vertex), or, for a bare tet mesh, its surface vertices plus optional samples on its
+surface triangles, so thin parts whose vertices never enter another body are still caught. A point ``p``
+inside tet ``t`` of another body (or of its own body, outside ``t``'s one-ring) gets the penalty force
+``f = a d g`` with depth ``d`` and direction ``g`` interpolated from ``t``'s vertex depths and rotated gradients
+(Kondo & Kanai, after Fisher & Lin); the
 reaction ``-f`` goes to ``t``'s corners by the barycentric weights, so momentum is conserved. Implicitly,
 the contact is a spring along ``g`` between the point and its image in ``t``: row ``J`` of the constraint
 ``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product
@@ -73,12 +76,58 @@ def near_tet(
     return False
 
 
+LATTICE = 4
+"""Lattice divisions of a surface face (``warpfem.prep.geometry.LATTICE``)."""
+
+LATTICE_POINTS = 15
+
+
 @wp.func
-def face_plane_depth(x: wp.array(dtype=wp.vec3), face: wp.vec3i, q: wp.vec3) -> wp.vec4:
-    """Depth of ``q`` below the plane of an outward-wound surface face (m) and the face's outward normal."""
+def lattice_index(i: int, j: int) -> int:
+    """Position of lattice point (i, j) in a face's row-by-row list."""
+    return i * (LATTICE + 1) - i * (i - 1) // 2 + j
+
+
+@wp.func
+def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2: float) -> float:
+    """The face's lattice depths interpolated (linearly on the lattice's triangles) at weights w1, w2."""
+    u = w1 * float(LATTICE)
+    v = w2 * float(LATTICE)
+    i = wp.min(int(u), LATTICE - 1)
+    j = wp.min(int(v), LATTICE - 1 - i)
+    fu = u - float(i)
+    fv = v - float(j)
+    base = face_id * LATTICE_POINTS
+    d00 = face_depth[base + lattice_index(i, j)]
+    d10 = face_depth[base + lattice_index(i + 1, j)]
+    d01 = face_depth[base + lattice_index(i, j + 1)]
+    if fu + fv <= 1.0:
+        return (1.0 - fu - fv) * d00 + fu * d10 + fv * d01
+    d11 = face_depth[base + lattice_index(i + 1, j + 1)]
+    return (fu + fv - 1.0) * d11 + (1.0 - fv) * d10 + (1.0 - fu) * d01
+
+
+@wp.func
+def face_plane_depth(
+    x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face_id: int, face: wp.vec3i, q: wp.vec3
+) -> wp.vec4:
+    """Depth of ``q`` below the visible surface near an outward-wound surface face (m), and the face's normal.
+
+    The depth below the face's plane, plus the visible surface's depth below the face at ``q``'s projection
+    (interpolated on the face's lattice: negative where the face is part of a cage around a dense surface,
+    zero where the face is the visible surface).
+    """
     a = x[face[0]]
-    n = wp.normalize(wp.cross(x[face[1]] - a, x[face[2]] - a))
-    return wp.vec4(wp.dot(n, a - q), n[0], n[1], n[2])
+    e1 = x[face[1]] - a
+    e2 = x[face[2]] - a
+    c = wp.cross(e1, e2)
+    n = wp.normalize(c)
+    r = q - a
+    area2 = wp.dot(c, c)
+    w1 = wp.clamp(wp.dot(wp.cross(r, e2), c) / area2, 0.0, 1.0)
+    w2 = wp.clamp(wp.dot(wp.cross(e1, r), c) / area2, 0.0, 1.0 - w1)
+    offset = lattice_depth(face_depth, face_id, w1, w2)
+    return wp.vec4(wp.dot(n, a - q) + offset, n[0], n[1], n[2])
 
 
 @wp.kernel
@@ -233,6 +282,8 @@ def record_contact(
     tets: wp.array(dtype=wp.vec4i),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
     point_velocity: wp.array(dtype=wp.vec3),
     point_anchor: wp.array(dtype=wp.vec3i),
     row_start: wp.array(dtype=wp.int32),
@@ -271,7 +322,7 @@ def record_contact(
         nearest = float(1.0e30)
         g_near = wp.vec3()
         for f in range(f0, f1):
-            dn = face_plane_depth(x, tet_faces[f], q)
+            dn = face_plane_depth(x, face_depth, tet_face_ids[f], tet_faces[f], q)
             n_f = wp.vec3(dn[1], dn[2], dn[3])
             before = dn[0] - wp.dot(n_f, step)  # depth below this face one step ago
             if before <= 0.0 and before > entered:
@@ -355,6 +406,8 @@ def walk_tree(
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
     point_velocity: wp.array(dtype=wp.vec3),
     point_anchor: wp.array(dtype=wp.vec3i),
     row_start: wp.array(dtype=wp.int32),
@@ -422,6 +475,8 @@ def walk_tree(
                         tets,
                         tet_face_start,
                         tet_faces,
+                        tet_face_ids,
+                        face_depth,
                         point_velocity,
                         point_anchor,
                         row_start,
@@ -461,6 +516,8 @@ def detect_contacts(
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
     points: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
     point_body: wp.array(dtype=wp.int32),
@@ -507,7 +564,8 @@ def detect_contacts(
             continue
         walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-            tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
+            tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity, point_anchor,
+                    row_start, cols,
             depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
             contact_normal_out, contact_depth_out, stats_out,
         )  # fmt: skip
@@ -531,6 +589,8 @@ def detect_contacts_direct(
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
     points: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
     point_body: wp.array(dtype=wp.int32),
@@ -570,8 +630,9 @@ def detect_contacts_direct(
             if candidate % lanes == lane and (self_ok or not same):
                 walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    tet_inverse, tet_origin, tet_face_start, tet_faces, point_velocity, point_anchor, row_start, cols,
-                    depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity,
+                    point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out,
+                    contact_tet_out, contact_bary_out,
                     contact_normal_out, contact_depth_out, stats_out,
                 )  # fmt: skip
 

@@ -1,4 +1,4 @@
-"""Distance field at tet vertices (Fisher & Lin 2001): depth below the surface and its outward gradient."""
+"""Distance field at tet vertices (Fisher & Lin 2001): signed depth below the surface and its outward gradient."""
 
 import warp as wp
 
@@ -14,24 +14,29 @@ def surface_distance(
     depth_out: wp.array(dtype=float),
     grad_out: wp.array(dtype=wp.vec3),
 ):
-    """Unsigned distance from each point to the surface mesh and the unit direction out of the body.
+    """Signed depth of each point below the surface mesh (negative outside) and the unit direction out of it.
 
-    Away from the surface the direction is from the point to its closest surface point; within
-    ``on_surface`` of it (depth set to 0) it is the vertex normals interpolated at the closest point.
+    The side comes from the generalized winding number. Away from the surface the direction is along the
+    line to the closest surface point, pointing out of the body; within ``on_surface`` of it (depth set to 0)
+    it is the vertex normals interpolated at the closest point. Depth -1e30 where no face is in reach.
     """
     i = wp.tid()
     p = points[i]
-    hit = wp.mesh_query_point_no_sign(surface, p, max_dist)
+    hit = wp.mesh_query_point_sign_winding_number(surface, p, max_dist)
     if not hit.result:
-        depth_out[i] = -1.0
+        depth_out[i] = -1.0e30
         grad_out[i] = wp.vec3(0.0)
         return
     closest = wp.mesh_eval_position(surface, hit.face, hit.u, hit.v)
     offset = closest - p
-    depth = wp.length(offset)
-    if depth > on_surface:
-        depth_out[i] = depth
-        grad_out[i] = offset / depth
+    dist = wp.length(offset)
+    if dist > on_surface:
+        if hit.sign < 0.0:
+            depth_out[i] = dist
+            grad_out[i] = offset / dist
+        else:
+            depth_out[i] = -dist
+            grad_out[i] = -offset / dist
     else:
         w = 1.0 - hit.u - hit.v
         n = (

@@ -112,6 +112,7 @@ def build_system(
     alpha: wp.array(dtype=float),
     free: wp.array(dtype=wp.int32),
     diag_slot: wp.array(dtype=wp.int32),
+    vertex_depth: wp.array(dtype=float),
     # inputs: forces and parameters
     force: wp.array(dtype=wp.vec3),
     gravity: wp.array(dtype=wp.vec3),
@@ -134,7 +135,8 @@ def build_system(
     """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
 
     Each static collider acts on the vertex as :func:`static_contact` says: its force on the right-hand side,
-    its matrix term in the diagonal block.
+    its matrix term in the diagonal block; not on a vertex outside the visible surface (a corner of the cage
+    around a dense surface, whose samples meet the colliders instead).
     """
     i = wp.tid()
     m = mass[i]
@@ -147,12 +149,13 @@ def build_system(
 
     b = vertex_body[i]
     v_body = body_momentum[b] / body_mass[b]
-    for o in range(collider_kind.shape[0]):
-        f, s = static_contact(
-            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], xi, vi, v_body, m, dt
-        )
-        rhs += dt * f
-        block += s
+    if vertex_depth[i] >= 0.0:
+        for o in range(collider_kind.shape[0]):
+            f, s = static_contact(
+                collider_kind[o], collider_center[o], collider_size[o], collider_response[o], xi, vi, v_body, m, dt
+            )
+            rhs += dt * f
+            block += s
 
     matrix_out[slot] = block
     if free[i] == 0:

@@ -3,6 +3,7 @@
 import sys
 from collections import Counter
 
+import igl
 import numpy as np
 import pytest
 import trimesh
@@ -97,9 +98,18 @@ def test_prepare_builds_a_consistent_body(ellipsoid_file):
     np.testing.assert_array_equal(body.tet_vertices[body.boundary_faces], body.coarse_vertices[body.coarse_faces])
     rebuilt = np.einsum("nk,nkj->nj", body.embed_bary, body.tet_vertices[body.tets[body.embed_tet]])
     np.testing.assert_allclose(rebuilt, body.dense_vertices, atol=1e-9)
-    # a convex dense surface slightly outside its coarse simplification: some vertices extrapolate
-    assert 0.0 < body.stats["embedding_coverage"] < 1.0
-    assert np.all(body.vertex_depth >= 0) and body.vertex_depth[: len(body.coarse_vertices)].max() == 0
+    # QEM leaves the convex dense surface partly outside; the cage pushed out of it holds every dense vertex
+    assert body.stats["embedding_coverage"] == 1.0 and body.stats["cage_outside"] == 0.0
+    assert body.stats["cage_volume_ratio"] > body.stats["volume_ratio"]
+    winding = igl.fast_winding_number(body.coarse_vertices, body.coarse_faces.astype(np.int64), body.dense_vertices)
+    assert winding.min() > 0.5
+    # the distance field is the signed depth below the dense surface (reference: libigl's exact distance,
+    # the side from its winding number)
+    faces = body.dense_faces.astype(np.int64)
+    squared, _, _ = igl.point_mesh_squared_distance(body.tet_vertices, body.dense_vertices, faces)
+    inside = igl.fast_winding_number(body.dense_vertices, faces, body.tet_vertices) > 0.5
+    np.testing.assert_allclose(body.vertex_depth, np.where(inside, 1, -1) * np.sqrt(squared), atol=1e-6)
+    assert body.vertex_depth[: len(body.coarse_vertices)].max() <= 1e-6 < -body.vertex_depth.min()
     np.testing.assert_allclose(np.linalg.norm(body.vertex_grad, axis=1), 1.0, atol=1e-9)
 
 
@@ -181,9 +191,10 @@ def test_stats_report_quality_volume_and_hausdorff(ellipsoid_file):
     assert body.stats["tet_min_radius_ratio"] == pytest.approx(ratio.min(), rel=1e-6)
     assert 0 < ratio.min() <= 1
     dense = trimesh.Trimesh(body.dense_vertices, body.dense_faces, process=False)
-    assert body.stats["volume_ratio"] == pytest.approx(
+    assert body.stats["cage_volume_ratio"] == pytest.approx(
         tet_signed_volumes(body.tet_vertices, body.tets).sum() / dense.volume, rel=1e-9
     )
+    assert body.stats["volume_ratio"] == pytest.approx(0.98, abs=0.02)  # QEM's surface, before the cage
     # libigl's Hausdorff distance (vertex-based) as the independent reference
     reference = igl.hausdorff(
         body.dense_vertices, body.dense_faces.astype(np.int64), body.coarse_vertices, body.coarse_faces.astype(np.int64)

@@ -85,7 +85,10 @@ def test_prepare_meshes_two_disjoint_shells_as_one_body(tmp_path):
     centroids = body.tet_vertices[body.tets].mean(axis=1)
     right = centroids[:, 0] > 1.25
     assert right.any() and (~right).any()  # both shells are filled
-    assert volumes.sum() == pytest.approx(a.volume + b.volume, rel=0.05)
+    # the tets fill the cage around both dense shells; QEM's surface before it kept their volume
+    assert body.stats["volume_ratio"] == pytest.approx(1.0, abs=0.05)
+    assert volumes.sum() == pytest.approx((a.volume + b.volume) * body.stats["cage_volume_ratio"], rel=1e-6)
+    assert 1.0 < body.stats["cage_volume_ratio"] < 1.1
     assert len(boundary_faces(body.tets)) == len(body.coarse_faces)
 
 

@@ -70,7 +70,8 @@ def prepare_scene(
 def placed_geometry(obj: ObjectConfig, prepared: PreparedBody) -> tuple[np.ndarray, BodyGeometry]:
     """The tet vertices of a prepared body placed in the world (scale, rotate, translate), and its geometry."""
     rot = euler_rotation(obj.rotate)
-    tet_x = obj.scale * prepared.tet_vertices @ rot.T + np.asarray(obj.translate, dtype=np.float64)
+    move = np.asarray(obj.translate, dtype=np.float64)
+    tet_x = obj.scale * prepared.tet_vertices @ rot.T + move
     geometry = body_geometry(
         tet_x,
         prepared.tets,
@@ -78,6 +79,8 @@ def placed_geometry(obj: ObjectConfig, prepared: PreparedBody) -> tuple[np.ndarr
         surface_faces=prepared.boundary_faces,
         vertex_depth=obj.scale * prepared.vertex_depth,
         vertex_grad=prepared.vertex_grad @ rot.T,
+        dense=(obj.scale * prepared.dense_vertices @ rot.T + move, prepared.embed_tet, prepared.embed_bary),
+        face_depth=obj.scale * prepared.face_depth,
     )
     return tet_x, geometry
 
@@ -97,7 +100,8 @@ def add_prepared_body(
         geometry,
         young=obj.young,
         poisson=obj.poisson,
-        density=obj.density,
+        # the tets fill the cage, a little more than the visible surface holds: the body keeps its mass
+        density=obj.density / float(prepared.stats.get("cage_volume_ratio", 1.0)),
         damping_mass=obj.damping_mass,
         damping_stiffness=obj.damping_stiffness,
         velocity=initial_velocity(tet_x, prepared.tets, obj.velocity, obj.angular_velocity),

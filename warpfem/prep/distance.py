@@ -1,8 +1,9 @@
 """Distance field stored at the tet vertices (Kondo & Kanai step 4, after Fisher & Lin 2001).
 
-Every tet vertex gets its unsigned distance to the coarse surface (its depth inside the body) and the
-unit gradient of that distance, pointing out of the body. Collision response interpolates both with the
-barycentric coordinates of a penetrating vertex.
+Every tet vertex gets its signed depth below the dense (visible) surface, negative for the vertices of the
+coarse cage that lie outside it, and the unit gradient of that distance, pointing out of the body.
+Collision response interpolates both with the barycentric coordinates of a penetrating point, so a
+contact starts where the visible surfaces meet.
 """
 
 from __future__ import annotations
@@ -23,19 +24,19 @@ Warp's mesh queries run in float32 (relative precision ~1e-7), so this is the ti
 def distance_field(
     tet_vertices: np.ndarray, surface_vertices: np.ndarray, surface_faces: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Return the depth and outward unit gradient of the distance to the surface at every tet vertex.
+    """Return the signed depth and outward unit gradient of the distance to the surface at every tet vertex.
 
-    Computed by a Warp kernel over ``wp.Mesh`` closest-point queries on the CPU device.
+    Computed by a Warp kernel over ``wp.Mesh`` closest-point and winding-number queries on the CPU device.
 
     Args:
-        tet_vertices: (p, 3) positions (inside or on the surface), in mesh units.
+        tet_vertices: (p, 3) positions, in mesh units.
         surface_vertices: (n, 3) positions of the closed, outward-wound surface.
         surface_faces: (m, 3) triangles of the surface.
 
     Returns:
-        ``(depth, grad)``: (p,) float64 unsigned distances in mesh units (0 on the surface) and (p, 3)
-        float64 unit vectors: towards the closest surface point for interior vertices, the area-weighted
-        vertex normal (interpolated at the closest point) for vertices on the surface.
+        ``(depth, grad)``: (p,) float64 distances in mesh units, positive inside, negative outside, 0 on the
+        surface; and (p, 3) float64 unit vectors out of the body: along the line to the closest surface
+        point, or the area-weighted vertex normal (interpolated at the closest point) on the surface.
     """
     x = np.asarray(tet_vertices, dtype=np.float64)
     sv = np.asarray(surface_vertices, dtype=np.float64)
@@ -43,7 +44,7 @@ def distance_field(
     diag = float(np.linalg.norm(sv.max(axis=0) - sv.min(axis=0)))
     with wp.ScopedDevice("cpu"):
         indices = wp.array(faces.reshape(-1), dtype=wp.int32)
-        mesh = wp.Mesh(points=wp.array(sv, dtype=wp.vec3), indices=indices)
+        mesh = wp.Mesh(points=wp.array(sv, dtype=wp.vec3), indices=indices, support_winding_number=True)
         depth = wp.empty(len(x), dtype=float)
         grad = wp.empty(len(x), dtype=wp.vec3)
         wp.launch(
@@ -61,7 +62,7 @@ def distance_field(
         )
         depth_np = depth.numpy().astype(np.float64)
         grad_np = grad.numpy().astype(np.float64)
-    if np.any(depth_np < 0):
+    if np.any(depth_np < -1e29):
         raise ValueError("distance query found no surface face for some tet vertices")
     grad_np /= np.linalg.norm(grad_np, axis=1, keepdims=True)
     return depth_np, grad_np

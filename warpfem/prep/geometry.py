@@ -1,8 +1,9 @@
 """Build-time geometry of a body that the simulation model receives as arrays.
 
 For a tet mesh placed in the world: its outward boundary faces, the distance field at its vertices, the
-collision points (surface vertices, plus samples on the surface triangles for thin parts), the surface
-faces near each tet (where a contact measures its depth) and the tree of tet boxes contact detection walks.
+collision points, the surface faces near each tet (where a contact measures its depth) and the tree of tet
+boxes contact detection walks. A body with a dense (visible) surface collides with samples of that
+surface; a bare tet mesh with its surface vertices, plus samples on its surface triangles for thin parts.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ class BodyGeometry:
         tet_faces: Indices into ``surface_faces`` of the faces touching each tet's corners.
         leaf_tets: (L, 4) int32 tets of each leaf of the body's tree (-1: none); L is a power of two and the
             tree is complete, in heap order (node k has children 2k+1 and 2k+2, the leaves last).
+        face_depth: (l, :data:`LATTICE_POINTS`) depth below the visible surface at each surface face's
+            lattice points (:func:`face_lattice`), m; zeros where the face is the visible surface.
+        dense_points: Whether the collision points sample the dense surface: each then carries an equal
+            share of the body's mass and the static colliders (ground, obstacles) act on them too.
     """
 
     surface_faces: np.ndarray
@@ -51,6 +56,34 @@ class BodyGeometry:
     tet_face_start: np.ndarray
     tet_faces: np.ndarray
     leaf_tets: np.ndarray
+    face_depth: np.ndarray
+    dense_points: bool = False
+
+
+LATTICE = 4
+"""Each surface face carries the depth of the visible surface below it at the points of a lattice that
+splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
+middle, which the corners' depths alone miss."""
+
+LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
+
+
+def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The lattice points of every face, (l, LATTICE_POINTS, 3).
+
+    Point (i, j) lies at weights ((m-i-j)/m, i/m, j/m) on the face's corners 0, 1, 2; row by row in i, the
+    order the collision kernels read.
+    """
+    m = LATTICE
+    ij = np.array([(i, j) for i in range(m + 1) for j in range(m + 1 - i)], dtype=np.float64) / m
+    w = np.stack([1.0 - ij[:, 0] - ij[:, 1], ij[:, 0], ij[:, 1]], axis=1)
+    return np.einsum("sk,fkd->fsd", w, np.asarray(vertices, np.float64)[np.asarray(faces)])
+
+
+DEFAULT_SPACING = 0.02
+"""Collision samples of a dense surface every this fraction of the body's bounding-box diagonal, when the
+scene sets no spacing: a crossing of two thin parts then overlaps by at most about a sample gap, 1-2 % of
+the size (docs/decisions.md)."""
 
 
 def body_geometry(
@@ -60,23 +93,35 @@ def body_geometry(
     surface_faces: np.ndarray | None = None,
     vertex_depth: np.ndarray | None = None,
     vertex_grad: np.ndarray | None = None,
+    dense: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    face_depth: np.ndarray | None = None,
 ) -> BodyGeometry:
     """The geometry of a body placed in the world.
 
     Args:
         vertices: (p, 3) tet vertex positions (m).
         tets: (q, 4) positive tets.
-        collision_spacing: Spacing of extra collision samples on the surface (m); 0: vertices only.
+        collision_spacing: Spacing of collision samples (m). With ``dense``: of the dense vertices used as
+            collision points (0: :data:`DEFAULT_SPACING` of the size). Without: of extra samples on the tet
+            mesh's surface triangles (0: its vertices only, the paper's method).
         surface_faces: Outward boundary triangles (default: the tet mesh's boundary).
-        vertex_depth: Distance to the surface at each vertex (m); computed from the surface when not given.
+        vertex_depth: Signed distance below the visible surface at each vertex (m); computed from the tet
+            mesh's surface when not given.
         vertex_grad: Outward unit gradient of that distance; computed when not given.
+        dense: The dense surface as ``(positions (n, 3) m, embedding tets (n,), weights (n, 4))``, or None.
+        face_depth: Depth of the visible surface below each surface face's lattice points (m); zeros
+            (the faces are the visible surface) when not given.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int32)
     faces = boundary_faces(tets) if surface_faces is None else np.asarray(surface_faces, np.int32)
     if vertex_depth is None or vertex_grad is None:
         vertex_depth, vertex_grad = distance_field(vertices, vertices, faces)
-    points = surface_points(tets, faces, vertices, collision_spacing)
+    if dense is None:
+        points = surface_points(tets, faces, vertices, collision_spacing)
+    else:
+        size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        points = dense_samples(*dense, tets, collision_spacing or DEFAULT_SPACING * size)
     start, flat = tet_surface_faces(tets, faces, len(vertices))
     return BodyGeometry(
         surface_faces=faces,
@@ -88,6 +133,8 @@ def body_geometry(
         tet_face_start=start,
         tet_faces=flat,
         leaf_tets=tet_tree(tets, vertices),
+        face_depth=np.zeros((len(faces), LATTICE_POINTS)) if face_depth is None else np.asarray(face_depth, np.float64),
+        dense_points=dense is not None,
     )
 
 
@@ -186,6 +233,20 @@ def surface_points(
         bary=np.concatenate(bary),
         anchor=np.concatenate(anchor).astype(np.int32),
     )
+
+
+def dense_samples(
+    positions: np.ndarray, embed_tet: np.ndarray, embed_bary: np.ndarray, tets: np.ndarray, spacing: float
+) -> CollisionPoints:
+    """Dense vertices about ``spacing`` apart (one per cell of a grid of that spacing), as collision points.
+
+    Each keeps its embedding; its anchors, for the self-collision rule, are three corners of its tet.
+    """
+    cell = np.floor((positions - positions.min(axis=0)) / spacing).astype(np.int64)
+    _, pick = np.unique(cell, axis=0, return_index=True)
+    pick = np.sort(pick)
+    tet = np.asarray(embed_tet, np.int32)[pick]
+    return CollisionPoints(tet=tet, bary=np.asarray(embed_bary, np.float64)[pick], anchor=tets[tet][:, :3].copy())
 
 
 def tet_surface_faces(tets: np.ndarray, surface_faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:

@@ -31,9 +31,10 @@ import numpy as np
 
 from warpfem.errors import InputError
 from warpfem.prep.embedding import embed
+from warpfem.prep.geometry import LATTICE_POINTS, face_lattice
 from warpfem.prep.surface import Surface, load_surface, subdivide_surface
 
-CACHE_FORMAT = 2
+CACHE_FORMAT = 3
 """Version of the cache file layout and of the preprocessing algorithm; bump to invalidate old entries."""
 
 INSIDE_EPS = 1e-9
@@ -102,6 +103,8 @@ class PreparedBody:
         embed_bary: (n, 4) float64 barycentric coordinates of each dense vertex in its tet.
         vertex_depth: (p,) float64 distance of each tet vertex to the coarse surface (0 on it).
         vertex_grad: (p, 3) float64 unit gradient of that distance, pointing out of the body.
+        face_depth: (l, 15) float64 depth of the dense surface below the lattice points of each boundary
+            face (:func:`warpfem.prep.geometry.face_lattice`), negative where the cage lies outside it.
         stats: What was made and how long it took (see :func:`prepare`).
     """
 
@@ -116,6 +119,7 @@ class PreparedBody:
     embed_bary: np.ndarray
     vertex_depth: np.ndarray
     vertex_grad: np.ndarray
+    face_depth: np.ndarray
     stats: dict[str, float | int | str]
 
 
@@ -163,6 +167,7 @@ def _read_cache(path: Path) -> PreparedBody | None:
         and arrays["embed_bary"].shape == (n, 4)
         and arrays["vertex_depth"].shape == (p,)
         and arrays["vertex_grad"].shape == (p, 3)
+        and arrays["face_depth"].shape == (len(arrays["boundary_faces"]), LATTICE_POINTS)
         and arrays["tets"].ndim == 2
         and arrays["tets"].shape[1:] == (4,)
     )
@@ -205,14 +210,15 @@ class _Attempt:
     say: Callable[[str], None]
     dense_volume: float
     dense_clean: bool
-    surfaces: dict[tuple, tuple[np.ndarray, np.ndarray, float] | InputError]
+    surfaces: dict[tuple, tuple[np.ndarray, np.ndarray, float, dict[str, float]] | InputError]
     seconds: dict[str, float]
 
-    def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray, float]:
-        """Return the validated coarse surface of ``rung`` and its reference volume.
+    def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray, float, dict[str, float]]:
+        """Return the validated coarse surface of ``rung`` (the cage), its reference volume and cage stats.
 
         The reference is the dense surface's volume, or, for an outer surface made because the dense
-        one intersects itself or has overlapping shells, the volume of that outer surface.
+        one intersects itself or has overlapping shells, the volume of that outer surface. The stats are
+        :func:`warpfem.prep.cage.enclose`'s plus the QEM surface's and the cage's volume over the reference.
 
         Raises:
             InputError: The memoized reason why this rung's surface could not be made or is invalid.
@@ -232,7 +238,8 @@ class _Attempt:
             raise made
         return made
 
-    def _make(self, source: str, target: int, cells: int) -> tuple[np.ndarray, np.ndarray, float]:
+    def _make(self, source: str, target: int, cells: int) -> tuple[np.ndarray, np.ndarray, float, dict[str, float]]:
+        from warpfem.prep.cage import enclose
         from warpfem.prep.intersect import intersecting_faces
         from warpfem.prep.simplify import outer_surface, simplify
         from warpfem.prep.surface import signed_volume
@@ -258,18 +265,23 @@ class _Attempt:
         self.seconds["validate"] = self.seconds.get("validate", 0.0) + time.perf_counter() - clock
         if pairs:
             raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself ({pairs} pairs)")
-        return coarse_v, coarse_f, reference
+        clock = time.perf_counter()
+        self.say(f"{name}: enclosing the dense surface in the coarse one")
+        cage_v, cage = enclose(coarse_v, coarse_f, self.dense.vertices, lambda v, f: intersecting_faces(v, f)[0] > 0)
+        self.seconds["cage"] = self.seconds.get("cage", 0.0) + time.perf_counter() - clock
+        cage["qem_volume_ratio"] = signed_volume(coarse_v, coarse_f) / reference
+        cage["cage_volume_ratio"] = signed_volume(cage_v, coarse_f) / reference
+        return cage_v, coarse_f, reference, cage
 
 
 def _tet_mesh(
     attempt: _Attempt, rung: Rung, maxh: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
     """Run one rung: coarse surface, Netgen, quality and volume checks (raises InputError on failure)."""
-    from warpfem.prep.surface import signed_volume
     from warpfem.prep.tetmesh import tet_quality, tetrahedralize
 
     name = attempt.dense.source
-    coarse_v, coarse_f, reference = attempt.coarse(rung)
+    coarse_v, coarse_f, reference, cage = attempt.coarse(rung)
     diag = float(np.linalg.norm(coarse_v.max(axis=0) - coarse_v.min(axis=0)))
     h = maxh * rung.maxh_factor * diag
     attempt.say(f"{name}: tetrahedralizing {len(coarse_f)} faces (maxh {h:.4g} of a unit diagonal)")
@@ -283,13 +295,19 @@ def _tet_mesh(
     dihedral, ratio = tet_quality(tet_v, tets)
     if dihedral.min() < MIN_DIHEDRAL_DEG:
         raise InputError(f"{name}: worst tet dihedral angle {dihedral.min():.3g} deg is below {MIN_DIHEDRAL_DEG:g}")
-    volume_ratio = signed_volume(coarse_v, coarse_f) / reference
+    volume_ratio = cage["qem_volume_ratio"]
     if not abs(volume_ratio - 1.0) <= VOLUME_TOLERANCE:
-        raise InputError(f"{name}: the tet mesh's volume is {volume_ratio:.3f}x the reference (dense or outer surface)")
+        raise InputError(
+            f"{name}: the simplified surface's volume is {volume_ratio:.3f}x the reference (dense or outer)"
+        )
     quality = {
         "tet_min_dihedral_deg": float(dihedral.min()),
         "tet_min_radius_ratio": float(ratio.min()),
         "volume_ratio": float(volume_ratio),
+        "cage_volume_ratio": float(cage["cage_volume_ratio"]),
+        "cage_offset": float(cage["cage_offset"]),
+        "cage_outside": float(cage["cage_outside"]),
+        "cage_outside_max": float(cage["cage_outside_max"]),
         "maxh_absolute": h,
     }
     return coarse_v, coarse_f, tet_v, tets, quality
@@ -341,7 +359,9 @@ def _build(
 
     clock = time.perf_counter()
     say(f"{name}: distance field at {len(tet_v)} tet vertices")
-    depth, grad = distance_field(tet_v, coarse_v, coarse_f)
+    depth, grad = distance_field(tet_v, unit.vertices, unit.faces)
+    lattice = face_lattice(tet_v, boundary).reshape(-1, 3)
+    face_depth = distance_field(lattice, unit.vertices, unit.faces)[0].reshape(len(boundary), LATTICE_POINTS)
     seconds["distance"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -359,6 +379,8 @@ def _build(
         "tet_vertices": len(tet_v),
         **quality,
         "maxh_absolute": quality["maxh_absolute"] * scale,
+        "cage_offset": quality["cage_offset"] * scale,
+        "cage_outside_max": quality["cage_outside_max"] * scale,
         "hausdorff": max(dense_to_coarse, coarse_to_dense) * scale,
         "hausdorff_relative": max(dense_to_coarse, coarse_to_dense),
         "hausdorff_dense_to_coarse": dense_to_coarse * scale,
@@ -378,6 +400,7 @@ def _build(
         "embed_bary": embed_bary,
         "vertex_depth": depth * scale,
         "vertex_grad": grad,
+        "face_depth": face_depth * scale,
     }
     return arrays, stats
 

@@ -267,6 +267,8 @@ class Collider:
                 self.tet_origin,
                 m.tet_face_start,
                 m.tet_faces,
+                m.tet_face_ids,
+                m.face_depth,
                 points,
                 point_velocity,
                 point_body,

@@ -130,6 +130,7 @@ def build_system(
             model.alpha,
             model.free,
             model.diag_slot,
+            model.vertex_depth,
             force,
             gravity,
             colliders.kind,

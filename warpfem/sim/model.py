@@ -87,22 +87,24 @@ class Model:
     tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e at e*16 + a*4 + b; -1 below the diagonal
     dense_tet: wp.array  # int32, global tet of each dense vertex
     dense_bary: wp.array  # vec4, barycentric coordinates in that tet
-    vertex_depth: wp.array  # float, distance of each tet vertex to its body's surface (m)
+    vertex_depth: wp.array  # float, signed depth of each tet vertex below its body's visible surface (m)
     vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
     tet_body: wp.array  # int32, body of each tet
     vertex_body: wp.array  # int32, body of each tet vertex
     body_mass: wp.array  # float, each body's mass (kg)
     tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
     tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
+    tet_face_ids: wp.array  # int32, the global index of each of those faces
+    face_depth: wp.array  # float (15 per face), depth of the visible surface below each face's lattice points (m)
     body_self: wp.array  # int32, 1 where a body collides with itself
     point_tet: wp.array  # int32, global tet of each collision point
     point_bary: wp.array  # vec4, its barycentric weights there
     point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
     point_body: wp.array  # int32
-    point_mass: wp.array  # float, lumped vertex mass interpolated at each collision point (kg)
-    skin_tet: wp.array  # int32, global tet of each skin point: a dense vertex outside the coarse tets
-    skin_bary: wp.array  # vec4, its (extrapolated) barycentric weights there
-    skin_mass: wp.array  # float, its share of its body's mass (kg): the body's mass over its dense vertices
+    point_mass: wp.array  # float, mass a collision point stands for (kg): a share, or the interpolated lumped mass
+    skin_tet: wp.array  # int32, global tet of each skin point (static colliders): a dense surface sample
+    skin_bary: wp.array  # vec4, its barycentric weights there (extrapolated outside the tets)
+    skin_mass: wp.array  # float, its share of its body's mass (kg)
     tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
     tree_leaf_start: wp.array  # int32 (bodies+1), leaf offsets (a body's leaves are its last nodes)
     tree_leaf_tets: wp.array  # vec4i, global tets of each leaf (-1: none)
@@ -186,9 +188,9 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
 
 
 SKIN_WEIGHT = 1.0e-2
-"""A dense vertex whose most negative barycentric weight is below minus this lies outside the coarse tets: a
-skin point, which the static colliders act on (inside the tets, where the weights are convex, the corners'
-own contacts already keep it out of the ground)."""
+"""For a body whose collision points are not dense surface samples: a dense vertex whose most negative
+barycentric weight is below minus this lies outside the tets, a skin point the static colliders act on
+(inside the tets, where the weights are convex, the corners' own contacts already keep it out of the ground)."""
 
 
 def _checked_tets(
@@ -225,6 +227,7 @@ class BodyArrays(Protocol):
         vertex_grad: (p, 3) outward unit gradient of that distance at rest.
         point_tet, point_bary, point_anchor: Collision points: tet, barycentric weights, vertices they lie on.
         tet_face_start, tet_faces: CSR, the surface faces touching each tet's corners.
+        face_depth: (l, 15) depth of the visible surface below each surface face's lattice points (m).
         leaf_tets: (L, 4) leaves of the body's tree of tets (-1: none), L a power of two.
     """
 
@@ -237,6 +240,7 @@ class BodyArrays(Protocol):
     tet_face_start: np.ndarray
     tet_faces: np.ndarray
     leaf_tets: np.ndarray
+    face_depth: np.ndarray
 
 
 class ModelBuilder:
@@ -300,6 +304,13 @@ class ModelBuilder:
         embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
         embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
         skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
+        skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
+        share = mass.sum() / max(len(embed_tet), 1)
+        point_mass = np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]])
+        if g.dense_points:  # samples of the visible surface: equal shares, and the static colliders' points
+            skin_tet, skin_bary = np.asarray(g.point_tet, np.int32), point_bary
+            share = mass.sum() / max(len(skin_tet), 1)
+            point_mass = np.full(len(skin_tet), share)
         self._bodies.append(
             dict(
                 name=name,
@@ -317,9 +328,9 @@ class ModelBuilder:
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
                 embed_tet=embed_tet,
                 embed_bary=embed_bary,
-                skin_tet=embed_tet[skin],
-                skin_bary=embed_bary[skin],
-                skin_mass=np.full(int(skin.sum()), mass.sum() / max(len(embed_tet), 1)),
+                skin_tet=skin_tet,
+                skin_bary=skin_bary,
+                skin_mass=np.full(len(skin_tet), share),
                 depth=np.asarray(g.vertex_depth, np.float64),
                 grad=np.asarray(g.vertex_grad, np.float64),
                 size=size,
@@ -327,10 +338,11 @@ class ModelBuilder:
                 point_tet=np.asarray(g.point_tet, np.int32),
                 point_bary=point_bary,
                 point_anchor=np.asarray(g.point_anchor, np.int32),
-                point_mass=np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]]),
+                point_mass=point_mass,
                 tet_extent=np.abs(d).max(axis=(1, 2)),
                 surface_faces=np.asarray(g.surface_faces, np.int32),
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
+                face_depth=np.asarray(g.face_depth, np.float64).reshape(-1),
                 leaf_tets=np.asarray(g.leaf_tets, np.int32).reshape(-1, 4),
             )
         )
@@ -378,6 +390,8 @@ class ModelBuilder:
             body_mass=arr_of(np.array([b["mass"].sum() for b in self._bodies], np.float32), float),
             tet_face_start=arr("tet_face_start", wp.int32, i32),
             tet_faces=arr("tet_faces", wp.vec3i, i32),
+            tet_face_ids=arr("tet_face_ids", wp.int32, i32),
+            face_depth=arr("face_depth", float),
             body_self=arr_of(np.array([b["self_collision"] for b in self._bodies], i32), wp.int32),
             point_tet=arr("point_tet", wp.int32, i32),
             point_bary=arr("point_bary", wp.vec4),
@@ -396,7 +410,7 @@ class ModelBuilder:
     def _flatten(self) -> tuple[list[Body], dict[str, np.ndarray]]:
         """Every body's arrays concatenated, local indices offset to global ones."""
         per: dict[str, list[np.ndarray]] = {}
-        bodies, v0, t0, d0, f0, leaves = [], 0, 0, 0, 0, 0
+        bodies, v0, t0, d0, f0, s0, leaves = [], 0, 0, 0, 0, 0, 0
 
         def add(key: str, value: np.ndarray) -> None:
             per.setdefault(key, []).append(value)
@@ -413,12 +427,15 @@ class ModelBuilder:
                 "tet_extent",
                 "skin_bary",
                 "skin_mass",
+                "face_depth",
             ):
                 add(key, b[key])
             start, flat = b["tet_faces"]
             add("tet_face_start", start[1:] + f0)
             add("tet_faces", b["surface_faces"][flat] + v0)
+            add("tet_face_ids", flat + s0)
             f0 += len(flat)
+            s0 += len(b["surface_faces"])
             add("tets", b["tets"] + v0)
             add("embed_tet", b["embed_tet"] + t0)
             add("skin_tet", b["skin_tet"] + t0)
