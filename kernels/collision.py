@@ -77,9 +77,11 @@ def near_tet(
 
 
 LATTICE = 4
-"""Lattice divisions of a surface face (``warpfem.prep.geometry.LATTICE``)."""
+"""Each surface face carries the depth of the visible surface below it at the points of a lattice that
+splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
+middle, which the corners' depths alone miss (preprocessing fills it: ``warpfem.prep.geometry.face_lattice``)."""
 
-LATTICE_POINTS = 15
+LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
 
 
 @wp.func

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from warpfem.kernels.collision import LATTICE, LATTICE_POINTS
 from warpfem.prep.distance import distance_field
 from warpfem.prep.embedding import boundary_face_tets
 from warpfem.prep.tetmesh import boundary_faces
@@ -58,14 +59,6 @@ class BodyGeometry:
     leaf_tets: np.ndarray
     face_depth: np.ndarray
     dense_points: bool = False
-
-
-LATTICE = 4
-"""Each surface face carries the depth of the visible surface below it at the points of a lattice that
-splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
-middle, which the corners' depths alone miss."""
-
-LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
 
 
 def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
