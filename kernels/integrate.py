@@ -240,6 +240,146 @@ def skin_colliders(
             add_symmetric(matrix_out, tet_slots, e, w, s)
 
 
+@wp.func
+def late_contact(
+    kind: int,
+    center: wp.vec3,
+    size: wp.vec3,
+    response: wp.vec2,
+    p: wp.vec3,
+    vp: wp.vec3,
+    vp_new: wp.vec3,
+    v_body: wp.vec3,
+    m: float,
+    dt: float,
+):
+    """A static contact the step's first solve would cross without having counted it (zero force and block if none).
+
+    A point that :func:`static_contact` left free (not within one step of the surface at the step's start
+    speeds) but whose new velocity carries it below the surface by the step's end: it gets the penalty's
+    matrix term ``dt^2 k m n n^T`` and the force ``k m depth n`` at its (negative) start depth, so the second
+    solve brings it to the surface by the step's end instead of through it.
+    """
+    dn = collider_distance(kind, center, size, p)
+    n = wp.vec3(dn[1], dn[2], dn[3])
+    depth = -dn[0]
+    force = wp.vec3()
+    block = wp.mat33()
+    first = depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0
+    if not first and depth - dt * wp.dot(n, vp_new) > 0.0:
+        k = response[0] * m
+        force = k * depth * n
+        block = dt * dt * k * wp.outer(n, n)
+    return force, block
+
+
+@wp.kernel
+def late_vertex_contacts(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    v_new: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    free: wp.array(dtype=wp.int32),
+    diag_slot: wp.array(dtype=wp.int32),
+    vertex_depth: wp.array(dtype=float),
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_center: wp.array(dtype=wp.vec3),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_response: wp.array(dtype=wp.vec2),
+    vertex_body: wp.array(dtype=wp.int32),
+    body_momentum: wp.array(dtype=wp.vec3),
+    body_mass: wp.array(dtype=float),
+    dt: float,
+    late_out: wp.array(dtype=wp.int32),
+    count_out: wp.array(dtype=wp.int32),
+    matrix_out: wp.array(dtype=wp.mat33),
+    rhs_out: wp.array(dtype=wp.vec3),
+):
+    """:func:`late_contact` on each free tet vertex inside the visible surface not yet given one this step.
+
+    Adds to its right-hand side and diagonal block, marks it in ``late_out`` and counts it in ``count_out[0]``.
+    """
+    i = wp.tid()
+    if free[i] == 0 or vertex_depth[i] < 0.0 or late_out[i] != 0:
+        return
+    b = vertex_body[i]
+    v_body = body_momentum[b] / body_mass[b]
+    for o in range(collider_kind.shape[0]):
+        f, s = late_contact(
+            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], x[i], v[i], v_new[i],
+            v_body, mass[i], dt,
+        )  # fmt: skip
+        if wp.trace(s) > 0.0:
+            rhs_out[i] = rhs_out[i] + dt * f
+            matrix_out[diag_slot[i]] = matrix_out[diag_slot[i]] + s
+            late_out[i] = 1
+            wp.atomic_add(count_out, 0, 1)
+
+
+@wp.kernel
+def late_skin_contacts(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    v_new: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    tet_slots: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.int32),
+    skin_tet: wp.array(dtype=wp.int32),
+    skin_bary: wp.array(dtype=wp.vec4),
+    skin_mass: wp.array(dtype=float),
+    tet_body: wp.array(dtype=wp.int32),
+    body_momentum: wp.array(dtype=wp.vec3),
+    body_mass: wp.array(dtype=float),
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_center: wp.array(dtype=wp.vec3),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_response: wp.array(dtype=wp.vec2),
+    dt: float,
+    late_out: wp.array(dtype=wp.int32),
+    count_out: wp.array(dtype=wp.int32),
+    matrix_out: wp.array(dtype=wp.mat33),
+    rhs_out: wp.array(dtype=wp.vec3),
+):
+    """:func:`late_contact` on each skin point not yet given one this step.
+
+    Its force goes to the right-hand side of its tet's free corners by the weights, ``w_a w_b S`` to the
+    tet's blocks; it is marked and counted as in :func:`late_vertex_contacts`.
+    """
+    i = wp.tid()
+    if late_out[i] != 0:
+        return
+    e = skin_tet[i]
+    t = tets[e]
+    w = skin_bary[i]
+    body = tet_body[e]
+    v_body = body_momentum[body] / body_mass[body]
+    for o in range(collider_kind.shape[0]):
+        f, s = late_contact(
+            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], interpolate(x, t, w),
+            interpolate(v, t, w), interpolate(v_new, t, w), v_body, skin_mass[i], dt,
+        )  # fmt: skip
+        if wp.trace(s) > 0.0:
+            for c in range(4):
+                if free[t[c]] != 0:
+                    wp.atomic_add(rhs_out, t[c], dt * w[c] * f)
+            add_symmetric(matrix_out, tet_slots, e, w, s)
+            late_out[i] = 1
+            wp.atomic_add(count_out, 0, 1)
+
+
+@wp.kernel
+def refresh_preconditioner(
+    free: wp.array(dtype=wp.int32),
+    diag_slot: wp.array(dtype=wp.int32),
+    matrix: wp.array(dtype=wp.mat33),
+    diag_inv_out: wp.array(dtype=wp.mat33),
+):
+    """The inverse diagonal blocks again, after late contacts changed them (zero on pinned vertices)."""
+    i = wp.tid()
+    if free[i] != 0:
+        diag_inv_out[i] = wp.inverse(matrix[diag_slot[i]])
+
+
 @wp.kernel
 def advance_positions(
     x: wp.array(dtype=wp.vec3),

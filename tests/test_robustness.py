@@ -14,7 +14,7 @@ import trimesh
 from pxr import Sdf, Usd, UsdGeom
 
 import warpfem.memory as memory
-from warpfem.build import add_body, add_prepared_body, placed_geometry, solver_of
+from warpfem.build import add_body, add_prepared_body, placed_geometry, scene_samples, solver_of
 from warpfem.cli import main
 from warpfem.errors import SimulationError
 from warpfem.io.usd import UsdWriter
@@ -224,7 +224,8 @@ def test_not_enough_memory_is_one_line_with_both_numbers_and_writes_nothing(fold
     lines = _warpfem_lines(capsys.readouterr().err)
     scene = load_scene(folder / "short.toml")
     body = prepare(folder / "ball.obj", faces=100, cache_dir=folder / "cache")
-    need = memory.scene_estimate(scene, [body], [placed_geometry(scene.objects[0], body)[1]])
+    samples = scene_samples(scene, [body])[0]
+    need = memory.scene_estimate(scene, [body], [placed_geometry(scene.objects[0], body, samples)[1]])
     assert len(lines) == 1, lines
     assert f"needs about {memory.format_bytes(need.total)}" in lines[0] and "only 500 B of 2.0 kB" in lines[0]
     assert list(tmp_path.iterdir()) == []
@@ -253,7 +254,8 @@ def _device_bytes(*roots):
 def test_memory_estimate_matches_the_arrays_allocated(folder, scene_name):
     scene = load_scene(folder / scene_name)
     body = prepare(folder / "ball.obj", faces=100, cache_dir=folder / "cache")
-    placed = [placed_geometry(obj, body) for obj in scene.objects]
+    samples = scene_samples(scene, [body] * len(scene.objects))
+    placed = [placed_geometry(*where) for where in zip(scene.objects, [body] * len(samples), samples, strict=True)]
     builder = ModelBuilder()
     for obj, where in zip(scene.objects, placed, strict=True):
         add_prepared_body(builder, obj, body, where)

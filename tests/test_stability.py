@@ -191,8 +191,9 @@ def test_pinned_at_one_vertex_only(device, dt):
         (1e3, 1 / 1000),
         (1e3, 1 / 24),
         (1e9, 1 / 1000),
-        # lands on a corner and tips over: 1.5 rad/s at dt 1/24 stretches a 1e9 Pa tet (0.057 J -> 4.1 J)
-        pytest.param(1e9, 1 / 24, marks=pytest.mark.xfail(strict=True, reason=LINEARISED_ROTATION)),
+        # lands on a corner of a soft ground and tips over at 1.5 rad/s; a corner that the step's own motion
+        # carries through the ground is caught within the step (late contacts), not a step later
+        (1e9, 1 / 24),
     ],
 )
 def test_single_tet(device, young, dt):

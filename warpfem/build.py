@@ -14,7 +14,14 @@ from typing import Any
 import numpy as np
 
 from warpfem.errors import InputError
-from warpfem.prep.geometry import BodyGeometry, body_geometry
+from warpfem.prep.geometry import (
+    DEFAULT_SPACING,
+    SKIN_TOLERANCE,
+    BodyGeometry,
+    SurfaceSamples,
+    body_geometry,
+    surface_samples,
+)
 from warpfem.prep.pipeline import PreparedBody, prepare
 from warpfem.scene import ObjectConfig, Scene
 from warpfem.sim.collision import CollisionSettings
@@ -67,7 +74,26 @@ def prepare_scene(
     return prepared
 
 
-def placed_geometry(obj: ObjectConfig, prepared: PreparedBody) -> tuple[np.ndarray, BodyGeometry]:
+def scene_samples(scene: Scene, prepared: list[PreparedBody]) -> list[SurfaceSamples]:
+    """Which dense vertices of each object collide (:func:`~warpfem.prep.geometry.surface_samples`).
+
+    Chosen in the mesh's own coordinates, once per distinct mesh and spacing: a pile of one mesh pays once.
+    """
+    done: dict[tuple[int, float], SurfaceSamples] = {}
+    samples = []
+    for obj, body in zip(scene.objects, prepared, strict=True):
+        size = float(np.linalg.norm(np.ptp(body.tet_vertices, axis=0)))
+        spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else DEFAULT_SPACING * size
+        key = (id(body), spacing)
+        if key not in done:
+            done[key] = surface_samples(body.dense_vertices, body.dense_faces, spacing, SKIN_TOLERANCE * size)
+        samples.append(done[key])
+    return samples
+
+
+def placed_geometry(
+    obj: ObjectConfig, prepared: PreparedBody, samples: SurfaceSamples
+) -> tuple[np.ndarray, BodyGeometry]:
     """The tet vertices of a prepared body placed in the world (scale, rotate, translate), and its geometry."""
     rot = euler_rotation(obj.rotate)
     move = np.asarray(obj.translate, dtype=np.float64)
@@ -81,6 +107,7 @@ def placed_geometry(obj: ObjectConfig, prepared: PreparedBody) -> tuple[np.ndarr
         vertex_grad=prepared.vertex_grad @ rot.T,
         dense=(obj.scale * prepared.dense_vertices @ rot.T + move, prepared.embed_tet, prepared.embed_bary),
         face_depth=obj.scale * prepared.face_depth,
+        samples=samples,
     )
     return tet_x, geometry
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from warpfem.build import add_prepared_body, placed_geometry, prepare_scene, solver_of
+from warpfem.build import add_prepared_body, placed_geometry, prepare_scene, scene_samples, solver_of
 from warpfem.errors import InputError, SimulationError
 from warpfem.memory import check_fits, scene_estimate
 from warpfem.prep.pipeline import default_cache_dir
@@ -147,7 +147,8 @@ class Simulation:
         prepared = prepare_scene(scene, folder, progress)
         self.seconds = {"prepare": time.perf_counter() - clock}
         clock = time.perf_counter()
-        placed = [placed_geometry(obj, body) for obj, body in zip(scene.objects, prepared, strict=True)]
+        samples = scene_samples(scene, prepared)
+        placed = [placed_geometry(*where) for where in zip(scene.objects, prepared, samples, strict=True)]
         check_fits(scene_estimate(scene, prepared, [geometry for _, geometry in placed]), dev.alias)
         builder = ModelBuilder()
         for obj, body, where in zip(scene.objects, prepared, placed, strict=True):

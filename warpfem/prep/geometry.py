@@ -8,7 +8,7 @@ surface; a bare tet mesh with its surface vertices, plus samples on its surface 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,7 +45,11 @@ class BodyGeometry:
         face_depth: (l, :data:`LATTICE_POINTS`) depth below the visible surface at each surface face's
             lattice points (:func:`face_lattice`), m; zeros where the face is the visible surface.
         dense_points: Whether the collision points sample the dense surface: each then carries an equal
-            share of the body's mass and the static colliders (ground, obstacles) act on them too.
+            share of the body's mass.
+        skin_tet: (s,) int32 tet of each point the static colliders act on besides the tet vertices inside
+            the visible surface (with a dense surface: :attr:`SurfaceSamples.skin`); empty: none given.
+        skin_bary: (s, 4) its barycentric weights there.
+        skin_share: (s,) its share of the body's mass.
     """
 
     surface_faces: np.ndarray
@@ -59,6 +63,9 @@ class BodyGeometry:
     leaf_tets: np.ndarray
     face_depth: np.ndarray
     dense_points: bool = False
+    skin_tet: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    skin_bary: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    skin_share: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -88,6 +95,8 @@ def body_geometry(
     vertex_grad: np.ndarray | None = None,
     dense: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     face_depth: np.ndarray | None = None,
+    samples: SurfaceSamples | None = None,
+    dense_faces: np.ndarray | None = None,
 ) -> BodyGeometry:
     """The geometry of a body placed in the world.
 
@@ -102,6 +111,9 @@ def body_geometry(
             mesh's surface when not given.
         vertex_grad: Outward unit gradient of that distance; computed when not given.
         dense: The dense surface as ``(positions (n, 3) m, embedding tets (n,), weights (n, 4))``, or None.
+        samples: With ``dense``: which dense vertices collide (default: :func:`surface_samples` at
+            ``collision_spacing``, which then needs ``dense_faces``).
+        dense_faces: With ``dense`` and no ``samples``: its (m, 3) triangles.
         face_depth: Depth of the visible surface below each surface face's lattice points (m); zeros
             (the faces are the visible surface) when not given.
     """
@@ -110,11 +122,16 @@ def body_geometry(
     faces = boundary_faces(tets) if surface_faces is None else np.asarray(surface_faces, np.int32)
     if vertex_depth is None or vertex_grad is None:
         vertex_depth, vertex_grad = distance_field(vertices, vertices, faces)
+    skin = None
     if dense is None:
         points = surface_points(tets, faces, vertices, collision_spacing)
     else:
-        size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-        points = dense_samples(*dense, tets, collision_spacing or DEFAULT_SPACING * size)
+        if samples is None:
+            size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+            spacing = collision_spacing or DEFAULT_SPACING * size
+            samples = surface_samples(dense[0], dense_faces, spacing, SKIN_TOLERANCE * size)
+        points = dense_samples(samples.collision, dense[1], dense[2], tets)
+        skin = dense_samples(samples.skin, dense[1], dense[2], tets)
     start, flat = tet_surface_faces(tets, faces, len(vertices))
     return BodyGeometry(
         surface_faces=faces,
@@ -128,6 +145,7 @@ def body_geometry(
         leaf_tets=tet_tree(tets, vertices),
         face_depth=np.zeros((len(faces), LATTICE_POINTS)) if face_depth is None else np.asarray(face_depth, np.float64),
         dense_points=dense is not None,
+        **({} if skin is None else dict(skin_tet=skin.tet, skin_bary=skin.bary, skin_share=samples.skin_share)),
     )
 
 
@@ -228,18 +246,87 @@ def surface_points(
     )
 
 
+SKIN_TOLERANCE = 0.0002
+"""The static colliders act on dense vertices chosen so that none of the others sticks out past its nearest
+chosen ones, along its own normal, by more than this fraction of the body's size: between them a resting
+dense surface dips at most this far below what the ground holds (docs/decisions.md)."""
+
+SKIN_ROUNDS = 8
+"""Refinement rounds of the skin samples (each adds the vertices that stick out most, a few per cell)."""
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Dense vertices chosen to collide, as indices into the dense mesh.
+
+    Attributes:
+        collision: (c,) one per cell of a grid: the points tested against other bodies.
+        skin: (s,) the points the static colliders act on (the grid's, refined where the surface curves).
+        skin_share: (s,) each skin point's share of the surface area (nearest-point cells; sums to 1).
+    """
+
+    collision: np.ndarray
+    skin: np.ndarray
+    skin_share: np.ndarray
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals and each vertex's area (a third of its faces' areas)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    normal = np.zeros_like(v)
+    area = np.zeros(len(v))
+    for k in range(3):
+        np.add.at(normal, f[:, k], cross)
+        np.add.at(area, f[:, k], np.linalg.norm(cross, axis=1) / 6.0)
+    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300), area
+
+
+def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
+    """One vertex per occupied cell of a grid of ``spacing`` (the first in index order), sorted indices."""
+    cell = np.floor((positions - positions.min(axis=0)) / spacing).astype(np.int64)
+    _, pick = np.unique(cell, axis=0, return_index=True)
+    return np.sort(pick)
+
+
+def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float) -> SurfaceSamples:
+    """Collision samples every ``spacing`` (m) and skin samples refined to ``tolerance`` (m).
+
+    A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest chosen ``s``; each
+    round adds, per cell of a quarter of the spacing, the vertex that sticks out most past ``tolerance``.
+    """
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(positions, np.float64)
+    normal, area = vertex_normals(x, faces)
+    grid = grid_picks(x, spacing)
+    skin = grid
+    for _ in range(SKIN_ROUNDS):
+        _, near = cKDTree(x[skin]).query(x, k=min(8, len(skin)))
+        near = near.reshape(len(x), -1)
+        out = np.einsum("vkj,vj->vk", x[:, None, :] - x[skin][near], normal).min(axis=1)
+        bad = np.flatnonzero(out > tolerance)
+        if len(bad) == 0:
+            break
+        order = bad[np.argsort(-out[bad])]
+        cell = np.floor((x[order] - x.min(axis=0)) / (spacing / 4.0)).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        skin = np.union1d(skin, order[first])
+    _, owner = cKDTree(x[skin]).query(x)
+    share = np.bincount(owner, weights=area, minlength=len(skin))
+    return SurfaceSamples(grid, skin, share / max(share.sum(), 1e-300))
+
+
 def dense_samples(
-    positions: np.ndarray, embed_tet: np.ndarray, embed_bary: np.ndarray, tets: np.ndarray, spacing: float
+    picks: np.ndarray, embed_tet: np.ndarray, embed_bary: np.ndarray, tets: np.ndarray
 ) -> CollisionPoints:
-    """Dense vertices about ``spacing`` apart (one per cell of a grid of that spacing), as collision points.
+    """The dense vertices ``picks`` as collision points.
 
     Each keeps its embedding; its anchors, for the self-collision rule, are three corners of its tet.
     """
-    cell = np.floor((positions - positions.min(axis=0)) / spacing).astype(np.int64)
-    _, pick = np.unique(cell, axis=0, return_index=True)
-    pick = np.sort(pick)
-    tet = np.asarray(embed_tet, np.int32)[pick]
-    return CollisionPoints(tet=tet, bary=np.asarray(embed_bary, np.float64)[pick], anchor=tets[tet][:, :3].copy())
+    tet = np.asarray(embed_tet, np.int32)[picks]
+    return CollisionPoints(tet=tet, bary=np.asarray(embed_bary, np.float64)[picks], anchor=tets[tet][:, :3].copy())
 
 
 def tet_surface_faces(tets: np.ndarray, surface_faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:

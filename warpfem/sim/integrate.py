@@ -190,6 +190,57 @@ def skin_colliders(
     )
 
 
+def late_contacts(
+    model: Model,
+    state: State,
+    v_new: wp.array,
+    colliders: StaticColliders,
+    momentum: wp.array,
+    dt: float,
+    late: tuple[wp.array, wp.array],
+    count_out: wp.array,
+    matrix_out: wp.array,
+    rhs_out: wp.array,
+) -> None:
+    """Add to the system the static contacts that a solve's ``v_new`` crosses unseen (see ``kernels.integrate``).
+
+    ``late`` marks the tet vertices and skin points already given one this step (zero them at its start);
+    ``count_out[0]`` counts those added.
+    """
+    c = colliders
+    wp.launch(
+        K.late_vertex_contacts,
+        dim=model.vertex_count,
+        inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.kind,
+                c.center, c.size, c.response, model.vertex_body, momentum, model.body_mass, dt],
+        outputs=[late[0], count_out, matrix_out, rhs_out],
+        device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
+    )  # fmt: skip
+    if model.skin_tet.shape[0]:
+        wp.launch(
+            K.late_skin_contacts,
+            dim=model.skin_tet.shape[0],
+            inputs=[state.x, state.v, v_new, model.tets, model.tet_slots, model.free, model.skin_tet, model.skin_bary,
+                    model.skin_mass, model.tet_body, momentum, model.body_mass, c.kind, c.center, c.size, c.response,
+                    dt],
+            outputs=[late[1], count_out, matrix_out, rhs_out],
+            device=model.device,
+        )  # fmt: skip
+
+
+def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.array) -> None:
+    """The inverse diagonal blocks of ``matrix`` again (after late contacts changed them)."""
+    wp.launch(
+        K.refresh_preconditioner,
+        dim=model.vertex_count,
+        inputs=[model.free, model.diag_slot, matrix],
+        outputs=[diag_inv_out],
+        device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
+    )
+
+
 def advance_positions(
     model: Model,
     x: wp.array,

@@ -307,10 +307,12 @@ class ModelBuilder:
         skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
         share = mass.sum() / max(len(embed_tet), 1)
         point_mass = np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]])
-        if g.dense_points:  # samples of the visible surface: equal shares, and the static colliders' points
-            skin_tet, skin_bary = np.asarray(g.point_tet, np.int32), point_bary
-            share = mass.sum() / max(len(skin_tet), 1)
-            point_mass = np.full(len(skin_tet), share)
+        skin_mass = np.full(len(skin_tet), share)
+        if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
+            point_mass = np.full(len(g.point_tet), mass.sum() / max(len(g.point_tet), 1))
+        if len(g.skin_tet):  # the static colliders' points, given
+            skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
+            skin_mass = mass.sum() * np.asarray(g.skin_share, np.float64)
         self._bodies.append(
             dict(
                 name=name,
@@ -330,7 +332,7 @@ class ModelBuilder:
                 embed_bary=embed_bary,
                 skin_tet=skin_tet,
                 skin_bary=skin_bary,
-                skin_mass=np.full(len(skin_tet), share),
+                skin_mass=skin_mass,
                 depth=np.asarray(g.vertex_depth, np.float64),
                 grad=np.asarray(g.vertex_grad, np.float64),
                 size=size,

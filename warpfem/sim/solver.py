@@ -21,6 +21,9 @@ from warpfem.sim.model import Model, State
 
 DEFAULT_GROUND = Ground()
 
+DEFAULT_CONTACT_PASSES = 2
+"""Late-contact passes per step unless told (see :class:`Solver`); chosen by measurement (docs/decisions.md)."""
+
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
 
 
@@ -36,6 +39,10 @@ class Solver:
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
             touch (one body without self-collision) gets no collision stage at all.
+        contact_passes: After a solve, how many times to look for contacts its new velocities cross that
+            the step did not count (a point sped up within the step, or dragged by its body), add them and
+            solve again from that answer (a solve only where some were found); 0: none. Each pass costs a
+            look at every collision point and, where contacts were added, a warm-started solve.
         cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
             "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
@@ -51,7 +58,10 @@ class Solver:
         cg_tolerance: float = 1.0e-4,
         collision: CollisionSettings | None = DEFAULT_COLLISION,
         cg_path: str | None = None,
+        contact_passes: int = DEFAULT_CONTACT_PASSES,
     ) -> None:
+        if contact_passes < 0:
+            raise ValueError(f"contact_passes must be >= 0, got {contact_passes}")
         self.model = model
         dev = model.device
         n = model.vertex_count
@@ -66,6 +76,15 @@ class Solver:
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
+        static = self.colliders.kind.shape[0] > 0
+        self.contact_passes = contact_passes if static else 0
+        self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        """Late contacts a pass added (the condition of its solve)."""
+        self.late = (
+            wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
+            wp.zeros(model.skin_tet.shape[0] if static else 0, dtype=wp.int32, device=dev),
+        )
+        """Which tet vertices and skin points got a late static contact this step."""
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
@@ -141,9 +160,27 @@ class Solver:
                 self.momentum,
             )
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
+            advance()
+            if self.contact_passes:
+                self.late[0].zero_()
+                self.late[1].zero_()
+            for _ in range(self.contact_passes):
+                self.late_count.zero_()
+                integrate.late_contacts(
+                    model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, self.late_count,
+                    self.matrix, self.rhs,
+                )  # fmt: skip
+                wp.capture_if(self.late_count, on_true=solve_again)
+
+        def advance() -> None:
             integrate.advance_positions(
                 model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
             )
+
+        def solve_again() -> None:
+            integrate.refresh_preconditioner(model, self.matrix, self.diag_inv)
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+            advance()
 
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
