@@ -124,12 +124,28 @@ def face_plane_depth(
     e2 = x[face[2]] - a
     c = wp.cross(e1, e2)
     n = wp.normalize(c)
-    r = q - a
+    w = face_weights(q - a, e1, e2, c)
+    offset = lattice_depth(face_depth, face_id, w[0], w[1])
+    return wp.vec4(wp.dot(n, a - q) + offset, n[0], n[1], n[2])
+
+
+@wp.func
+def face_weights(r: wp.vec3, e1: wp.vec3, e2: wp.vec3, c: wp.vec3) -> wp.vec2:
+    """Weights of corners 1 and 2 of ``r``'s projection on a face, clamped to it (``r`` from corner 0, c = e1 x e2)."""
     area2 = wp.dot(c, c)
     w1 = wp.clamp(wp.dot(wp.cross(r, e2), c) / area2, 0.0, 1.0)
     w2 = wp.clamp(wp.dot(wp.cross(e1, r), c) / area2, 0.0, 1.0 - w1)
-    offset = lattice_depth(face_depth, face_id, w1, w2)
-    return wp.vec4(wp.dot(n, a - q) + offset, n[0], n[1], n[2])
+    return wp.vec2(w1, w2)
+
+
+@wp.func
+def face_distance(x: wp.array(dtype=wp.vec3), face: wp.vec3i, q: wp.vec3) -> float:
+    """Distance (m) from ``q`` to (about) the nearest point of a face: its projection clamped to the face."""
+    a = x[face[0]]
+    e1 = x[face[1]] - a
+    e2 = x[face[2]] - a
+    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
+    return wp.length(q - (a + w[0] * e1 + w[1] * e2))
 
 
 @wp.kernel
@@ -300,11 +316,14 @@ def record_contact(
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
+    late: int,
 ) -> bool:
     """Point p (at q, weights w in tet e, which holds it): if it has a positive depth, records the contact.
 
     Returns whether it did. A point of the tet's own body (``same``) in the one-ring of its anchors is
-    refused.
+    refused. A ``late`` contact is found at the positions a solve predicts (``x``, ``v`` its answer): it
+    records the depth at the step's start that the linearised contact implies, ``d + dt g . u`` (negative
+    where the point was still outside), and leaves the depth statistics alone.
     """
     t = tets[e]
     if same:
@@ -315,27 +334,29 @@ def record_contact(
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
-        # near the surface: below the surface face the point came in through (the one it was outside of a
-        # step ago, relative to the tet), else below the nearest one; along that face's outward normal
-        u = point_velocity[p] - interpolate(v, t, w)
-        step = dt * u
-        d = float(1.0e30)
-        entered = float(-1.0e30)
+        # near the surface: below the nearest surface face the point came in through this step (it crossed
+        # the face's plane), else below the nearest face; along that face's outward normal
+        step = dt * (point_velocity[p] - interpolate(v, t, w))
+        entered = float(1.0e30)
         nearest = float(1.0e30)
+        d_near = float(0.0)
         g_near = wp.vec3()
         for f in range(f0, f1):
-            dn = face_plane_depth(x, face_depth, tet_face_ids[f], tet_faces[f], q)
+            face = tet_faces[f]
+            dn = face_plane_depth(x, face_depth, tet_face_ids[f], face, q)
             n_f = wp.vec3(dn[1], dn[2], dn[3])
-            before = dn[0] - wp.dot(n_f, step)  # depth below this face one step ago
-            if before <= 0.0 and before > entered:
-                entered = before
+            plane = wp.dot(n_f, x[face[0]] - q)  # depth below this face's plane
+            dist = face_distance(x, face, q)
+            if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
+                entered = dist
                 d = dn[0]
                 g = n_f
-            if dn[0] < nearest:
-                nearest = dn[0]
+            if dist < nearest:
+                nearest = dist
+                d_near = dn[0]
                 g_near = n_f
-        if entered == -1.0e30:
-            d = nearest
+        if entered == 1.0e30:
+            d = d_near
             g = g_near
     else:
         # deep inside: the paper's interpolated distance field and rotated gradients
@@ -343,13 +364,17 @@ def record_contact(
         g = interpolate_directions(grad, t, w)
     if d <= 0.0 or wp.length(g) == 0.0:
         return False
-    wp.atomic_max(stats_out, 0, d)
+    g = wp.normalize(g)
+    if late != 0:
+        d = d + dt * wp.dot(g, point_velocity[p] - interpolate(v, t, w))
+    else:
+        wp.atomic_max(stats_out, 0, d)
     slot = wp.atomic_add(count_out, 0, 1)
     if slot < capacity:
         contact_point_out[slot] = p
         contact_tet_out[slot] = e
         contact_bary_out[slot] = w
-        contact_normal_out[slot] = wp.normalize(g)
+        contact_normal_out[slot] = g
         contact_depth_out[slot] = d
     return True
 
@@ -424,6 +449,7 @@ def walk_tree(
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
     stats_out: wp.array(dtype=float),
+    late: int,
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
 
@@ -493,6 +519,7 @@ def walk_tree(
                         contact_normal_out,
                         contact_depth_out,
                         stats_out,
+                        late,
                     )
             else:
                 stack = (stack << wp.int64(8)) | wp.int64(mask)
@@ -531,6 +558,8 @@ def detect_contacts(
     grad: wp.array(dtype=wp.vec3),
     capacity: int,
     lanes: int,
+    point_contact: wp.array(dtype=wp.int32),
+    late: int,
     # outputs
     count_out: wp.array(dtype=wp.int32),
     contact_point_out: wp.array(dtype=wp.int32),
@@ -553,6 +582,8 @@ def detect_contacts(
     tid = wp.tid()
     p = tid // lanes
     lane = tid - p * lanes
+    if late != 0 and point_contact[p] != 0:
+        return
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
@@ -569,7 +600,7 @@ def detect_contacts(
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity, point_anchor,
                     row_start, cols,
             depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
-            contact_normal_out, contact_depth_out, stats_out,
+            contact_normal_out, contact_depth_out, stats_out, late,
         )  # fmt: skip
 
 
@@ -604,6 +635,8 @@ def detect_contacts_direct(
     grad: wp.array(dtype=wp.vec3),
     capacity: int,
     lanes: int,
+    point_contact: wp.array(dtype=wp.int32),
+    late: int,
     # outputs
     count_out: wp.array(dtype=wp.int32),
     contact_point_out: wp.array(dtype=wp.int32),
@@ -621,6 +654,8 @@ def detect_contacts_direct(
     tid = wp.tid()
     p = tid // lanes
     lane = tid - p * lanes
+    if late != 0 and point_contact[p] != 0:
+        return
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
@@ -635,7 +670,7 @@ def detect_contacts_direct(
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity,
                     point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out,
                     contact_tet_out, contact_bary_out,
-                    contact_normal_out, contact_depth_out, stats_out,
+                    contact_normal_out, contact_depth_out, stats_out, late,
                 )  # fmt: skip
 
 
@@ -666,6 +701,8 @@ def contact_forces(
     friction: wp.array(dtype=float),
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
+    first: wp.array(dtype=wp.int32),
+    late: int,
     # outputs
     pair_verts_a_out: wp.array(dtype=wp.vec4i),
     pair_weights_a_out: wp.array(dtype=wp.vec4),
@@ -675,8 +712,15 @@ def contact_forces(
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
     totals_out: wp.array(dtype=wp.int32),
+    point_contact_out: wp.array(dtype=wp.int32),
+    late_count_out: wp.array(dtype=wp.int32),
 ):
     """Penalty force a d g on the point's tet corners (by its weights), the reaction on the contact tet's.
+
+    The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`record_contact`),
+    after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
+    totals are left alone and thread 0 adds how many there are to ``late_count_out[0]``. Each contact's
+    point is marked in ``point_contact_out``, so a late pass does not answer it twice.
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
@@ -685,23 +729,30 @@ def contact_forces(
     (:class:`warpfem.sim.contacts.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
     contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
     """
-    i = wp.tid()
-    if i == 0:
-        totals_out[0] = totals_out[0] + count[0]
-        totals_out[1] = wp.max(totals_out[1], count[0])
-    if i >= wp.min(count[0], contact_point.shape[0]):
+    i = wp.tid() + first[0]
+    last = wp.min(count[0], contact_point.shape[0])
+    if i == first[0]:
+        if late == 0:
+            totals_out[0] = totals_out[0] + count[0]
+            totals_out[1] = wp.max(totals_out[1], count[0])
+        elif last > i:
+            wp.atomic_add(late_count_out, 0, last - i)
+    if i >= last:
         return
     p = contact_point[i]
+    point_contact_out[p] = 1
     a = point_stiffness[p]
     g = contact_normal[i]
     f = a * contact_depth[i] * g
+    if late != 0:
+        f = dt * f
     tp = tets[point_tet[p]]
     w_p = point_bary[p]
     tt = tets[contact_tet[i]]
     w_t = contact_bary[i]
     u = relative(v, tp, w_p, tt, w_t)
     ut = u - wp.dot(u, g) * g
-    c = friction[0] * a * contact_depth[i] / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
+    c = friction[0] * a * wp.max(contact_depth[i], 0.0) / wp.max(wp.length(ut), FRICTION_SPEED_EPS)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
     contact_matrix_out[i] = C
@@ -714,6 +765,12 @@ def contact_forces(
         wp.atomic_add(force_out, tt[k], -w_t[k] * f)
         wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
         wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
+
+
+@wp.kernel
+def late_begin(count: wp.array(dtype=wp.int32), capacity: int, first_out: wp.array(dtype=wp.int32)):
+    """Where a late pass's contacts start in the buffers: after those found so far (at most the capacity)."""
+    first_out[0] = wp.min(count[0], capacity)
 
 
 @wp.kernel

@@ -68,3 +68,45 @@ def test_skin_samples_hold_the_surface_up_in_every_direction():
         gap_grid = support - (vertices[samples.collision] @ directions.T).max(axis=0)
         assert gap_skin.max() < 2 * tolerance and gap_grid.max() > 5 * tolerance
         np.testing.assert_allclose(samples.skin_share.sum(), 1.0)
+
+
+def _head_on(device: str, speed: float, contact_passes: int) -> float:
+    """Two bunnies (0.8 m) thrown at each other at ``speed`` each, no gravity: the deepest a dense vertex of
+    one gets inside the other's dense surface over 30 frames (libigl's winding number on the dense meshes
+    alone), relative to the size of the body it is inside."""
+    from warpfem.io.penetration import measure
+
+    def thrown(name, x, vx, turn):
+        return {
+            "name": name,
+            "mesh": "builtin:bunny",
+            "subdivide": 0,
+            "faces": 400,
+            "scale": 0.5,
+            "rotate": [0.0, turn, 0.0],
+            "translate": [x, 0.5, 0.0],
+            "velocity": [vx, 0.0, 0.0],
+            "young": 2e5,
+        }
+
+    doc = {
+        "scene": {"frames": 30, "substeps": 4, "gravity": [0.0, 0.0, 0.0]},
+        "ground": {"enabled": False},
+        "object": [thrown("left", -0.55, speed, 90.0), thrown("right", 0.55, -speed, -90.0)],
+    }
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="head_on"), device=device)
+    sim.solver.contact_passes = contact_passes
+    faces = [b.dense_faces for b in sim.model.bodies]
+    worst = 0.0
+    for _ in range(30):
+        sim.step_frame()
+        worst = max(worst, measure([sim.dense_points(n) for n in sim.body_names], faces, sim.body_names).relative)
+    return worst
+
+
+def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
+    """Closing at 10 m/s (a step's travel is 3.5 % of the size), contacts the step's own motion makes are
+    answered within the step: the dense surfaces overlap by less than 1 % of the size; found only at the
+    start of the next step, they overlap by nearly 2 %."""
+    assert _head_on(device, 5.0, contact_passes=2) < 0.01
+    assert _head_on(device, 5.0, contact_passes=0) > 0.015

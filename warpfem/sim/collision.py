@@ -92,6 +92,10 @@ class Collider:
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
+        self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
+        """Which points have a contact this step (a late pass leaves them be)."""
+        self.first = wp.zeros(1, dtype=wp.int32, device=dev)
+        """Where the contacts being answered start in the buffers (0, or a late pass's first)."""
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
@@ -150,7 +154,8 @@ class Collider:
         first.
         """
         m = self.model
-        dev = m.device
+        self.point_contact.zero_()
+        self.first.zero_()
         self._detect(
             x,
             v,
@@ -163,6 +168,41 @@ class Collider:
             self.capacity,
             self.depth_max,
         )
+        self._answer(v, dt, force_out, matrix_out)
+
+    def respond_late(
+        self, x: wp.array, v: wp.array, dt: float, rhs_out: wp.array, matrix_out: wp.array, count_out: wp.array
+    ) -> None:
+        """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
+
+        Points already in contact this step are left be; each new contact enters the built system with the
+        depth at the step's start its linearisation implies (see ``kernels.collision.record_contact``), its
+        force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added.
+        """
+        m = self.model
+        self.prepare(x, v)
+        wp.launch(K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=m.device)
+        self._detect(
+            x,
+            v,
+            dt,
+            self.points,
+            self.point_velocity,
+            m.point_body,
+            m.point_anchor,
+            m.body_self,
+            self.capacity,
+            self.depth_max,
+            late=True,
+        )
+        self._answer(v, dt, rhs_out, matrix_out, count_out)
+
+    def _answer(
+        self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
+    ) -> None:
+        """The penalty forces and blocks of the contacts from ``first`` on (late: onto the right-hand side)."""
+        m = self.model
+        dev = m.device
         wp.launch(
             K.contact_forces,
             dim=self.capacity,
@@ -181,6 +221,8 @@ class Collider:
                 self.friction,
                 m.diag_slot,
                 dt,
+                self.first,
+                int(late_count_out is not None),
             ],
             outputs=[
                 self.coupling.verts_a,
@@ -191,6 +233,8 @@ class Collider:
                 force_out,
                 matrix_out,
                 self.contacts_total,
+                self.point_contact,
+                self.first if late_count_out is None else late_count_out,
             ],
             device=dev,
         )
@@ -244,9 +288,11 @@ class Collider:
         body_self,
         capacity: int,
         depth_max_out,
+        late: bool = False,
     ) -> None:
         m = self.model
-        self.count.zero_()
+        if not late:
+            self.count.zero_()
         lanes = self.lanes
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
@@ -280,6 +326,8 @@ class Collider:
                 self.grad,
                 capacity,
                 lanes,
+                self.point_contact,
+                int(late),
             ],
             outputs=[
                 self.count,

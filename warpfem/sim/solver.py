@@ -24,6 +24,10 @@ DEFAULT_GROUND = Ground()
 DEFAULT_CONTACT_PASSES = 2
 """Late-contact passes per step unless told (see :class:`Solver`); chosen by measurement (docs/decisions.md)."""
 
+LATE_BODY_PASSES = 1
+"""Of those, how many look for late contacts between bodies too (each a detection at the predicted positions,
+the cost of the step's own); the others look at the static colliders only (docs/decisions.md)."""
+
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
 
 
@@ -76,8 +80,9 @@ class Solver:
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
+        self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
-        self.contact_passes = contact_passes if static else 0
+        self.contact_passes = contact_passes if static or self.collider is not None else 0
         self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
         """Late contacts a pass added (the condition of its solve)."""
         self.late = (
@@ -85,7 +90,6 @@ class Solver:
             wp.zeros(model.skin_tet.shape[0] if static else 0, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
-        self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
@@ -123,6 +127,7 @@ class Solver:
         """
         model = self.model
         side = self._side if overlap else None  # None without collisions, or off CUDA
+        static = self.colliders.kind.shape[0] > 0
 
         def elastic() -> None:
             if side is not None:
@@ -164,12 +169,15 @@ class Solver:
             if self.contact_passes:
                 self.late[0].zero_()
                 self.late[1].zero_()
-            for _ in range(self.contact_passes):
+            for k in range(self.contact_passes):
                 self.late_count.zero_()
-                integrate.late_contacts(
-                    model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, self.late_count,
-                    self.matrix, self.rhs,
-                )  # fmt: skip
+                if static:
+                    integrate.late_contacts(
+                        model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late,
+                        self.late_count, self.matrix, self.rhs,
+                    )  # fmt: skip
+                if self.collider is not None and k < LATE_BODY_PASSES:
+                    self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, self.late_count)
                 wp.capture_if(self.late_count, on_true=solve_again)
 
         def advance() -> None:
