@@ -67,7 +67,6 @@ def test_skin_samples_hold_the_surface_up_in_every_direction():
         gap_skin = support - (vertices[samples.skin] @ directions.T).max(axis=0)
         gap_grid = support - (vertices[samples.collision] @ directions.T).max(axis=0)
         assert gap_skin.max() < 2 * tolerance and gap_grid.max() > 5 * tolerance
-        np.testing.assert_allclose(samples.skin_share.sum(), 1.0)
 
 
 def _head_on(device: str, speed: float, contact_passes: int) -> float:

@@ -49,7 +49,6 @@ class BodyGeometry:
         skin_tet: (s,) int32 tet of each point the static colliders act on besides the tet vertices inside
             the visible surface (with a dense surface: :attr:`SurfaceSamples.skin`); empty: none given.
         skin_bary: (s, 4) its barycentric weights there.
-        skin_share: (s,) its share of the body's mass.
     """
 
     surface_faces: np.ndarray
@@ -65,7 +64,6 @@ class BodyGeometry:
     dense_points: bool = False
     skin_tet: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     skin_bary: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    skin_share: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -145,7 +143,7 @@ def body_geometry(
         leaf_tets=tet_tree(tets, vertices),
         face_depth=np.zeros((len(faces), LATTICE_POINTS)) if face_depth is None else np.asarray(face_depth, np.float64),
         dense_points=dense is not None,
-        **({} if skin is None else dict(skin_tet=skin.tet, skin_bary=skin.bary, skin_share=samples.skin_share)),
+        **({} if skin is None else dict(skin_tet=skin.tet, skin_bary=skin.bary)),
     )
 
 
@@ -262,25 +260,21 @@ class SurfaceSamples:
     Attributes:
         collision: (c,) one per cell of a grid: the points tested against other bodies.
         skin: (s,) the points the static colliders act on (the grid's, refined where the surface curves).
-        skin_share: (s,) each skin point's share of the surface area (nearest-point cells; sums to 1).
     """
 
     collision: np.ndarray
     skin: np.ndarray
-    skin_share: np.ndarray
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals and each vertex's area (a third of its faces' areas)."""
+    """Area-weighted unit vertex normals."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     normal = np.zeros_like(v)
-    area = np.zeros(len(v))
     for k in range(3):
         np.add.at(normal, f[:, k], cross)
-        np.add.at(area, f[:, k], np.linalg.norm(cross, axis=1) / 6.0)
-    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300), area
+    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
 
 
 def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
@@ -299,7 +293,7 @@ def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, to
     from scipy.spatial import cKDTree
 
     x = np.asarray(positions, np.float64)
-    normal, area = vertex_normals(x, faces)
+    normal = vertex_normals(x, faces)
     grid = grid_picks(x, spacing)
     skin = grid
     for _ in range(SKIN_ROUNDS):
@@ -313,9 +307,7 @@ def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, to
         cell = np.floor((x[order] - x.min(axis=0)) / (spacing / 4.0)).astype(np.int64)
         _, first = np.unique(cell, axis=0, return_index=True)
         skin = np.union1d(skin, order[first])
-    _, owner = cKDTree(x[skin]).query(x)
-    share = np.bincount(owner, weights=area, minlength=len(skin))
-    return SurfaceSamples(grid, skin, share / max(share.sum(), 1e-300))
+    return SurfaceSamples(grid, skin)
 
 
 def dense_samples(

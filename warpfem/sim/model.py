@@ -104,7 +104,7 @@ class Model:
     point_mass: wp.array  # float, mass a collision point stands for (kg): a share, or the interpolated lumped mass
     skin_tet: wp.array  # int32, global tet of each skin point (static colliders): a dense surface sample
     skin_bary: wp.array  # vec4, its barycentric weights there (extrapolated outside the tets)
-    skin_mass: wp.array  # float, its share of its body's mass (kg)
+    skin_mass: wp.array  # float, the mass its penalty stands for (kg): a share, or its tet corners' interpolated
     tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
     tree_leaf_start: wp.array  # int32 (bodies+1), leaf offsets (a body's leaves are its last nodes)
     tree_leaf_tets: wp.array  # vec4i, global tets of each leaf (-1: none)
@@ -310,9 +310,9 @@ class ModelBuilder:
         skin_mass = np.full(len(skin_tet), share)
         if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
             point_mass = np.full(len(g.point_tet), mass.sum() / max(len(g.point_tet), 1))
-        if len(g.skin_tet):  # the static colliders' points, given
+        if len(g.skin_tet):  # the static colliders' points, given: each holds as its tet's corners would
             skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
-            skin_mass = mass.sum() * np.asarray(g.skin_share, np.float64)
+            skin_mass = np.einsum("pk,pk->p", skin_bary, mass[tets[skin_tet]])
         self._bodies.append(
             dict(
                 name=name,
