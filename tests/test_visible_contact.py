@@ -38,12 +38,13 @@ def _lowest_over_run(device: str, speed: float, contact_passes: int) -> float:
 @pytest.mark.parametrize("speed", [3.0, 10.0])
 def test_a_thrown_body_does_not_sink_into_the_ground(device, speed):
     """Points the step's own motion carries through the ground (a tilted body pivots about its first contact
-    and swings its other side down faster than it fell) are caught within the step: at 10 m/s the dense
-    surface stays within 0.2 % of the size of the ground, where without those late contacts it sinks
-    about a step's travel."""
-    assert _lowest_over_run(device, speed, contact_passes=2) < 0.002
+    and swings its other side down faster than it fell) are caught within the step: the dense surface stays
+    within 0.2 % of the size of the ground, and at 10 m/s sinks several times deeper without those late
+    contacts."""
+    caught = _lowest_over_run(device, speed, contact_passes=2)
+    assert caught < 0.002
     if speed == 10.0:
-        assert _lowest_over_run(device, speed, contact_passes=0) > 0.01
+        assert _lowest_over_run(device, speed, contact_passes=0) > 3 * caught
 
 
 def test_skin_samples_hold_the_surface_up_in_every_direction():

@@ -285,17 +285,19 @@ def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float) -> SurfaceSamples:
-    """Collision samples every ``spacing`` (m) and skin samples refined to ``tolerance`` (m).
+    """Collision samples every ``spacing`` (m) and skin samples every half of it, refined to ``tolerance`` (m).
 
-    A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest chosen ``s``; each
-    round adds, per cell of a quarter of the spacing, the vertex that sticks out most past ``tolerance``.
+    The skin's denser grid bounds how far a dense vertex lies from a skin point, so a tilted patch between
+    them dips less. A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest
+    chosen ``s``; each round adds, per cell of a quarter of the spacing, the vertex that sticks out most
+    past ``tolerance``.
     """
     from scipy.spatial import cKDTree
 
     x = np.asarray(positions, np.float64)
     normal = vertex_normals(x, faces)
     grid = grid_picks(x, spacing)
-    skin = grid
+    skin = np.union1d(grid, grid_picks(x, spacing / 2.0))
     for _ in range(SKIN_ROUNDS):
         _, near = cKDTree(x[skin]).query(x, k=min(8, len(skin)))
         near = near.reshape(len(x), -1)
