@@ -143,3 +143,22 @@ def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, tmp_path):
         r = measure([sim.dense_points(n) for n in sim.body_names], faces, sim.body_names, ground, obstacles)
         inside, below = max(inside, r.relative), max(below, r.below_relative)
     assert inside < 0.01 and below < 0.0015
+
+
+def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
+    """scripts/penetration_trace.py: one line per checked frame (every 10th and the last) and a summary; a
+    malformed override is a one-line error."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("penetration_trace", root / "scripts" / "penetration_trace.py")
+    trace = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(trace)
+    scene = root / "tests" / "data" / "golden" / "two_balls.toml"
+    assert trace.main([str(scene), "--frames", "12", "--every", "10", "--set", "object.young=3e5"]) == 0
+    out = capsys.readouterr().out.splitlines()  # Warp may print its banner first
+    lines = [line for line in out if line.split() and (line.split()[0].isdigit() or line.startswith("worst"))]
+    assert [line.split()[0] for line in lines[:2]] == ["10", "12"] and lines[2].startswith("worst inside")
+    with pytest.raises(SystemExit, match="expected section.key=value"):
+        trace.main([str(scene), "--set", "young"])

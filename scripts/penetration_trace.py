@@ -1,0 +1,83 @@
+"""How deep the visible surfaces of a scene sink, frame by frame: the figures of docs/decisions.md's contact entries.
+
+    .venv/bin/python scripts/penetration_trace.py scenes/paper_a_armadillo_stack.toml --every 3
+    .venv/bin/python scripts/penetration_trace.py scenes/paper_c_two_bodies.toml --set ground.stiffness=1e8
+    .venv/bin/python scripts/penetration_trace.py scenes/default.toml --contact-passes 0 --frames 60
+
+Runs the scene through the public API and checks the dense meshes alone (``warpfem.io.penetration``: a
+vertex inside another body's dense surface by winding number, the lowest point against the ground and the
+obstacles) every ``--every`` frames; prints one line per check and a summary with the solver's work.
+``--set section.key=value`` overrides a scene key before validation (the value read as TOML).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+
+def override(doc: dict, setting: str) -> None:
+    """Apply ``section.key=value`` to a scene document (``object.key`` sets it on every object)."""
+    name, _, text = setting.partition("=")
+    section, _, key = name.partition(".")
+    if not key or not text:
+        raise SystemExit(f"penetration_trace: --set {setting!r}: expected section.key=value")
+    value = tomllib.loads(f"v = {text}")["v"]
+    if section == "object":
+        for obj in doc.get("object", []):
+            obj[key] = value
+    else:
+        doc.setdefault(section, {})[key] = value
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("--frames", type=int, help="frames to run (default: the scene's)")
+    parser.add_argument("--every", type=int, default=1, help="check every Nth frame (and the last)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--contact-passes", type=int, help="the solver's late-contact passes (default: its own)")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    args = parser.parse_args(argv)
+
+    import warpfem
+    from warpfem.io.penetration import measure, scene_colliders
+
+    doc = tomllib.loads(args.scene.read_text())
+    for setting in args.set:
+        override(doc, setting)
+    scene = warpfem.Scene.from_dict(doc, base_dir=args.scene.parent, name=args.scene.stem)
+    sim = warpfem.Simulation(scene, device=args.device)
+    if args.contact_passes is not None:
+        sim.solver.contact_passes = args.contact_passes
+    frames = args.frames or scene.frames
+    faces = [body.dense_faces for body in sim.model.bodies]
+    ground, obstacles = scene_colliders(scene)
+    inside = below = 0.0
+    clock = time.perf_counter()
+    for frame in range(1, frames + 1):
+        sim.step_frame()
+        if frame % max(args.every, 1) and frame != frames:
+            continue
+        names = sim.body_names
+        r = measure([sim.dense_points(n) for n in names], faces, names, ground, obstacles, bodies=len(names) > 1)
+        inside, below = max(inside, r.relative), max(below, r.below_relative)
+        print(
+            f"{frame:5d}  inside {100 * r.relative:6.2f} % {r.inside:24s} below {100 * r.below_relative:6.3f} % "
+            f"({1000 * r.below_ground:.2f} mm)"
+        )
+    t = sim.totals
+    print(
+        f"worst inside {100 * inside:.2f} %, below {100 * below:.3f} %; at the end {100 * r.relative:.2f} % and "
+        f"{100 * r.below_relative:.3f} %; CG {t.cg_iterations / t.steps:.1f} iterations and "
+        f"{t.cg_solves / t.steps:.2f} solves a step, at its cap in {t.cg_capped_frames} frames; "
+        f"{time.perf_counter() - clock:.0f} s"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
