@@ -259,3 +259,13 @@ def test_the_visible_surface_rests_on_the_ground_where_it_bulges_out_of_the_tets
         lowest.append(float(sim.dense_points("ball")[:, 1].min()))
     assert min(lowest) > -0.005, min(lowest)  # through the landing: within 5 mm (a quarter of the bulge)
     assert lowest[-1] > -0.001, lowest[-1]  # at rest: within 1 mm of the ground
+
+
+def test_late_contact_passes_only_where_something_can_be_touched(device):
+    """``contact_passes`` is kept where a static collider or contacts exist, 0 for a lone body in empty space
+    (it pays nothing for them), and a negative count is refused."""
+    model, _ = _cube(device, y0=0.5)
+    assert Solver(model).contact_passes == 2 and Solver(model, contact_passes=1).contact_passes == 1
+    assert Solver(model, ground=None).contact_passes == 0
+    with pytest.raises(ValueError, match="contact_passes"):
+        Solver(model, contact_passes=-1)
