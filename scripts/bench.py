@@ -284,17 +284,14 @@ def dense_check(sim: warpfem.Simulation, start: warpfem.State, frames: int) -> d
     """
     from dataclasses import asdict
 
-    from warpfem.io.penetration import measure, scene_colliders
-
-    faces, names = [b.dense_faces for b in sim.model.bodies], sim.body_names
-    ground, obstacles = scene_colliders(sim.scene)
+    from warpfem.io.penetration import frame_penetration
 
     def now() -> warpfem.Penetration:
-        return measure(sim.dense_points(), faces, names, ground, obstacles)
+        return frame_penetration(sim, bodies=True)
 
     end = worst = now()
     checked = 1
-    if len(names) <= CHECK_MAX_BODIES:
+    if len(sim.body_names) <= CHECK_MAX_BODIES:
         saved = snapshot(sim)
         sim.states[0].assign(start)
         every = max(1, frames // CHECKS_OVER_RUN)

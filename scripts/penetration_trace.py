@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     import warpfem
-    from warpfem.io.penetration import measure, scene_colliders
+    from warpfem.io.penetration import frame_penetration
 
     doc = tomllib.loads(args.scene.read_text())
     for setting in args.set:
@@ -54,16 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.contact_passes is not None:
         sim.solver.contact_passes = args.contact_passes
     frames = args.frames or scene.frames
-    faces = [body.dense_faces for body in sim.model.bodies]
-    ground, obstacles = scene_colliders(scene)
     inside = below = 0.0
     clock = time.perf_counter()
     for frame in range(1, frames + 1):
         sim.step_frame()
         if frame % max(args.every, 1) and frame != frames:
             continue
-        names = sim.body_names
-        r = measure([sim.dense_points(n) for n in names], faces, names, ground, obstacles, bodies=len(names) > 1)
+        r = frame_penetration(sim)
         inside, below = max(inside, r.relative), max(below, r.below_relative)
         print(
             f"{frame:5d}  inside {100 * r.relative:6.2f} % {r.inside:24s} below {100 * r.below_relative:6.3f} % "

@@ -74,8 +74,6 @@ def _head_on(device: str, speed: float, contact_passes: int) -> float:
     """Two bunnies (0.8 m) thrown at each other at ``speed`` each, no gravity: the deepest a dense vertex of
     one gets inside the other's dense surface over 30 frames (libigl's winding number on the dense meshes
     alone), relative to the size of the body it is inside."""
-    from warpfem.io.penetration import measure
-
     def thrown(name, x, vx, turn):
         return {
             "name": name,
@@ -96,11 +94,10 @@ def _head_on(device: str, speed: float, contact_passes: int) -> float:
     }
     sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="head_on"), device=device)
     sim.solver.contact_passes = contact_passes
-    faces = [b.dense_faces for b in sim.model.bodies]
     worst = 0.0
     for _ in range(30):
         sim.step_frame()
-        worst = max(worst, measure([sim.dense_points(n) for n in sim.body_names], faces, sim.body_names).relative)
+        worst = max(worst, warpfem.frame_penetration(sim).relative)
     return worst
 
 
@@ -116,8 +113,6 @@ def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, tmp_path):
     """Four 1 m armadillos (500 coarse faces each) dropped in a 2 x 2 grid from 0.7 m with scene defaults, every
     frame checked on the dense meshes alone: no dense vertex gets deeper than 1 % of the size inside another
     body (the goal) and the dense surfaces stay within 0.15 % of the size of the ground."""
-    from warpfem.io.penetration import measure, scene_colliders
-
     rng = np.random.default_rng(4)
     objects = [
         {
@@ -135,12 +130,10 @@ def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, tmp_path):
     ]
     scene = warpfem.Scene.from_dict({"scene": {"frames": 90}, "object": objects}, name="pile")
     sim = warpfem.Simulation(scene, device=device, cache_dir=tmp_path)
-    faces = [b.dense_faces for b in sim.model.bodies]
-    ground, obstacles = scene_colliders(scene)
     inside = below = 0.0
     for _ in range(90):
         sim.step_frame()
-        r = measure([sim.dense_points(n) for n in sim.body_names], faces, sim.body_names, ground, obstacles)
+        r = warpfem.frame_penetration(sim)
         inside, below = max(inside, r.relative), max(below, r.below_relative)
     assert inside < 0.01 and below < 0.0015
 

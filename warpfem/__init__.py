@@ -33,6 +33,7 @@ _EXPORTS = {
     "run": "warpfem.runner",
     "RunSummary": "warpfem.runner",
     "Penetration": "warpfem.io.penetration",
+    "frame_penetration": "warpfem.io.penetration",
     "add_body": "warpfem.build",
     "Model": "warpfem.sim.model",
     "ModelBuilder": "warpfem.sim.model",
@@ -55,6 +56,7 @@ __all__ = [
     "run",
     "RunSummary",
     "Penetration",
+    "frame_penetration",
     "add_body",
     "Model",
     "ModelBuilder",
@@ -67,7 +69,7 @@ __all__ = [
 if TYPE_CHECKING:
     from warpfem.build import add_body
     from warpfem.errors import InputError, SimulationError
-    from warpfem.io.penetration import Penetration
+    from warpfem.io.penetration import Penetration, frame_penetration
     from warpfem.prep.pipeline import PreparedBody, prepare
     from warpfem.runner import RunSummary, run
     from warpfem.scene import Scene, default_scene_path, load_scene

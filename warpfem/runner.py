@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from warpfem.errors import InputError
-from warpfem.io.penetration import Penetration, measure, scene_colliders
+from warpfem.io.penetration import Penetration, frame_penetration
 from warpfem.scene import Scene
 from warpfem.simulation import Simulation
 
@@ -219,10 +219,8 @@ class _Check:
     def __init__(self, sim: Simulation) -> None:
         import igl  # noqa: F401  loaded here, not inside the first check's time
 
-        self.faces = [b.dense_faces for b in sim.model.bodies]
-        self.names = sim.body_names
-        self.ground, self.obstacles = scene_colliders(sim.scene)
-        self.bodies = len(self.faces) > 1
+        self.sim = sim
+        self.bodies = len(sim.model.bodies) > 1
         self.worst = self.end = Penetration()
         self.frames_checked = 0
         self.next = 1
@@ -231,7 +229,7 @@ class _Check:
         """Check frame ``frame``'s dense meshes; ``elapsed``: seconds since the run began."""
         clock = time.perf_counter()
         bodies = self.bodies and (last or frame >= self.next)
-        result = measure(points, self.faces, self.names, self.ground, self.obstacles, bodies=bodies)
+        result = frame_penetration(self.sim, points, bodies=bodies)
         if bodies:
             self.frames_checked += 1
             cost = time.perf_counter() - clock

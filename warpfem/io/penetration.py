@@ -121,6 +121,26 @@ def measure(
     return worst
 
 
+def frame_penetration(sim: Any, points: Sequence[np.ndarray] | None = None, bodies: bool | None = None) -> Penetration:
+    """:func:`measure` for a :class:`warpfem.Simulation`'s current frame: its dense meshes, its scene's colliders.
+
+    Args:
+        sim: The simulation (its bodies' dense triangles and names, its scene's ground and obstacles).
+        points: The dense meshes as ``sim.dense_points()`` gives them (read here when not given).
+        bodies: Whether to measure bodies inside each other; default: where there are two or more.
+    """
+    names = sim.body_names
+    ground, obstacles = scene_colliders(sim.scene)
+    return measure(
+        sim.dense_points() if points is None else points,
+        [body.dense_faces for body in sim.model.bodies],
+        names,
+        ground,
+        obstacles,
+        bodies=len(names) > 1 if bodies is None else bodies,
+    )
+
+
 def _below(
     p: np.ndarray, ground: tuple[float, tuple[float, float, float]] | None, obstacles: Sequence[Obstacle]
 ) -> float:
