@@ -153,21 +153,9 @@ class Collider:
         ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
         first.
         """
-        m = self.model
         self.point_contact.zero_()
         self.first.zero_()
-        self._detect(
-            x,
-            v,
-            dt,
-            self.points,
-            self.point_velocity,
-            m.point_body,
-            m.point_anchor,
-            m.body_self,
-            self.capacity,
-            self.depth_max,
-        )
+        self._detect_points(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
     def respond_late(
@@ -179,9 +167,16 @@ class Collider:
         depth at the step's start its linearisation implies (see ``kernels.collision.record_contact``), its
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added.
         """
-        m = self.model
         self.prepare(x, v)
-        wp.launch(K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=m.device)
+        wp.launch(
+            K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
+        )
+        self._detect_points(x, v, dt, late=True)
+        self._answer(v, dt, rhs_out, matrix_out, count_out)
+
+    def _detect_points(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
+        """:meth:`_detect` for the model's collision points, as :meth:`prepare` placed them."""
+        m = self.model
         self._detect(
             x,
             v,
@@ -193,9 +188,8 @@ class Collider:
             m.body_self,
             self.capacity,
             self.depth_max,
-            late=True,
+            late=late,
         )
-        self._answer(v, dt, rhs_out, matrix_out, count_out)
 
     def _answer(
         self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
