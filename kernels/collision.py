@@ -110,26 +110,6 @@ def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2
 
 
 @wp.func
-def face_plane_depth(
-    x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face_id: int, face: wp.vec3i, q: wp.vec3
-) -> wp.vec4:
-    """Depth of ``q`` below the visible surface near an outward-wound surface face (m), and the face's normal.
-
-    The depth below the face's plane, plus the visible surface's depth below the face at ``q``'s projection
-    (interpolated on the face's lattice: negative where the face is part of a cage around a dense surface,
-    zero where the face is the visible surface).
-    """
-    a = x[face[0]]
-    e1 = x[face[1]] - a
-    e2 = x[face[2]] - a
-    c = wp.cross(e1, e2)
-    n = wp.normalize(c)
-    w = face_weights(q - a, e1, e2, c)
-    offset = lattice_depth(face_depth, face_id, w[0], w[1])
-    return wp.vec4(wp.dot(n, a - q) + offset, n[0], n[1], n[2])
-
-
-@wp.func
 def face_weights(r: wp.vec3, e1: wp.vec3, e2: wp.vec3, c: wp.vec3) -> wp.vec2:
     """Weights of corners 1 and 2 of ``r``'s projection on a face, clamped to it (``r`` from corner 0, c = e1 x e2)."""
     area2 = wp.dot(c, c)
@@ -139,13 +119,24 @@ def face_weights(r: wp.vec3, e1: wp.vec3, e2: wp.vec3, c: wp.vec3) -> wp.vec2:
 
 
 @wp.func
-def face_distance(x: wp.array(dtype=wp.vec3), face: wp.vec3i, q: wp.vec3) -> float:
-    """Distance (m) from ``q`` to (about) the nearest point of a face: its projection clamped to the face."""
+def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face_id: int, face: wp.vec3i, q: wp.vec3):
+    """``q`` against an outward-wound surface face: normal, depth below its plane and below the visible surface.
+
+    Returns the face's outward normal, ``q``'s depth below its plane and below the visible surface near it
+    (m), and ``q``'s distance to (about) the face's nearest point (m). The visible surface's depth is the
+    plane's plus the visible surface's depth below the face at ``q``'s projection, clamped to the face
+    (interpolated on the face's lattice: negative where the face is part of a cage around a dense surface,
+    zero where the face is the visible surface).
+    """
     a = x[face[0]]
     e1 = x[face[1]] - a
     e2 = x[face[2]] - a
-    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
-    return wp.length(q - (a + w[0] * e1 + w[1] * e2))
+    c = wp.cross(e1, e2)
+    n = wp.normalize(c)
+    w = face_weights(q - a, e1, e2, c)
+    plane = wp.dot(n, a - q)
+    depth = plane + lattice_depth(face_depth, face_id, w[0], w[1])
+    return n, plane, depth, wp.length(q - (a + w[0] * e1 + w[1] * e2))
 
 
 @wp.kernel
@@ -342,18 +333,14 @@ def record_contact(
         d_near = float(0.0)
         g_near = wp.vec3()
         for f in range(f0, f1):
-            face = tet_faces[f]
-            dn = face_plane_depth(x, face_depth, tet_face_ids[f], face, q)
-            n_f = wp.vec3(dn[1], dn[2], dn[3])
-            plane = wp.dot(n_f, x[face[0]] - q)  # depth below this face's plane
-            dist = face_distance(x, face, q)
+            n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
             if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
                 entered = dist
-                d = dn[0]
+                d = depth_f
                 g = n_f
             if dist < nearest:
                 nearest = dist
-                d_near = dn[0]
+                d_near = depth_f
                 g_near = n_f
         if entered == 1.0e30:
             d = d_near

@@ -55,6 +55,16 @@ def collider_distance(kind: int, center: wp.vec3, size: wp.vec3, p: wp.vec3) -> 
 
 
 @wp.func
+def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: float) -> bool:
+    """Whether a point ``depth`` below a collider's surface (normal ``n``) acts with it this step.
+
+    Below the surface, or crossing it within the step at its own speed or at its body's, which drags it
+    along: the speculative contact test.
+    """
+    return depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0
+
+
+@wp.func
 def static_contact(
     kind: int,
     center: wp.vec3,
@@ -79,7 +89,7 @@ def static_contact(
     depth = -dn[0]
     force = wp.vec3()
     block = wp.mat33()
-    if depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0:
+    if within_step(depth, n, vp, v_body, dt):
         k = response[0] * m
         pen = wp.max(depth, 0.0)
         force = k * pen * n
@@ -265,8 +275,7 @@ def late_contact(
     depth = -dn[0]
     force = wp.vec3()
     block = wp.mat33()
-    first = depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0
-    if not first and depth - dt * wp.dot(n, vp_new) > 0.0:
+    if not within_step(depth, n, vp, v_body, dt) and depth - dt * wp.dot(n, vp_new) > 0.0:
         k = response[0] * m
         force = k * depth * n
         block = dt * dt * k * wp.outer(n, n)

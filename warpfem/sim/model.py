@@ -303,16 +303,17 @@ class ModelBuilder:
         point_bary = np.asarray(g.point_bary, np.float64)
         embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
         embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
-        skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
-        skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
-        share = mass.sum() / max(len(embed_tet), 1)
-        point_mass = np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]])
-        skin_mass = np.full(len(skin_tet), share)
-        if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
-            point_mass = np.full(len(g.point_tet), mass.sum() / max(len(g.point_tet), 1))
         if len(g.skin_tet):  # the static colliders' points, given: each holds as its tet's corners would
             skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
             skin_mass = np.einsum("pk,pk->p", skin_bary, mass[tets[skin_tet]])
+        else:  # the dense vertices outside the tets, each an equal share of the body's mass
+            skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
+            skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
+            skin_mass = np.full(len(skin_tet), mass.sum() / max(len(embed_tet), 1))
+        if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
+            point_mass = np.full(len(g.point_tet), mass.sum() / max(len(g.point_tet), 1))
+        else:
+            point_mass = np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]])
         self._bodies.append(
             dict(
                 name=name,
