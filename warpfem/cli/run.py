@@ -33,7 +33,7 @@ EXAMPLES = """examples:
 
 exit codes: 0 ok, 1 the simulation failed (NaN/Inf), 2 bad input (or not enough memory), 130 interrupted,
 143 terminated (SIGTERM); after 1, 130 and 143 the USD file holds every frame finished. A killed run
-(SIGKILL) leaves the last snapshot: the frames up to --save-every seconds (or more, for big files) back.
+(SIGKILL) keeps every chunk on disk: the frames up to --save-every seconds back.
 """
 
 
@@ -55,8 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=10.0,
         metavar="SECONDS",
-        help="save the frames so far to --out at least this often, so a killed run keeps them (default 10; "
-        "longer when a save would take over 5%% of the run)",
+        help="write the frames so far to disk at least this often, as a chunk of value clips beside --out, so a "
+        "killed run keeps them (default 10)",
     )
     run.add_argument("--frames", type=int, help="override the scene's frame count")
     run.add_argument(
@@ -244,8 +244,9 @@ def _report(
         ("frames", f"{summary.frames} ({summary.simulated_seconds:.3g} s simulated)"),
         (
             "wall time per frame",
-            f"{summary.ms_per_frame + render_ms:.2f} ms (simulate {per * s['simulate']:.2f}, map {per * s['map']:.2f}, "
-            f"write {per * s['write']:.2f}, render {render_ms:.2f})",
+            f"{summary.ms_per_frame + render_ms:.2f} ms to the file written (simulate {per * s['simulate']:.2f}, "
+            f"map {per * s['map']:.2f}, render {render_ms:.2f}; on the writer's thread: write {per * s['write']:.2f}, "
+            f"check {per * s['check']:.2f}; waiting for the writer {per * s['wait']:.2f})",
         ),
         ("preprocessing", f"{s['prepare']:.2f} s"),
         ("bodies", str(summary.bodies)),
