@@ -189,12 +189,15 @@ def record(
         )
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         raise InputError(str(err)) from None
-    started = time.perf_counter()
 
     def checked(frame: int, points: list[np.ndarray]) -> None:
         check.frame(points, frame, last=frame == scene.frames, elapsed=time.perf_counter() - started)
 
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
+    clock = time.perf_counter()
+    sim.capture()  # before the writer's thread waits on the device: no capture may be active then
+    seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
+    started = time.perf_counter()
     with writer:
         with FrameStream(sim, [("write", writer.add_frame), ("check", checked)]) as stream:
             _stream_frames(sim, stream, seconds, on_frame, on_points, every)

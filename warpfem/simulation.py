@@ -266,12 +266,20 @@ class Simulation:
                 if timer:
                     timer.lap(name)
             return
-        if self._graph is None:
+        self.capture()
+        wp.capture_launch(self._graph)
+
+    def capture(self) -> None:
+        """Capture the frame's CUDA graph now if it is not yet (nothing runs; nothing on the CPU).
+
+        A capture forbids host synchronisation on the device from any thread, so a caller with another
+        thread waiting on the device (the file writer) captures before starting it.
+        """
+        if self.device.is_cuda and self._graph is None:
             with wp.ScopedCapture(device=self.device) as capture:
                 for _, phase in self.frame_phases():
                     phase()
             self._graph = capture.graph
-        wp.capture_launch(self._graph)
 
     def map_dense(self) -> wp.array:
         """Map every dense mesh from the current state on the device; returns the flat (V, 3) device array."""

@@ -36,7 +36,8 @@ class FrameStream:
             per name in :attr:`seconds`.
 
     Use as a context manager: leaving the block waits until every submitted frame is consumed, then raises
-    the first consumer error if there was one (a consumer error also stops further submits).
+    the first consumer error if there was one (a consumer error also stops further submits). The thread
+    waits on the device, so no CUDA graph capture may run on it meanwhile (``Simulation.capture`` first).
 
     Attributes:
         seconds: Wall time per consumer name (s), spent on the background thread.
