@@ -101,7 +101,9 @@ def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
         if sign < 0.0 and on_open_edge(c.open_edges, c.face_start[o] + query.face, query.u, query.v):
             sign = 1.0  # past an open mesh's edge: beside it, not behind it
         n = wp.mesh_eval_face_normal(mesh, query.face)
-        if dist > 1.0e-6 * size[0]:
+        w = 1.0 - query.u - query.v
+        inner = wp.min(wp.min(query.u, query.v), w) > 1.0e-5  # off is along the face's normal: take it exact
+        if not inner and dist > 1.0e-3 * size[0]:  # clear of an edge or corner: away from it (else rounding)
             n = off * (sign / dist)
         return wp.vec4(sign * dist, n[0], n[1], n[2])
     q = wp.vec3(wp.abs(d[0]) - size[0], wp.abs(d[1]) - size[1], wp.abs(d[2]) - size[2])
