@@ -177,3 +177,22 @@ def test_a_scene_without_handles_or_moving_obstacles_launches_nothing_for_them(d
     names = _count_launches(monkeypatch, driven, model)
     assert names.count("drive") == 1 and names.count("tick") == 1
     assert len(names) == len(_count_launches(monkeypatch, Solver(model), model)) + 2
+
+
+def test_the_shipped_driven_scenes_load():
+    scenes = warpfem.default_scene_path().parent
+    shake = warpfem.load_scene(scenes / "shake.toml")
+    slide = warpfem.load_scene(scenes / "slide.toml")
+    assert [h.name for h in shake.handles] == ["ears"] and [o.kind for o in slide.obstacles] == ["mesh", "mesh"]
+
+
+@pytest.mark.slow
+def test_bodies_slide_down_the_shipped_ramp_into_the_bowl(tmp_path):
+    scene = warpfem.load_scene(warpfem.default_scene_path().parent / "slide.toml").with_frames(80)
+    sim = warpfem.Simulation(scene, device="cpu", cache_dir=tmp_path)
+    for _ in range(80):
+        sim.step_frame()
+    for points in sim.dense_points():
+        centre = points.mean(axis=0)
+        assert np.hypot(centre[0], centre[2]) < 1.0 and centre[1] < 0.6  # in the bowl, below its rim
+    assert warpfem.frame_penetration(sim).below_relative < 0.01
