@@ -191,10 +191,6 @@ class Drive:
         """One step taken (after every launch of the step that reads the clock)."""
         wp.launch(K.tick, dim=1, inputs=[self.clock], device=self.model.device)
 
-    def set_time(self, steps: int) -> None:
-        """Set the clock to ``steps`` steps taken (outside a capture)."""
-        self.clock.assign(np.array([steps], dtype=np.int32))
-
 
 def _arr(data, dtype, device) -> wp.array:
     np_type = np.int32 if dtype == wp.int32 else np.float32
