@@ -18,6 +18,7 @@ from warpfem.simulation import Simulation
 
 if TYPE_CHECKING:
     from warpfem.io.stream import FrameStream
+    from warpfem.io.usd import Prop
 
 
 @dataclass
@@ -183,12 +184,22 @@ def record(
     scene = sim.scene
     check = _Check(sim)
     bodies = [(b.name, b.dense_faces) for b in sim.model.bodies]
+    props, poses = _props(sim)
     try:
         writer = UsdWriter(
-            out, bodies, fps=scene.fps, up_axis=scene.up_axis, overwrite=overwrite, save_every=save_every
+            out,
+            bodies,
+            fps=scene.fps,
+            up_axis=scene.up_axis,
+            overwrite=overwrite,
+            save_every=save_every,
+            props=props,
         )
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         raise InputError(str(err)) from None
+
+    def write(frame: int, points: list[np.ndarray]) -> None:
+        writer.add_frame(frame, points, poses(frame / scene.fps))
 
     def checked(frame: int, points: list[np.ndarray]) -> None:
         check.frame(points, frame, last=frame == scene.frames, elapsed=time.perf_counter() - started)
@@ -199,7 +210,7 @@ def record(
     seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
     started = time.perf_counter()
     with writer:
-        with FrameStream(sim, [("write", writer.add_frame), ("check", checked)]) as stream:
+        with FrameStream(sim, [("write", write), ("check", checked)]) as stream:
             _stream_frames(sim, stream, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
@@ -207,6 +218,21 @@ def record(
     seconds["wait"] = stream.waited
     seconds["wall"] = time.perf_counter() - started
     return _summary(sim, out, seconds, check)
+
+
+def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:
+    """The obstacles and handles to write beside the bodies, and their transforms at a time (s)."""
+    from warpfem.io.usd import Prop
+
+    props = [Prop(f"obstacles/{o.name}", o.vertices, o.faces) for o in sim.obstacles_at(0.0)]
+    props += [Prop(f"handles/{h.name}", h.vertices, h.faces, guide=True) for h in sim.handles_at(0.0)]
+
+    def poses(time: float) -> list[np.ndarray]:
+        if not props:
+            return []
+        return [posed.matrix for posed in (*sim.obstacles_at(time), *sim.handles_at(time))]
+
+    return props, poses
 
 
 def _stream_frames(
@@ -256,7 +282,7 @@ class _Check:
         """Check frame ``frame``'s dense meshes; ``elapsed``: seconds since the run began."""
         clock = time.perf_counter()
         bodies = self.bodies and (last or frame >= self.next)
-        result = frame_penetration(self.sim, points, bodies=bodies)
+        result = frame_penetration(self.sim, points, bodies=bodies, time=frame / self.sim.fps)
         if bodies:
             self.frames_checked += 1
             cost = time.perf_counter() - clock

@@ -120,12 +120,17 @@ def posed_obstacle(posed: Any) -> Obstacle:
     return Obstacle(radius=posed.shape["radius"], matrix=posed.matrix)
 
 
-def scene_colliders(sim: Any) -> tuple[tuple[float, tuple[float, float, float]] | None, list[Obstacle]]:
-    """The ground ``(height, up)`` (None without one) and the obstacles, where they are now, of a ``Simulation``."""
+def scene_colliders(
+    sim: Any, time: float | None = None
+) -> tuple[tuple[float, tuple[float, float, float]] | None, list[Obstacle]]:
+    """The ground ``(height, up)`` (None without one) and the obstacles of a ``Simulation``.
+
+    The obstacles are where they are at ``time`` (s; default: the simulation's current time).
+    """
     scene = sim.scene
     up = (0.0, 1.0, 0.0) if scene.up_axis == "Y" else (0.0, 0.0, 1.0)
     ground = (scene.ground.height, up) if scene.ground.enabled else None
-    return ground, [posed_obstacle(posed) for posed in sim.obstacles_at()]
+    return ground, [posed_obstacle(posed) for posed in sim.obstacles_at(time)]
 
 
 def measure(
@@ -178,16 +183,19 @@ def measure(
     return worst
 
 
-def frame_penetration(sim: Any, points: Sequence[np.ndarray] | None = None, bodies: bool | None = None) -> Penetration:
+def frame_penetration(
+    sim: Any, points: Sequence[np.ndarray] | None = None, bodies: bool | None = None, time: float | None = None
+) -> Penetration:
     """:func:`measure` for a :class:`warpfem.Simulation`'s current frame: its dense meshes, its scene's colliders.
 
     Args:
         sim: The simulation (its bodies' dense triangles and names, its scene's ground and obstacles).
         points: The dense meshes as ``sim.dense_points()`` gives them (read here when not given).
         bodies: Whether to measure bodies inside each other; default: where there are two or more.
+        time: The time of ``points`` (s), where moving obstacles are measured; default: the simulation's.
     """
     names = sim.body_names
-    ground, obstacles = scene_colliders(sim)
+    ground, obstacles = scene_colliders(sim, time)
     return measure(
         sim.dense_points() if points is None else points,
         [body.dense_faces for body in sim.model.bodies],

@@ -28,6 +28,7 @@ import re
 import shutil
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
@@ -78,6 +79,7 @@ class UsdWriter:
         overwrite: bool = True,
         save_every: float | None = SAVE_EVERY_S,
         chunk_bytes: int = CHUNK_BYTES,
+        props: Sequence[Prop] = (),
     ):
         """Check the arguments and author the topology in an in-memory layer.
 
@@ -93,9 +95,11 @@ class UsdWriter:
             save_every: Longest time between chunks on disk in seconds (0: a chunk per frame); None: chunks
                 are cut by size only.
             chunk_bytes: Bytes of point samples per chunk (>= 1).
+            props: Rigid shapes moving with the bodies (obstacles, handles): each a :class:`Prop`, written at
+                ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
 
         Raises:
-            ValueError: A bad extension, name, face array, fps, up axis, ``save_every`` or ``chunk_bytes``.
+            ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes`` or prop.
             FileNotFoundError: The output folder does not exist.
             FileExistsError: ``path`` or its clips folder exists and ``overwrite`` is False.
         """
@@ -142,6 +146,8 @@ class UsdWriter:
         self.export_seconds = 0.0
         for name, faces in bodies:
             self._check_body(name, faces)
+        self._props = _checked_props(props, {name for name, _ in self._bodies})
+        self._transform_paths = [Sdf.Path(f"/World/{p.path}.xformOp:transform") for p in self._props]
         self._points_paths = [Sdf.Path(f"/World/{name}.points") for name, _ in self._bodies]
         self._extent_paths = [Sdf.Path(f"/World/{name}.extent") for name, _ in self._bodies]
 
@@ -167,27 +173,30 @@ class UsdWriter:
         """How many frames have been added."""
         return self._frames_added
 
-    def add_frame(self, frame: int, points: Sequence[np.ndarray]) -> None:
-        """Sample every body's points (and extent) at time code ``frame``.
+    def add_frame(self, frame: int, points: Sequence[np.ndarray], transforms: Sequence[np.ndarray] = ()) -> None:
+        """Sample every body's points (and extent), and every prop's transform, at time code ``frame``.
 
         Args:
             frame: The frame number (0: the initial pose); larger than the last one added.
             points: One (n_i, 3) array of finite positions (m) per body, in the order given to the
                 constructor; n_i is fixed by the first frame and covers every face index. The arrays are
                 copied: the caller may reuse them once this returns.
+            transforms: One 4x4 matrix per prop taking its own frame to the world, for column vectors
+                (``world = matrix @ [x, 1]``).
 
         Raises:
             ValueError: A frame out of order, a wrong body count or shape, or non-finite points.
             RuntimeError: The writer is closed.
             OSError: Writing a chunk failed.
         """
-        from pxr import Sdf, Vt
+        from pxr import Gf, Sdf, Vt
 
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         arrays = self._checked(frame, points)
+        matrices = _checked_transforms(transforms, len(self._props))
         if self._chunk is None:
-            self._chunk = _layer(self._bodies, topology=False)
+            self._chunk = _layer(self._bodies, self._props, topology=False)
             self._chunk_first = int(frame)
         code = float(frame)
         try:
@@ -196,8 +205,10 @@ class UsdWriter:
                     extent = _extent(p)
                     self._chunk.SetTimeSample(self._points_paths[i], code, _vec3f_array(p))
                     self._chunk.SetTimeSample(self._extent_paths[i], code, Vt.Vec3fArray.FromNumpy(extent))
-        except BaseException:  # e.g. Ctrl-C half way: no body may keep a sample of an unfinished frame
-            for path in (*self._points_paths, *self._extent_paths):
+                for path, m in zip(self._transform_paths, matrices, strict=True):
+                    self._chunk.SetTimeSample(path, code, Gf.Matrix4d(m.T.tolist()))
+        except BaseException:  # e.g. Ctrl-C half way: nothing may keep a sample of an unfinished frame
+            for path in (*self._points_paths, *self._extent_paths, *self._transform_paths):
                 self._chunk.EraseTimeSample(path, code)
             raise
         for i, p in enumerate(arrays):
@@ -265,10 +276,10 @@ class UsdWriter:
                 raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
             shutil.rmtree(folder)
         folder.mkdir()
-        topology = _layer(self._bodies, topology=True)
+        topology = _layer(self._bodies, self._props, topology=True)
         topology.comment = _MARKER
         self._export(topology, folder / "topology.usdc")
-        self._export(_layer(self._bodies, topology=False), folder / "manifest.usda")
+        self._export(_layer(self._bodies, self._props, topology=False), folder / "manifest.usda")
 
     def _write_top(self) -> None:
         """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""
@@ -357,7 +368,7 @@ class UsdWriter:
         """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there."""
         clock = time.monotonic()
         layer = self._chunk
-        _add_topology(layer, self._bodies)
+        _add_topology(layer, self._bodies, self._props)
         self._stage_metadata(layer)
         self._export(layer, self.path, target=True)
         if self._overwrite and self.clips_dir.is_dir() and _is_ours(self.clips_dir):
@@ -442,11 +453,59 @@ def _is_ours(folder: Path) -> bool:
     return layer is not None and layer.comment == _MARKER
 
 
-def _layer(bodies: Sequence[tuple[str, np.ndarray]], topology: bool) -> object:
-    """An anonymous layer with ``/World`` and a mesh per body.
+@dataclass(frozen=True)
+class Prop:
+    """A rigid shape written beside the bodies: ``/World/<path>``, a mesh whose transform is sampled per frame.
+
+    Attributes:
+        path: Its prim path under ``/World`` (names joined by ``/``, e.g. ``"obstacles/ramp"``).
+        vertices: (n, 3) vertices in its own frame (m).
+        faces: (m, 3) triangles, wound outward.
+        guide: Whether it is a guide (``purpose = "guide"``: shown in viewers, not rendered), as handles are.
+    """
+
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    guide: bool = False
+
+
+def _checked_props(props: Sequence[Prop], body_names: set[str]) -> list[Prop]:
+    """``props`` with float64 vertices and int32 faces, after checking their paths and arrays."""
+    checked, seen = [], set()
+    for prop in props:
+        parts = prop.path.split("/") if isinstance(prop.path, str) else [None]
+        if not all(isinstance(part, str) and _NAME_RE.fullmatch(part) for part in parts):
+            raise ValueError(f"prop path {prop.path!r} is not a valid USD prim path under /World")
+        if prop.path in seen:
+            raise ValueError(f"prop path {prop.path!r} is used twice")
+        if parts[0] in body_names:
+            raise ValueError(f"a body is named '{parts[0]}', which the output uses for the group of {prop.path!r}")
+        vertices, faces = np.asarray(prop.vertices, np.float64), np.asarray(prop.faces)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.isfinite(vertices).all():
+            raise ValueError(f"prop {prop.path!r}: vertices must be a finite (n, 3) array")
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
+            raise ValueError(f"prop {prop.path!r}: faces must be a non-empty (m, 3) array of vertex indices")
+        seen.add(prop.path)
+        checked.append(Prop(prop.path, vertices, faces.astype(np.int32), bool(prop.guide)))
+    return checked
+
+
+def _checked_transforms(transforms: Sequence[np.ndarray], count: int) -> list[np.ndarray]:
+    """``transforms`` as finite 4x4 float64 matrices, one per prop."""
+    if len(transforms) != count:
+        raise ValueError(f"expected a transform for each of {count} props, got {len(transforms)}")
+    matrices = [np.asarray(m, np.float64) for m in transforms]
+    if any(m.shape != (4, 4) or not np.isfinite(m).all() for m in matrices):
+        raise ValueError("prop transforms must be finite 4x4 matrices")
+    return matrices
+
+
+def _layer(bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], topology: bool) -> object:
+    """An anonymous layer with ``/World``, a mesh per body and a prim per prop.
 
     With ``topology`` the prims are defined meshes with their faces; without, ``over`` specs that declare only
-    the animated ``points`` and ``extent`` (a chunk, or the clips' manifest).
+    what is animated: a body's ``points`` and ``extent``, a prop's transform (a chunk, or the clips' manifest).
     """
     from pxr import Sdf
 
@@ -457,25 +516,52 @@ def _layer(bodies: Sequence[tuple[str, np.ndarray]], topology: bool) -> object:
             mesh = Sdf.PrimSpec(world, name, Sdf.SpecifierOver)
             Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
             Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
+        for prop in props:
+            parent = world
+            for part in prop.path.split("/"):
+                parent = parent.nameChildren.get(part) or Sdf.PrimSpec(parent, part, Sdf.SpecifierOver)
+            Sdf.AttributeSpec(parent, "xformOp:transform", Sdf.ValueTypeNames.Matrix4d)
     if topology:
-        _add_topology(layer, bodies)
+        _add_topology(layer, bodies, props)
     return layer
 
 
-def _add_topology(layer: object, bodies: Sequence[tuple[str, np.ndarray]]) -> None:
-    """Turn ``layer``'s ``over`` specs into defined meshes with their topology."""
+def _add_topology(layer: object, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+    """Turn ``layer``'s ``over`` specs into defined meshes with their topology (a prop's mesh in its own frame)."""
     from pxr import Sdf, Vt
 
     with Sdf.ChangeBlock():
         world = layer.GetPrimAtPath("/World")
         world.specifier, world.typeName = Sdf.SpecifierDef, "Xform"
         for name, faces in bodies:
-            mesh = layer.GetPrimAtPath(f"/World/{name}")
-            mesh.specifier, mesh.typeName = Sdf.SpecifierDef, "Mesh"
-            counts = Sdf.AttributeSpec(mesh, "faceVertexCounts", Sdf.ValueTypeNames.IntArray)
-            counts.default = Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32))
-            indices = Sdf.AttributeSpec(mesh, "faceVertexIndices", Sdf.ValueTypeNames.IntArray)
-            indices.default = Vt.IntArray.FromNumpy(faces.ravel())
-            for attr, value in (("subdivisionScheme", "none"), ("orientation", "rightHanded")):
-                spec = Sdf.AttributeSpec(mesh, attr, Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
-                spec.default = value
+            _define_mesh(layer.GetPrimAtPath(f"/World/{name}"), faces)
+        for prop in props:
+            parts = prop.path.split("/")
+            for depth in range(1, len(parts)):
+                scope = layer.GetPrimAtPath("/World/" + "/".join(parts[:depth]))
+                scope.specifier, scope.typeName = Sdf.SpecifierDef, "Scope"
+            mesh = layer.GetPrimAtPath(f"/World/{prop.path}")
+            _define_mesh(mesh, prop.faces)
+            points = Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
+            points.default = Vt.Vec3fArray.FromNumpy(prop.vertices.astype(np.float32))
+            extent = Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
+            extent.default = Vt.Vec3fArray.FromNumpy(_extent(prop.vertices.astype(np.float32)))
+            order = Sdf.AttributeSpec(mesh, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
+            order.default = Vt.TokenArray(["xformOp:transform"])
+            if prop.guide:
+                purpose = Sdf.AttributeSpec(mesh, "purpose", Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
+                purpose.default = "guide"
+
+
+def _define_mesh(mesh: object, faces: np.ndarray) -> None:
+    """Make the ``over`` spec ``mesh`` a defined ``Mesh`` with the topology of ``faces``."""
+    from pxr import Sdf, Vt
+
+    mesh.specifier, mesh.typeName = Sdf.SpecifierDef, "Mesh"
+    counts = Sdf.AttributeSpec(mesh, "faceVertexCounts", Sdf.ValueTypeNames.IntArray)
+    counts.default = Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32))
+    indices = Sdf.AttributeSpec(mesh, "faceVertexIndices", Sdf.ValueTypeNames.IntArray)
+    indices.default = Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel())
+    for attr, value in (("subdivisionScheme", "none"), ("orientation", "rightHanded")):
+        spec = Sdf.AttributeSpec(mesh, attr, Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
+        spec.default = value
