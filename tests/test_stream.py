@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from types import SimpleNamespace
@@ -93,7 +94,7 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
 
     root = Path(__file__).resolve().parents[1]
     scene = warpfem.load_scene(root / "tests" / "data" / "golden" / "two_balls.toml").with_frames(12)
-    sim = warpfem.Simulation(scene, device=device, cache=False)
+    sim = warpfem.Simulation(scene, device=device, cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
     held = {}
     out = tmp_path / "a.usdc"
     summary = record(sim, out, save_every=0.0, on_points=lambda frame, points: held.__setitem__(frame, points))

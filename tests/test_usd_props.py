@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import trimesh
@@ -53,7 +55,7 @@ def test_obstacles_and_handles_follow_their_keys_in_the_file(tmp_path, save_ever
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
     (tmp_path / "scene.toml").write_text(SCENE)
     scene = warpfem.load_scene(tmp_path / "scene.toml")
-    sim = warpfem.Simulation(scene, device="cpu", cache=False)
+    sim = warpfem.Simulation(scene, device="cpu", cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
     rest = {
         p.name: p.matrix[:3, :3] @ p.vertices.T + p.matrix[:3, 3:] for p in (*sim.obstacles_at(0), *sim.handles_at(0))
     }
