@@ -1,8 +1,9 @@
 """The independent penetration check's device code: how deep dense vertices sit inside other bodies' surfaces.
 
 One thread per dense vertex: the bodies whose bounding box holds it (a BVH over the boxes), the winding
-number of each one's dense surface (``wp.Mesh``) around it, and where it is inside, its distance to that
-surface, kept per body as the deepest with its vertex's owner packed into one int64 (an atomic max).
+number of each one's dense surface (``wp.Mesh``) around it, and only where it is inside, its distance to that
+surface (the closest-point search is the costly part), kept per body as the deepest with its vertex's owner
+packed into one int64 (an atomic max).
 """
 
 import warp as wp
@@ -12,6 +13,16 @@ DEPTH_BITS = wp.constant(40)
 
 OWNER_BITS = wp.constant(20)
 """Bits of the packed owner (the body whose vertex it is): up to 2^20 bodies."""
+
+
+@wp.func_native("return wp::mesh_query_winding_number(id, p, accuracy);")
+def winding_number(id: wp.uint64, p: wp.vec3, accuracy: float) -> float:
+    """The generalized winding number of mesh ``id`` around ``p`` (Warp's dipole approximation, as its sign queries).
+
+    Warp exposes it only inside ``mesh_query_point_sign_winding_number``, after a closest-point search that
+    costs four times the winding number on the many points of a box that are outside the body.
+    """
+    ...
 
 
 @wp.kernel
@@ -38,9 +49,10 @@ def deepest_inside(
     while wp.bvh_query_next(query, item):
         j = box_body[item]
         if j != i:
-            q = wp.mesh_query_point_sign_winding_number(meshes[j], p, reach[j], accuracy, 0.5)
-            if q.result and q.sign < 0.0:
-                depth = wp.length(p - wp.mesh_eval_position(meshes[j], q.face, q.u, q.v))
-                fraction = wp.min(depth / reach[j], 1.0)
-                quantised = wp.int64(fraction * wp.pow(2.0, float(DEPTH_BITS)))
-                wp.atomic_max(deepest, j, (quantised << wp.int64(OWNER_BITS)) | wp.int64(i))
+            if winding_number(meshes[j], p, accuracy) > 0.5:
+                q = wp.mesh_query_point_no_sign(meshes[j], p, reach[j])
+                if q.result:
+                    depth = wp.length(p - wp.mesh_eval_position(meshes[j], q.face, q.u, q.v))
+                    fraction = wp.min(depth / reach[j], 1.0)
+                    quantised = wp.int64(fraction * wp.pow(2.0, float(DEPTH_BITS)))
+                    wp.atomic_max(deepest, j, (quantised << wp.int64(OWNER_BITS)) | wp.int64(i))
