@@ -270,8 +270,11 @@ class _Check:
     SHARE = 0.1
 
     def __init__(self, sim: Simulation) -> None:
-        import igl  # noqa: F401  loaded here, not inside the first check's time
+        import warp as wp
 
+        from warpfem.kernels import penetration
+
+        wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
         self.worst = self.end = Penetration()
