@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from mesh_kinds import with_flaps, with_flipped_faces
 
 from warpfem.errors import InputError
 from warpfem.prep.pipeline import prepare
@@ -147,3 +148,44 @@ def test_prepare_rejects_broken_files_in_one_line(tmp_path, name, content, messa
     with pytest.raises(InputError, match=message) as err:
         prepare(path, faces=100)
     assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+
+
+def test_flaps_on_edges_are_split_off_and_removed(tmp_path):
+    """Two stray triangles welded onto edges of a sphere (each edge then has three faces) leave the sphere."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = with_flaps(sphere.vertices, sphere.faces, 2)
+    surface = load_surface(_write_obj(tmp_path / "flaps.obj", vertices, faces))
+    assert surface.repairs[0] == "split 2 non-manifold edges and 4 vertices where separate sheets met"
+    assert "removed 2 shells enclosing no volume (flaps or sheets, 4 faces)" in surface.repairs
+    assert len(surface.faces) == len(sphere.faces) and topology_defects(surface.faces) is None
+    assert signed_volume(surface.vertices, surface.faces) == pytest.approx(sphere.volume, rel=1e-12)
+
+
+def test_a_few_flipped_faces_are_turned_back(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = with_flipped_faces(sphere.vertices, sphere.faces, 7)
+    surface = load_surface(_write_obj(tmp_path / "flipped.obj", vertices, faces))
+    assert surface.repairs == ("turned 7 faces wound against their neighbours",)
+    np.testing.assert_array_equal(surface.faces, sphere.faces)
+
+
+def test_a_one_sided_surface_is_refused_in_words(tmp_path):
+    # a Moebius strip: 24 quads around a twisted band
+    n = 24
+    t = np.arange(n) * 2 * np.pi / n
+    rows = []
+    for s in (-0.2, 0.2):
+        rows.append(
+            np.column_stack(
+                [(1 + s * np.cos(t / 2)) * np.cos(t), (1 + s * np.cos(t / 2)) * np.sin(t), s * np.sin(t / 2)]
+            )
+        )
+    vertices = np.vstack(rows)
+    i = np.arange(n)
+    j = (i + 1) % n
+    # the last quad joins the band's ends crossed over
+    top_j, bottom_j = np.where(j == 0, n + j, j), np.where(j == 0, j, n + j)
+    faces = np.vstack([np.column_stack([i, top_j, n + i]), np.column_stack([n + i, top_j, bottom_j])])
+    with pytest.raises(InputError, match="moebius.obj: one-sided surface .* encloses no volume") as err:
+        load_surface(_write_obj(tmp_path / "moebius.obj", vertices, faces))
+    assert "\n" not in str(err.value)

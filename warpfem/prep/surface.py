@@ -334,7 +334,13 @@ def load_surface(
             NaN/Inf or overflowing coordinates, all vertices coincident, holes over the limit,
             non-manifold edges, inconsistent winding, zero volume, unwanted shells).
     """
-    from warpfem.prep.repair import MAX_HOLE_FRACTION, close_small_holes, select_shells
+    from warpfem.prep.repair import (
+        MAX_HOLE_FRACTION,
+        close_small_holes,
+        orient_consistently,
+        select_shells,
+        split_non_manifold,
+    )
 
     name = str(path)
     if name == BUILTIN_BUNNY:
@@ -367,6 +373,8 @@ def load_surface(
     if len(faces) == 0:
         raise InputError(f"{name}: mesh has no faces with nonzero area")
     vertices, faces = _drop_unused(vertices, faces, repairs)
+    vertices, faces = split_non_manifold(vertices, faces, repairs)
+    faces = orient_consistently(faces, name, repairs)
     defect = topology_defects(faces)
     if defect is not None and defect.startswith("not closed"):
         limit = MAX_HOLE_FRACTION if max_hole is None else max_hole
