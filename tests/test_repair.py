@@ -211,3 +211,24 @@ def test_two_tets_sharing_an_edge_become_a_body_within_seconds(tmp_path):
     assert np.sqrt(squared.max()) < 0.02 * np.linalg.norm(np.ptp(vertices, axis=0))
     rebuilt = np.einsum("nk,nkj->nj", body.embed_bary, body.tet_vertices[body.tets[body.embed_tet]])
     np.testing.assert_allclose(rebuilt, body.dense_vertices, atol=1e-9)
+
+
+def test_meshio_reads_what_trimesh_cannot(tmp_path, monkeypatch):
+    """A PLY of quads read through meshio (trimesh made to fail): the unit cube, split into fans."""
+    import meshio
+
+    corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=float)
+    quads = np.array([[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [1, 3, 7, 5], [3, 2, 6, 7], [2, 0, 4, 6]])
+    path = tmp_path / "cube.ply"
+    meshio.write(path, meshio.Mesh(corners, [("quad", quads)]), binary=False)
+
+    def fail(*_args, **_kwargs):
+        raise ValueError("trimesh cannot read this")
+
+    monkeypatch.setattr(trimesh, "load", fail)
+    surface = load_surface(path)
+    assert len(surface.faces) == 12 and topology_defects(surface.faces) is None
+    assert signed_volume(surface.vertices, surface.faces) == pytest.approx(1.0, rel=1e-12)
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 2\nend_header\nnot numbers\n")
+    with pytest.raises(InputError, match="cube.ply: unreadable mesh file \\(ValueError: trimesh cannot read this\\)"):
+        load_surface(path)
