@@ -5,6 +5,8 @@ The linearised backward-Euler step solves for the new velocity v+:
 where K is the warped stiffness (assembled by the FEM kernel), alpha/beta the Rayleigh coefficients and
 K_c, C_friction, f_c the static colliders' penalty and friction (the ground is a plane collider), on the
 tet vertices and on the skin (the dense vertices outside the tets, whose terms reach the tet's corners).
+A collider may move rigidly (:mod:`warpfem.kernels.drive` poses it each step): its contacts then hold the
+points' velocity relative to its own surface's.
 """
 
 import warp as wp
@@ -16,27 +18,94 @@ from .grid import warp_sum_at
 PLANE = wp.constant(0)
 SPHERE = wp.constant(1)
 BOX = wp.constant(2)
+MESH = wp.constant(3)
+
+# the distance (m) of a point no mesh face is near
+FAR = 1.0e30
 
 # a tangential speed below this (m/s) counts as sticking when the friction coefficient is computed
 FRICTION_SPEED_EPS = 1.0e-3
 
 
-@wp.func
-def collider_distance(kind: int, center: wp.vec3, size: wp.vec3, p: wp.vec3) -> wp.vec4:
-    """Signed distance (m, negative inside) of ``p`` to a static collider and its outward unit normal.
+@wp.struct
+class Colliders:
+    """The static colliders, one entry each, posed at the start of the step and at its end.
 
-    Plane: ``center`` is a point on it, ``size`` its normal. Sphere: radius ``size[0]``. Box: axis-aligned,
-    half extents ``size``.
+    ``center`` and ``rotation`` place the collider's own frame in the world at the step's start (a plane:
+    a point on it and the identity; a sphere or box: its centre and orientation; a mesh: its vertices'
+    frame), ``center_next`` and ``rotation_next`` at the step's end (the same for a collider that does not
+    move, ``moving`` 0). ``size``: a plane's normal, a sphere's radius, a box's half extents, a mesh's query
+    radius (m, in ``size[0]``: as far as it acts behind its surface). ``response``: penalty per unit mass
+    (1/s^2) and friction. ``mesh``: the ``wp.Mesh`` id of a mesh collider (0 for the others).
+    ``open_edges[face_start[o] + f]``: which edges of the mesh's face f bound an open mesh (bit 0: corners
+    0-1, bit 1: 1-2, bit 2: 2-0) and which of its corners lie on such an edge (bits 3-5: corners 0-2).
     """
+
+    kind: wp.array(dtype=wp.int32)
+    center: wp.array(dtype=wp.vec3)
+    rotation: wp.array(dtype=wp.quat)
+    center_next: wp.array(dtype=wp.vec3)
+    rotation_next: wp.array(dtype=wp.quat)
+    moving: wp.array(dtype=wp.int32)
+    size: wp.array(dtype=wp.vec3)
+    response: wp.array(dtype=wp.vec2)
+    mesh: wp.array(dtype=wp.uint64)
+    face_start: wp.array(dtype=wp.int32)
+    open_edges: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def on_open_edge(open_edges: wp.array(dtype=wp.int32), face: int, u: float, v: float) -> bool:
+    """Whether the point of barycentrics (u, v, w = 1 - u - v) of a face lies on an open edge of the mesh.
+
+    On one of the face's own edges flagged open (bits 0-2), or at one of its corners on an open edge (bits 3-5).
+    """
+    flags = open_edges[face]
+    eps = 1.0e-5
+    w = 1.0 - u - v
+    edge = ((flags & 1) != 0 and w < eps) or ((flags & 2) != 0 and u < eps) or ((flags & 4) != 0 and v < eps)
+    corner = (
+        ((flags & 8) != 0 and v < eps and w < eps)
+        or ((flags & 16) != 0 and u < eps and w < eps)
+        or ((flags & 32) != 0 and u < eps and v < eps)
+    )
+    return edge or corner
+
+
+@wp.func
+def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
+    """Signed distance (m, negative inside) of ``d`` (in collider ``o``'s own frame) and its outward unit normal.
+
+    Plane: normal ``size`` through the origin. Sphere: radius ``size[0]``. Box: half extents ``size``. Mesh:
+    the nearest point of the mesh within ``size[0]``, inside where its angle-weighted normal says (behind an
+    open mesh's faces, but not past its open edges); none within reach reads as far outside.
+    """
+    kind = c.kind[o]
+    size = c.size[o]
     if kind == PLANE:
-        return wp.vec4(wp.dot(size, p - center), size[0], size[1], size[2])
-    d = p - center
+        return wp.vec4(wp.dot(size, d), size[0], size[1], size[2])
     if kind == SPHERE:
         r = wp.length(d)
         n = wp.vec3(0.0, 1.0, 0.0)
         if r > 0.0:
             n = d / r
         return wp.vec4(r - size[0], n[0], n[1], n[2])
+    if kind == MESH:
+        mesh = c.mesh[o]
+        query = wp.mesh_query_point_sign_normal(mesh, d, size[0])
+        if not query.result:  # farther than the mesh acts: never in contact, not even speculatively
+            return wp.vec4(FAR, 0.0, 1.0, 0.0)
+        off = d - wp.mesh_eval_position(mesh, query.face, query.u, query.v)
+        dist = wp.length(off)
+        sign = query.sign
+        if sign < 0.0 and on_open_edge(c.open_edges, c.face_start[o] + query.face, query.u, query.v):
+            sign = 1.0  # past an open mesh's edge: beside it, not behind it
+        n = wp.mesh_eval_face_normal(mesh, query.face)
+        w = 1.0 - query.u - query.v
+        inner = wp.min(wp.min(query.u, query.v), w) > 1.0e-5  # off is along the face's normal: take it exact
+        if not inner and dist > 1.0e-3 * size[0]:  # clear of an edge or corner: away from it (else rounding)
+            n = off * (sign / dist)
+        return wp.vec4(sign * dist, n[0], n[1], n[2])
     q = wp.vec3(wp.abs(d[0]) - size[0], wp.abs(d[1]) - size[1], wp.abs(d[2]) - size[2])
     s = wp.vec3(wp.sign(d[0]), wp.sign(d[1]), wp.sign(d[2]))
     outside = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
@@ -55,6 +124,27 @@ def collider_distance(kind: int, center: wp.vec3, size: wp.vec3, p: wp.vec3) -> 
 
 
 @wp.func
+def collider_distance(c: Colliders, o: int, p: wp.vec3) -> wp.vec4:
+    """Signed distance (m, negative inside) of world point ``p`` to collider ``o`` at the step's start, and normal.
+
+    The outward unit normal is in world axes.
+    """
+    q = c.rotation[o]
+    dn = shape_distance(c, o, wp.quat_rotate_inv(q, p - c.center[o]))
+    n = wp.quat_rotate(q, wp.vec3(dn[1], dn[2], dn[3]))
+    return wp.vec4(dn[0], n[0], n[1], n[2])
+
+
+@wp.func
+def collider_velocity(c: Colliders, o: int, p: wp.vec3, dt: float) -> wp.vec3:
+    """The velocity (m/s) over the step of collider ``o``'s surface point at ``p``: zero where it does not move."""
+    if c.moving[o] == 0:
+        return wp.vec3()
+    local = wp.quat_rotate_inv(c.rotation[o], p - c.center[o])
+    return (wp.quat_rotate(c.rotation_next[o], local) + c.center_next[o] - p) / dt
+
+
+@wp.func
 def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: float) -> bool:
     """Whether a point ``depth`` below a collider's surface (normal ``n``) acts with it this step.
 
@@ -65,38 +155,32 @@ def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: floa
 
 
 @wp.func
-def static_contact(
-    kind: int,
-    center: wp.vec3,
-    size: wp.vec3,
-    response: wp.vec2,
-    p: wp.vec3,
-    vp: wp.vec3,
-    v_body: wp.vec3,
-    m: float,
-    dt: float,
-):
-    """A static collider's penalty force ``k pen n`` and matrix term on a point of mass ``m`` (both zero if none).
+def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, dt: float):
+    """Collider ``o``'s penalty force and matrix term on a point of mass ``m`` (both zero if none).
 
-    The collider (stiffness k per unit mass and friction mu in ``response``) acts on a point below its
-    surface, or about to cross it within this step at its own speed or at its body's, which drags it along
-    (speculative contact): the penalty k m depth n, dt^2 k m n n^T in the matrix (above the surface only this
-    velocity term acts, which damps the approach and never attracts), and implicit friction dt c (I - n n^T),
-    c = mu k m depth / |v_t|.
+    The collider (stiffness k per unit mass and friction mu in its ``response``) acts on a point below its
+    surface, or about to cross it within this step at its own speed or at its body's, which drags it along,
+    relative to the surface's own speed v_c (speculative contact): the penalty k m (depth + dt n.v_c) n and
+    dt^2 k m n n^T in the matrix, which hold the depth the step ends at (above the surface only the velocity
+    terms act: they damp the approach and never attract), and implicit friction dt c (I - n n^T) towards the
+    surface's tangential speed, c = mu k m depth / |v_t|.
     """
-    dn = collider_distance(kind, center, size, p)
+    dn = collider_distance(c, o, p)
     n = wp.vec3(dn[1], dn[2], dn[3])
     depth = -dn[0]
     force = wp.vec3()
     block = wp.mat33()
-    if within_step(depth, n, vp, v_body, dt):
+    vc = collider_velocity(c, o, p, dt)
+    if within_step(depth, n, vp - vc, v_body - vc, dt):
+        response = c.response[o]
         k = response[0] * m
         pen = wp.max(depth, 0.0)
-        force = k * pen * n
         nn = wp.outer(n, n)
-        vt = vp - wp.dot(vp, n) * n
-        c = response[1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
-        block = dt * dt * k * nn + dt * c * (wp.identity(n=3, dtype=float) - nn)
+        tangent = wp.identity(n=3, dtype=float) - nn
+        vt = tangent * (vp - vc)
+        friction = response[1] * k * pen / wp.max(wp.length(vt), FRICTION_SPEED_EPS)
+        force = k * (pen + dt * wp.dot(n, vc)) * n + friction * (tangent * vc)
+        block = dt * dt * k * nn + dt * friction * tangent
     return force, block
 
 
@@ -126,10 +210,8 @@ def build_system(
     # inputs: forces and parameters
     force: wp.array(dtype=wp.vec3),
     gravity: wp.array(dtype=wp.vec3),
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_center: wp.array(dtype=wp.vec3),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_response: wp.array(dtype=wp.vec2),
+    colliders: Colliders,
+    held_v: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     vertex_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
@@ -146,7 +228,8 @@ def build_system(
 
     Each static collider acts on the vertex as :func:`static_contact` says: its force on the right-hand side,
     its matrix term in the diagonal block; not on a vertex outside the visible surface (a corner of the cage
-    around a dense surface, whose samples meet the colliders instead).
+    around a dense surface, whose samples meet the colliders instead). A held vertex (``free`` 0) leaves the
+    solve with the velocity ``held_v`` gives it (a handle's motion; zero, or ``held_v`` empty, for a pin).
     """
     i = wp.tid()
     m = mass[i]
@@ -160,10 +243,8 @@ def build_system(
     b = vertex_body[i]
     v_body = body_momentum[b] / body_mass[b]
     if vertex_depth[i] >= 0.0:
-        for o in range(collider_kind.shape[0]):
-            f, s = static_contact(
-                collider_kind[o], collider_center[o], collider_size[o], collider_response[o], xi, vi, v_body, m, dt
-            )
+        for o in range(colliders.kind.shape[0]):
+            f, s = static_contact(colliders, o, xi, vi, v_body, m, dt)
             rhs += dt * f
             block += s
 
@@ -171,6 +252,8 @@ def build_system(
     if free[i] == 0:
         rhs_out[i] = wp.vec3()
         v_guess_out[i] = wp.vec3()
+        if held_v.shape[0] > 0:
+            v_guess_out[i] = held_v[i]
         direction_out[i] = wp.vec3()
         diag_inv_out[i] = wp.mat33()
     else:
@@ -209,10 +292,7 @@ def skin_colliders(
     tet_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_center: wp.array(dtype=wp.vec3),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_response: wp.array(dtype=wp.vec2),
+    colliders: Colliders,
     dt: float,
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
@@ -232,18 +312,8 @@ def skin_colliders(
     vp = interpolate(v, t, w)
     body = tet_body[e]
     v_body = body_momentum[body] / body_mass[body]
-    for o in range(collider_kind.shape[0]):
-        f, s = static_contact(
-            collider_kind[o],
-            collider_center[o],
-            collider_size[o],
-            collider_response[o],
-            xp,
-            vp,
-            v_body,
-            skin_mass[i],
-            dt,
-        )
+    for o in range(colliders.kind.shape[0]):
+        f, s = static_contact(colliders, o, xp, vp, v_body, skin_mass[i], dt)
         if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
@@ -251,33 +321,24 @@ def skin_colliders(
 
 
 @wp.func
-def late_contact(
-    kind: int,
-    center: wp.vec3,
-    size: wp.vec3,
-    response: wp.vec2,
-    p: wp.vec3,
-    vp: wp.vec3,
-    vp_new: wp.vec3,
-    v_body: wp.vec3,
-    m: float,
-    dt: float,
-):
+def late_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, vp_new: wp.vec3, v_body: wp.vec3, m: float, dt: float):
     """A static contact the step's first solve would cross without having counted it (zero force and block if none).
 
     A point that :func:`static_contact` left free (not within one step of the surface at the step's start
-    speeds) but whose new velocity carries it below the surface by the step's end: it gets the penalty's
-    matrix term ``dt^2 k m n n^T`` and the force ``k m depth n`` at its (negative) start depth, so the second
-    solve brings it to the surface by the step's end instead of through it.
+    speeds) but whose new velocity carries it below the surface by the step's end (relative to the surface's
+    own speed v_c): it gets the penalty's matrix term ``dt^2 k m n n^T`` and the force
+    ``k m (depth + dt n.v_c) n`` at its (negative) start depth, so the second solve brings it to the surface
+    by the step's end instead of through it.
     """
-    dn = collider_distance(kind, center, size, p)
+    dn = collider_distance(c, o, p)
     n = wp.vec3(dn[1], dn[2], dn[3])
     depth = -dn[0]
     force = wp.vec3()
     block = wp.mat33()
-    if not within_step(depth, n, vp, v_body, dt) and depth - dt * wp.dot(n, vp_new) > 0.0:
-        k = response[0] * m
-        force = k * depth * n
+    vc = collider_velocity(c, o, p, dt)
+    if not within_step(depth, n, vp - vc, v_body - vc, dt) and depth - dt * wp.dot(n, vp_new - vc) > 0.0:
+        k = c.response[o][0] * m
+        force = k * (depth + dt * wp.dot(n, vc)) * n
         block = dt * dt * k * wp.outer(n, n)
     return force, block
 
@@ -291,10 +352,7 @@ def late_vertex_contacts(
     free: wp.array(dtype=wp.int32),
     diag_slot: wp.array(dtype=wp.int32),
     vertex_depth: wp.array(dtype=float),
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_center: wp.array(dtype=wp.vec3),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_response: wp.array(dtype=wp.vec2),
+    colliders: Colliders,
     vertex_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
@@ -313,11 +371,8 @@ def late_vertex_contacts(
         return
     b = vertex_body[i]
     v_body = body_momentum[b] / body_mass[b]
-    for o in range(collider_kind.shape[0]):
-        f, s = late_contact(
-            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], x[i], v[i], v_new[i],
-            v_body, mass[i], dt,
-        )  # fmt: skip
+    for o in range(colliders.kind.shape[0]):
+        f, s = late_contact(colliders, o, x[i], v[i], v_new[i], v_body, mass[i], dt)
         if wp.trace(s) > 0.0:
             rhs_out[i] = rhs_out[i] + dt * f
             matrix_out[diag_slot[i]] = matrix_out[diag_slot[i]] + s
@@ -339,10 +394,7 @@ def late_skin_contacts(
     tet_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_center: wp.array(dtype=wp.vec3),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_response: wp.array(dtype=wp.vec2),
+    colliders: Colliders,
     dt: float,
     late_out: wp.array(dtype=wp.int32),
     count_out: wp.array(dtype=wp.int32),
@@ -362,11 +414,17 @@ def late_skin_contacts(
     w = skin_bary[i]
     body = tet_body[e]
     v_body = body_momentum[body] / body_mass[body]
-    for o in range(collider_kind.shape[0]):
+    for o in range(colliders.kind.shape[0]):
         f, s = late_contact(
-            collider_kind[o], collider_center[o], collider_size[o], collider_response[o], interpolate(x, t, w),
-            interpolate(v, t, w), interpolate(v_new, t, w), v_body, skin_mass[i], dt,
-        )  # fmt: skip
+            colliders,
+            o,
+            interpolate(x, t, w),
+            interpolate(v, t, w),
+            interpolate(v_new, t, w),
+            v_body,
+            skin_mass[i],
+            dt,
+        )
         if wp.trace(s) > 0.0:
             for c in range(4):
                 if free[t[c]] != 0:

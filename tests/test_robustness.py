@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from pxr import Sdf, Usd, UsdGeom
+from pxr import Usd, UsdGeom
 
 import warpfem.memory as memory
 from warpfem.build import add_body, add_prepared_body, placed_geometry, scene_samples, solver_of
@@ -95,9 +95,10 @@ def _child(folder, out, save_every="0"):
 
 
 def _saved_frames(path):
-    """Frames in the snapshot at ``path`` now (it may be replaced while we read: the old inode stays)."""
-    layer = Sdf.Layer.OpenAsAnonymous(str(path))
-    return len(layer.ListTimeSamplesForPath("/World/ball.points"))
+    """Frames readable through the file at ``path`` now (its clips, if any; it may be replaced while we read:
+    the old inode stays, and chunks are never rewritten)."""
+    stage = Usd.Stage.Open(str(path))
+    return UsdGeom.Mesh(stage.GetPrimAtPath("/World/ball")).GetPointsAttr().GetNumTimeSamples()
 
 
 @pytest.mark.parametrize(
@@ -142,20 +143,30 @@ def test_sigterm_before_the_first_frame_writes_nothing(folder, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_snapshot_interval_follows_save_every_and_export_cost(tmp_path):
+def test_chunks_follow_save_every_and_are_never_rewritten(tmp_path):
     faces = np.array([[0, 1, 2]])
     writer = UsdWriter(tmp_path / "a.usdc", [("tri", faces)], fps=30.0, save_every=0.0)
+    seen = {}
     for f in range(5):
         writer.add_frame(f, [np.eye(3) * (f + 1)])
-        assert writer.snapshots <= f + 1
+        assert writer.chunks == f + 1
         stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
-        assert stage.GetEndTimeCode() == (writer.snapshots - 1)
+        assert stage.GetEndTimeCode() == f
+        attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/tri")).GetPointsAttr()
+        np.testing.assert_array_equal(np.array(attr.Get(f)), np.eye(3) * (f + 1))
+        del stage, attr  # let the next open read the replaced file, not the layer still registered
+        chunks = sorted((tmp_path / "a.clips").glob("a.*.usdc"))
+        assert len(chunks) == f + 1
+        for chunk in chunks:  # a chunk once written keeps its inode and bytes
+            st = chunk.stat()
+            assert seen.setdefault(chunk.name, (st.st_ino, st.st_mtime_ns)) == (st.st_ino, st.st_mtime_ns)
     writer.close()
-    assert _leftovers(tmp_path) == []
+    assert _leftovers(tmp_path) == [] and _leftovers(tmp_path / "a.clips") == []
     lazy = UsdWriter(tmp_path / "b.usdc", [("tri", faces)], fps=30.0, save_every=3600.0)
     lazy.add_frame(0, [np.eye(3)])
-    assert lazy.snapshots == 0 and not (tmp_path / "b.usdc").exists()
+    assert lazy.chunks == 0 and not (tmp_path / "b.usdc").exists()
     lazy.close()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("b")) == ["b.usdc"]
 
 
 def test_writer_without_overwrite_refuses_an_existing_file(tmp_path):

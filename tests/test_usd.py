@@ -34,17 +34,21 @@ def validation_errors(stage):
     return [e.GetMessage() for e in ctx.Validate(stage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
 
 
+@pytest.mark.parametrize("chunk_bytes", [1 << 20, 100, 400], ids=["one file", "a clip per frame", "clips"])
 @pytest.mark.parametrize("ext", [".usdc", ".usda"])
-def test_round_trip(tmp_path, ext):
+def test_round_trip(tmp_path, ext, chunk_bytes):
     from pxr import Sdf, Usd, UsdGeom
 
     bodies, frames = bodies_and_frames(5)
     path = tmp_path / f"out{ext}"
-    writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z")
+    writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z", chunk_bytes=chunk_bytes)
     for f, points in enumerate(frames):
         writer.add_frame(f, points)
     assert writer.frames_added == 5
     assert writer.close() == path
+    frame_bytes = 12 * 14
+    clips = sorted(p.name for p in (tmp_path / "out.clips").glob("out.*.usdc"))
+    assert len(clips) == (0 if chunk_bytes > 5 * frame_bytes else -(-5 // -(-chunk_bytes // frame_bytes)))
 
     expected_format = "usda" if ext == ".usda" else "usdc"
     assert Sdf.Layer.FindOrOpen(str(path)).GetFileFormat().formatId == expected_format
@@ -240,3 +244,105 @@ def test_constructor_checks(tmp_path, name, kwargs, match):
 def test_missing_output_folder(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         UsdWriter(tmp_path / "no" / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0)
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs /proc to read the resident memory")
+def test_memory_stays_flat_over_a_long_run_and_every_frame_reads_back(tmp_path):
+    """300 frames of 50k vertices (180 MB of samples) in 8 MB chunks: resident memory grows by less than two
+    chunks between frame 100 and the end, and the file reads back every frame."""
+    from pxr import Usd, UsdGeom
+
+    n, chunk = 50_000, 8 << 20
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=(n, 3)).astype(np.float32)
+    faces = rng.integers(0, n, size=(n, 3))
+    path = tmp_path / "long.usdc"
+    with UsdWriter(path, [("m", faces)], fps=60.0, save_every=None, chunk_bytes=chunk) as writer:
+        for f in range(300):
+            writer.add_frame(f, [base + np.float32(f)])
+            if f == 100:
+                before = _rss_bytes()
+        grown = _rss_bytes() - before
+    assert grown < 2 * chunk, f"resident memory grew {grown / 2**20:.1f} MB over 200 frames of 0.6 MB"
+    assert writer.chunks == -(-300 // -(-chunk // (12 * n)))
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/m")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [float(f) for f in range(300)] and stage.GetEndTimeCode() == 299
+    for f in (0, 1, 13, 14, 150, 299):
+        np.testing.assert_array_equal(np.array(attr.Get(f)), base + np.float32(f))
+
+
+_KILLED_WRITER = """
+import sys
+import numpy as np
+from warpfem.io.usd import UsdWriter
+n = 1000
+base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
+faces = np.arange(3 * n).reshape(n, 3) % n
+with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n) as writer:
+    for f in range(10**9):
+        writer.add_frame(f, [base * np.float32(1 + f)])
+"""
+
+
+def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from pxr import Usd, UsdGeom
+
+    path = tmp_path / "killed.usdc"
+    child = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(path)], stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while len(list((tmp_path / "killed.clips").glob("killed.*.usdc"))) < 5 and time.monotonic() < deadline:
+        assert child.poll() is None, child.stderr.read()
+        time.sleep(0.005)
+    child.send_signal(signal.SIGKILL)
+    child.wait(timeout=60)
+    base = np.random.default_rng(2).normal(size=(1000, 3)).astype(np.float32)
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/m")).GetPointsAttr()
+    times = attr.GetTimeSamples()
+    assert len(times) >= 15 and len(times) % 3 == 0 and times == [float(f) for f in range(len(times))]
+    assert stage.GetEndTimeCode() == times[-1]
+    for f in range(len(times)):
+        np.testing.assert_array_equal(np.array(attr.Get(f)), base * np.float32(1 + f))
+    assert validation_errors(stage) == []
+
+
+def test_a_clips_folder_is_replaced_only_if_ours(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    bodies, frames = bodies_and_frames(4)
+    path = tmp_path / "x.usdc"
+    with UsdWriter(path, bodies, fps=60.0, chunk_bytes=1) as writer:  # a clip per frame
+        for f, points in enumerate(frames):
+            writer.add_frame(f, points)
+    assert len(list((tmp_path / "x.clips").glob("x.*.usdc"))) == 4
+    with UsdWriter(path, bodies, fps=60.0, chunk_bytes=2 * 12 * 14) as writer:  # ours: replaced
+        for f, points in enumerate(frames[:3]):
+            writer.add_frame(f, points)
+    assert len(list((tmp_path / "x.clips").glob("x.*.usdc"))) == 2
+    with UsdWriter(path, bodies, fps=60.0) as writer:  # one file now: our old clips go
+        writer.add_frame(0, frames[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.usdc"]
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/tet")).GetPointsAttr().GetTimeSamples() == [0.0]
+
+    foreign = tmp_path / "y.clips"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="exists"):
+        UsdWriter(tmp_path / "y.usdc", bodies, fps=60.0, overwrite=False)
+    writer = UsdWriter(tmp_path / "y.usdc", bodies, fps=60.0, chunk_bytes=1)
+    with pytest.raises(FileExistsError, match="y.clips"):
+        writer.add_frame(0, frames[0])
+    writer.abort()
+    assert (foreign / "notes.txt").read_text() == "mine" and not (tmp_path / "y.usdc").exists()

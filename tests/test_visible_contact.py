@@ -74,6 +74,7 @@ def _head_on(device: str, speed: float, contact_passes: int) -> float:
     """Two bunnies (0.8 m) thrown at each other at ``speed`` each, no gravity: the deepest a dense vertex of
     one gets inside the other's dense surface over 30 frames (libigl's winding number on the dense meshes
     alone), relative to the size of the body it is inside."""
+
     def thrown(name, x, vx, turn):
         return {
             "name": name,

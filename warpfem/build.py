@@ -23,9 +23,11 @@ from warpfem.prep.geometry import (
     surface_samples,
 )
 from warpfem.prep.pipeline import PreparedBody, prepare
-from warpfem.scene import ObjectConfig, Scene
+from warpfem.prep.surface import read_triangles
+from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
-from warpfem.sim.integrate import Box, Ground, Sphere
+from warpfem.sim.drive import Handle, Motion, quat_of_matrix
+from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere
 from warpfem.sim.model import Model, ModelBuilder
 from warpfem.sim.solver import Solver
 
@@ -112,14 +114,26 @@ def placed_geometry(
     return tet_x, geometry
 
 
+def in_box(x: np.ndarray, lo: tuple[float, float, float], hi: tuple[float, float, float]) -> np.ndarray:
+    """Which points of ``x`` (n, 3) lie in the box ``[lo, hi]`` (m), faces included."""
+    return np.all((x >= np.asarray(lo)) & (x <= np.asarray(hi)), axis=1)
+
+
 def add_prepared_body(
-    builder: ModelBuilder, obj: ObjectConfig, prepared: PreparedBody, placed: tuple[np.ndarray, BodyGeometry]
+    builder: ModelBuilder,
+    obj: ObjectConfig,
+    prepared: PreparedBody,
+    placed: tuple[np.ndarray, BodyGeometry],
+    held: np.ndarray | None = None,
 ) -> None:
-    """Add a preprocessed body, placed by :func:`placed_geometry`, with the materials of its scene object."""
+    """Add a preprocessed body, placed by :func:`placed_geometry`, with the materials of its scene object.
+
+    ``held``: a mask of tet vertices its handles hold (pinned, as those of its pin box).
+    """
     tet_x, geometry = placed
-    pinned = None
+    pinned = held
     if obj.pin_min is not None:
-        pinned = np.all((tet_x >= np.asarray(obj.pin_min)) & (tet_x <= np.asarray(obj.pin_max)), axis=1)
+        pinned = in_box(tet_x, obj.pin_min, obj.pin_max) | (False if held is None else held)
     builder.add_body(
         obj.name,
         tet_x,
@@ -201,19 +215,112 @@ def ground_of(scene: Scene) -> Ground | None:
     return Ground(height=g.height, stiffness=g.stiffness, friction=g.friction, up=up)
 
 
-def obstacles_of(scene: Scene) -> list[Sphere | Box]:
-    """The scene's static spheres and boxes in solver terms."""
-    return [
-        Sphere(o.center, o.radius, o.stiffness, o.friction)
-        if o.kind == "sphere"
-        else Box(o.center, o.half_extents, o.stiffness, o.friction)
-        for o in scene.obstacles
-    ]
+def keyed_motion(keys: list, pivot: np.ndarray) -> Motion:
+    """The :class:`Motion` of a scene's ``keys`` rows ``[t, tx, ty, tz, rx, ry, rz]`` about ``pivot`` (m)."""
+    rows = np.asarray(keys, np.float64).reshape(-1, 7)
+    rotations = [quat_of_matrix(euler_rotation(tuple(row[4:]))) for row in rows]
+    return Motion(rows[:, 0], rotations, rows[:, 1:4], tuple(float(c) for c in pivot))
 
 
-def solver_of(scene: Scene, model: Model, cg_path: str | None = None) -> Solver:
-    """The solver a scene asks for (``cg_path``: see :class:`~warpfem.sim.solver.Solver`)."""
+def obstacle_of(scene: Scene, index: int) -> Sphere | Box | MeshCollider:
+    """Obstacle ``index`` of ``scene`` in solver terms (a mesh obstacle's file read and placed).
+
+    Raises:
+        InputError: An unreadable or empty mesh file (naming the scene file and the obstacle's key).
+    """
+    o: ObstacleConfig = scene.obstacles[index]
+    if o.kind != "mesh":
+        motion = None if o.keys is None else keyed_motion(o.keys, np.asarray(o.center))
+        if o.kind == "sphere":
+            return Sphere(o.center, o.radius, o.stiffness, o.friction, motion)
+        return Box(o.center, o.half_extents, o.stiffness, o.friction, motion)
+    try:
+        vertices, faces, closed = read_triangles(o.mesh, o.prim)
+    except InputError as err:
+        raise InputError(f"{scene.path}: obstacle[{index}]: mesh {err}") from None
+    vertices = vertices * (1.0 if o.scale is None else o.scale)
+    rotation = euler_rotation(o.rotate or (0.0, 0.0, 0.0))
+    translation = np.asarray(o.translate or (0.0, 0.0, 0.0), np.float64)
+    placed = vertices @ rotation.T + translation
+    pivot = 0.5 * (placed.min(axis=0) + placed.max(axis=0))
+    motion = None if o.keys is None else keyed_motion(o.keys, pivot)
+    return MeshCollider(vertices, faces, rotation, tuple(translation), o.stiffness, o.friction, motion, closed)
+
+
+def obstacles_of(scene: Scene) -> list[Sphere | Box | MeshCollider]:
+    """The scene's obstacles in solver terms."""
+    return [obstacle_of(scene, index) for index in range(len(scene.obstacles))]
+
+
+def obstacle_names(scene: Scene) -> list[str]:
+    """Each obstacle's name: its ``name``, else ``obstacle<index>``."""
+    return [o.name or f"obstacle{i}" for i, o in enumerate(scene.obstacles)]
+
+
+def handle_names(scene: Scene) -> list[str]:
+    """Each handle's name: its ``name``, else ``handle<index>``."""
+    return [h.name or f"handle{i}" for i, h in enumerate(scene.handles)]
+
+
+def held_masks(scene: Scene, tet_x: list[np.ndarray]) -> list[np.ndarray]:
+    """Each handle's mask of its object's placed tet vertices (``tet_x``, one array per object).
+
+    Raises:
+        InputError: A box that holds no vertex, or one that holds vertices pinned or held by another handle.
+    """
+    names = [obj.name for obj in scene.objects]
+    taken = [np.zeros(len(x), bool) for x in tet_x]
+    for k, obj in enumerate(scene.objects):
+        if obj.pin_min is not None:
+            taken[k] = in_box(tet_x[k], obj.pin_min, obj.pin_max)
+    masks = []
+    for index, h in enumerate(scene.handles):
+        k = names.index(h.object)
+        mask = in_box(tet_x[k], h.min, h.max)
+        where = f"{scene.path}: handle[{index}]: min"
+        if not mask.any():
+            lo, hi = tet_x[k].min(axis=0).round(4).tolist(), tet_x[k].max(axis=0).round(4).tolist()
+            raise InputError(f"{where}, max: the box holds no tet vertex of '{h.object}' (they span {lo} to {hi} m)")
+        if (mask & taken[k]).any():
+            raise InputError(f"{where}, max: the box holds tet vertices of '{h.object}' that its pin box or an "
+                             "earlier handle already holds")  # fmt: skip
+        taken[k] |= mask
+        masks.append(mask)
+    return masks
+
+
+def handle_motion(scene: Scene, index: int) -> Motion:
+    """Handle ``index``'s motion: its keys about its box's centre, or its USD prim's relative transform.
+
+    Raises:
+        InputError: The USD file or prim cannot give a rigid motion (naming the scene file and the key).
+    """
+    from warpfem.io.usd_motion import read_motion
+
+    h: HandleConfig = scene.handles[index]
+    if h.keys is not None:
+        return keyed_motion(h.keys, 0.5 * (np.asarray(h.min) + np.asarray(h.max)))
+    try:
+        times, rotations, translations = read_motion(h.usd, h.prim)
+    except InputError as err:
+        raise InputError(f"{scene.path}: handle[{index}]: usd {err}") from None
+    return Motion(times, [quat_of_matrix(r) for r in rotations], translations)
+
+
+def solver_of(scene: Scene, model: Model, cg_path: str | None = None, held: list[np.ndarray] | None = None) -> Solver:
+    """The solver a scene asks for (``cg_path``: see :class:`~warpfem.sim.solver.Solver`).
+
+    ``held``: each handle's mask of its object's tet vertices (:func:`held_masks`; the model must pin them).
+    """
     c = scene.collision
+    held = [] if held is None else held
+    if len(held) != len(scene.handles):
+        raise ValueError(f"the scene has {len(scene.handles)} handles; pass held=held_masks(...) with one mask each")
+    starts = {b.name: b.vertex_start for b in model.bodies}
+    handles = [
+        Handle(starts[h.object] + np.flatnonzero(mask), handle_motion(scene, index), name)
+        for index, (h, mask, name) in enumerate(zip(scene.handles, held, handle_names(scene), strict=True))
+    ]
     return Solver(
         model,
         gravity=scene.gravity,
@@ -223,4 +330,5 @@ def solver_of(scene: Scene, model: Model, cg_path: str | None = None) -> Solver:
         cg_tolerance=scene.solver.stop_tolerance,
         collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
         cg_path=cg_path,
+        handles=handles,
     )

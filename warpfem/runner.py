@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,6 +15,10 @@ from warpfem.errors import InputError
 from warpfem.io.penetration import Penetration, frame_penetration
 from warpfem.scene import Scene
 from warpfem.simulation import Simulation
+
+if TYPE_CHECKING:
+    from warpfem.io.stream import FrameStream
+    from warpfem.io.usd import Prop
 
 
 @dataclass
@@ -33,7 +38,9 @@ class RunSummary:
         cg_iterations_per_step: Mean CG iterations per step.
         cg_residual_max: Largest final relative CG residual.
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
-        seconds: Wall time per phase (s): prepare, build, simulate, map, write.
+        seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
+            write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
+            for the writer), and wall (from the first step to the file written).
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
             whose later frames replay a captured graph).
@@ -71,9 +78,11 @@ class RunSummary:
 
     @property
     def ms_per_frame(self) -> float:
-        """Wall time per frame of simulation, mapping, writing and the penetration check (ms)."""
-        work = sum(self.seconds.get(k, 0.0) for k in ("simulate", "map", "write", "check"))
-        return 1000.0 * work / max(self.frames, 1)
+        """Wall time per frame from the first step to the file written (ms).
+
+        It counts the simulation and whatever part of the writing and the penetration check did not overlap it.
+        """
+        return 1000.0 * self.seconds.get("wall", 0.0) / max(self.frames, 1)
 
 
 def run(
@@ -102,8 +111,8 @@ def run(
         progress: Receives ``(object name, message)`` as each preprocessing stage starts.
         warn: Receives one-line warnings (see :class:`~warpfem.simulation.Simulation`).
         overwrite: Whether an existing ``out`` may be replaced.
-        save_every: Shortest time between snapshots of the file (s), so a killed process keeps the frames up
-            to the last one; None: write only at the end.
+        save_every: Longest time between chunks of the file on disk (s), so a killed process keeps the frames
+            up to the last chunk; None: chunks by size only (see :class:`~warpfem.io.usd.UsdWriter`).
         every: Write every ``every``-th frame and the last (time codes stay frame numbers); the simulation
             still steps every frame.
 
@@ -129,15 +138,20 @@ def run(
 def check_output(out: Path, overwrite: bool, option: str = "out", overwrite_flag: str = "overwrite=True") -> None:
     """Raise :class:`InputError` (naming ``option``) before anything runs if ``out`` cannot be written.
 
-    It must end in ``.usdc`` or ``.usda``, its folder exist, and a file there may be replaced only with
-    ``overwrite`` (``overwrite_flag`` names how to ask for it).
+    It must end in ``.usdc`` or ``.usda``, its folder exist, and a file there (or its clips folder) may be
+    replaced only with ``overwrite`` (``overwrite_flag`` names how to ask for it).
     """
+    from warpfem.io.usd import clips_folder
+
     if out.suffix.lower() not in (".usdc", ".usda"):
         raise InputError(f"{option} {out}: the output must end in .usdc or .usda")
     if not out.resolve().parent.is_dir():
         raise InputError(f"{option} {out}: folder {out.resolve().parent} does not exist")
     if out.is_file() and not overwrite:
         raise InputError(f"{option} {out}: the file exists; pass {overwrite_flag} to replace it")
+    clips = clips_folder(out)
+    if clips.exists() and not overwrite:
+        raise InputError(f"{option} {out}: its clips folder {clips} exists; pass {overwrite_flag} to replace it")
 
 
 def record(
@@ -151,60 +165,99 @@ def record(
 ) -> RunSummary:
     """Step ``sim`` through its scene's frames from where it is, writing the dense meshes to ``out``.
 
+    The file is written and the penetration checked on a background thread while the next frames simulate
+    (:class:`~warpfem.io.stream.FrameStream`); the simulation waits only when the writer is a few frames behind.
+
     Args:
         sim: A simulation at frame 0.
         out: Target ``.usdc`` or ``.usda`` file (see :func:`run`).
         overwrite: Whether an existing ``out`` may be replaced.
-        save_every: Shortest time between snapshots of the file (s); None: write only at the end.
-        on_frame: Called once per finished frame.
+        save_every: Longest time between chunks of the file on disk (s); None: chunks by size only.
+        on_frame: Called once per finished frame, on the calling thread.
         on_points: Called as ``on_points(frame, points)`` with each written frame's dense points (one (n_i, 3)
-            array per body), frame 0 included, after the frame is written; its time is not in the summary.
+            array per body), frame 0 included, on the calling thread; its time is not in the summary.
         every: Write (map, check, hand to ``on_points``) every ``every``-th frame and the last.
     """
+    from warpfem.io.stream import FrameStream
     from warpfem.io.usd import UsdWriter
 
-    scene, model = sim.scene, sim.model
-    seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0, "write": 0.0, "check": 0.0}
+    scene = sim.scene
     check = _Check(sim)
-    bodies = [(b.name, b.dense_faces) for b in model.bodies]
+    bodies = [(b.name, b.dense_faces) for b in sim.model.bodies]
+    props, poses = _props(sim)
     try:
         writer = UsdWriter(
-            out, bodies, fps=scene.fps, up_axis=scene.up_axis, overwrite=overwrite, save_every=save_every
+            out,
+            bodies,
+            fps=scene.fps,
+            up_axis=scene.up_axis,
+            overwrite=overwrite,
+            save_every=save_every,
+            props=props,
         )
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         raise InputError(str(err)) from None
+
+    def write(frame: int, points: list[np.ndarray]) -> None:
+        writer.add_frame(frame, points, poses(frame / scene.fps))
+
+    def checked(frame: int, points: list[np.ndarray]) -> None:
+        check.frame(points, frame, last=frame == scene.frames, elapsed=time.perf_counter() - started)
+
+    seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
+    clock = time.perf_counter()
+    sim.capture()  # before the writer's thread waits on the device: no capture may be active then
+    seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
+    started = time.perf_counter()
     with writer:
-        t0 = started = time.perf_counter()
-        points = sim.dense_points()
-        writer.add_frame(0, points)
-        seconds["write"] += time.perf_counter() - t0
-        if on_points:
-            on_points(0, points)
-        for frame in range(1, scene.frames + 1):
-            t0 = time.perf_counter()
-            sim.step_frame(profile=not sim.device.is_cuda or frame == 1)
-            t1 = time.perf_counter()
-            if frame % every and frame != scene.frames:
-                seconds["simulate"] += t1 - t0
-                if on_frame:
-                    on_frame()
-                continue
-            points = sim.dense_points()
-            t2 = time.perf_counter()
-            writer.add_frame(frame, points)
-            t3 = time.perf_counter()
-            check.frame(points, frame, last=frame == scene.frames, elapsed=t3 - started)
-            seconds["simulate"] += t1 - t0
-            seconds["map"] += t2 - t1
-            seconds["write"] += t3 - t2
-            seconds["check"] += time.perf_counter() - t3
-            if on_points:
-                on_points(frame, points)
-            if on_frame:
-                on_frame()
-        t_close = time.perf_counter()  # the writer saves the file on leaving this block
-    seconds["write"] += time.perf_counter() - t_close
+        with FrameStream(sim, [("write", write), ("check", checked)]) as stream:
+            _stream_frames(sim, stream, seconds, on_frame, on_points, every)
+        clock = time.perf_counter()  # the writer writes what is left on leaving this block
+    seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
+    seconds["check"] = stream.seconds["check"]
+    seconds["wait"] = stream.waited
+    seconds["wall"] = time.perf_counter() - started
     return _summary(sim, out, seconds, check)
+
+
+def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:
+    """The obstacles and handles to write beside the bodies, and their transforms at a time (s)."""
+    from warpfem.io.usd import Prop
+
+    props = [Prop(f"obstacles/{o.name}", o.vertices, o.faces) for o in sim.obstacles_at(0.0)]
+    props += [Prop(f"handles/{h.name}", h.vertices, h.faces, guide=True) for h in sim.handles_at(0.0)]
+
+    def poses(time: float) -> list[np.ndarray]:
+        if not props:
+            return []
+        return [posed.matrix for posed in (*sim.obstacles_at(time), *sim.handles_at(time))]
+
+    return props, poses
+
+
+def _stream_frames(
+    sim: Simulation,
+    stream: FrameStream,
+    seconds: dict[str, float],
+    on_frame: Callable[[], None] | None,
+    on_points: Callable[[int, list[np.ndarray]], None] | None,
+    every: int,
+) -> None:
+    """Step every frame of ``sim``'s scene, handing frame 0, every ``every``-th and the last to ``stream``."""
+    frames = sim.scene.frames
+    for frame in range(frames + 1):
+        t0 = time.perf_counter()
+        if frame:
+            sim.step_frame(profile=not sim.device.is_cuda or frame == 1)
+        t1 = time.perf_counter()
+        seconds["simulate"] += t1 - t0
+        if frame % every == 0 or frame == frames:
+            stream.submit(frame)
+            seconds["map"] += time.perf_counter() - t1
+            if on_points:
+                on_points(frame, sim.dense_points())
+        if frame and on_frame:
+            on_frame()
 
 
 class _Check:
@@ -229,7 +282,7 @@ class _Check:
         """Check frame ``frame``'s dense meshes; ``elapsed``: seconds since the run began."""
         clock = time.perf_counter()
         bodies = self.bodies and (last or frame >= self.next)
-        result = frame_penetration(self.sim, points, bodies=bodies)
+        result = frame_penetration(self.sim, points, bodies=bodies, time=frame / self.sim.fps)
         if bodies:
             self.frames_checked += 1
             cost = time.perf_counter() - clock

@@ -236,38 +236,95 @@ class CollisionConfig:
         _check_range(err, "friction", self.friction, ge=0.0)
 
 
+KEY_COLUMNS = "[t, tx, ty, tz, rx, ry, rz]"
+"""One key of a rigid animation: time (s), translation (m), rotation (degrees, about X then Y then Z)."""
+
+
+def _check_keys(err: _Problem, key: str, keys: object) -> None:
+    """A rigid animation's keys: rows of 7 finite numbers, times >= 0 and strictly increasing."""
+    if not isinstance(keys, (list, tuple)) or not keys:
+        raise err(key, f"must be a non-empty list of {KEY_COLUMNS} rows, got {_shown(keys)}")
+    for k, row in enumerate(keys):
+        if not isinstance(row, list) or len(row) != 7 or not all(_is_number(v) for v in row):
+            raise err(f"{key}[{k}]", f"must be {KEY_COLUMNS} (7 numbers), got {_shown(row)}")
+        if not all(math.isfinite(v) for v in row):
+            raise err(f"{key}[{k}]", f"must hold finite numbers, got {row}")
+        if k == 0 and row[0] < 0:
+            raise err(f"{key}[0]", f"time must be >= 0 s, got {row[0]}")
+        if k > 0 and row[0] <= keys[k - 1][0]:
+            before = f"{key}[{k - 1}]'s {keys[k - 1][0]} s"
+            raise err(f"{key}[{k}]", f"time {row[0]} s must be after {before} (times strictly increasing)")
+
+
+def _check_name(err: _Problem, value: object) -> None:
+    if not isinstance(value, str) or not _NAME_RE.fullmatch(value):
+        raise err(
+            "name",
+            "must be a valid USD prim name (letters, digits, underscores, not starting with a "
+            f"digit), got {_shown(value)}",
+        )
+
+
+MESH_OBSTACLE_KEYS = ("mesh", "prim", "scale", "rotate", "translate")
+
+
 @dataclass
 class ObstacleConfig:
-    """A static collider: a sphere or an axis-aligned box, acting like the ground (penalty and friction).
+    """A collider: a sphere, a box or a triangle mesh, acting like the ground (penalty and friction), still or keyed.
 
     Attributes:
-        kind: ``"sphere"`` or ``"box"``.
-        center: Its centre (m).
+        kind: ``"sphere"``, ``"box"`` or ``"mesh"``.
+        center: A sphere's or box's centre (m).
         radius: The sphere's radius (m, > 0; spheres only).
         half_extents: The box's half sizes along x, y, z (m, each > 0; boxes only).
+        mesh: A mesh obstacle's file (OBJ, PLY, STL, OFF or USD; absolute once loaded); closed or open.
+        prim: For a USD mesh file, the ``UsdGeom.Mesh`` prim to use (default: the file's only mesh).
+        scale: Uniform scale of the mesh (> 0; default 1).
+        rotate: XYZ Euler angles of the mesh (degrees; default 0).
+        translate: Translation of the mesh (m; default 0).
+        keys: A rigid animation, rows ``[t, tx, ty, tz, rx, ry, rz]`` (s, m, degrees) about the obstacle's centre
+            (a mesh's: the centre of its placed bounding box), or None: it stays.
         stiffness: Penalty per unit mass (1/s^2, > 0).
         friction: Coulomb friction coefficient (>= 0).
+        name: Its name in output (default ``obstacle<index>``).
     """
 
     kind: str
-    center: Vec3
+    center: Vec3 | None = None
     radius: float | None = None
     half_extents: Vec3 | None = None
+    mesh: str | None = None
+    prim: str | None = None
+    scale: float | None = None
+    rotate: Vec3 | None = None
+    translate: Vec3 | None = None
+    keys: list | None = None
     stiffness: float = 1e7
     friction: float = 0.5
+    name: str | None = None
 
     def validate(self, origin: str = "<scene>", index: int = 0) -> None:
         """Raise :class:`InputError` naming ``origin`` and ``obstacle[index]`` on the first bad value."""
         err = _Problem(origin, f"obstacle[{index}]: ")
-        _check_choice(err, "kind", self.kind, ("sphere", "box"))
-        _check_vec3(err, "center", self.center)
+        _check_choice(err, "kind", self.kind, ("sphere", "box", "mesh"))
+        if self.name is not None:
+            _check_name(err, self.name)
+        if self.kind == "mesh":
+            self._validate_mesh(err)
+        else:
+            for key in MESH_OBSTACLE_KEYS:
+                if getattr(self, key) is not None:
+                    raise err(key, 'is for kind = "mesh" obstacles')
+            if self.center is None:
+                raise err("center", "is required")
+            _check_vec3(err, "center", self.center)
         if self.kind == "sphere":
             if self.half_extents is not None:
                 raise err("half_extents", "is for boxes; a sphere takes radius")
             if self.radius is None:
                 raise err("radius", "is required for a sphere")
             _check_range(err, "radius", self.radius, "m", gt=0.0)
-        else:
+        elif self.kind == "box":
             if self.radius is not None:
                 raise err("radius", "is for spheres; a box takes half_extents")
             if self.half_extents is None:
@@ -275,8 +332,82 @@ class ObstacleConfig:
             _check_vec3(err, "half_extents", self.half_extents)
             if min(self.half_extents) <= 0.0:
                 raise err("half_extents", f"must all be > 0 m, got {list(self.half_extents)}")
+        if self.keys is not None:
+            _check_keys(err, "keys", self.keys)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
+
+    def _validate_mesh(self, err: _Problem) -> None:
+        for key in ("center", "radius", "half_extents"):
+            if getattr(self, key) is not None:
+                raise err(key, "is for spheres and boxes; a mesh obstacle is placed by scale, rotate and translate")
+        if not isinstance(self.mesh, str) or not self.mesh:
+            raise err("mesh", f"is required for a mesh obstacle (a file path), got {_shown(self.mesh)}")
+        if not Path(self.mesh).is_file():
+            raise err("mesh", f"file not found: {self.mesh}")
+        if self.prim is not None and (not isinstance(self.prim, str) or not self.prim.startswith("/")):
+            raise err("prim", f'must be a prim path such as "/World/Mesh", got {_shown(self.prim)}')
+        if self.scale is not None:
+            _check_range(err, "scale", self.scale, gt=0.0)
+        for key in ("rotate", "translate"):
+            if getattr(self, key) is not None:
+                _check_vec3(err, key, getattr(self, key))
+
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
+
+
+@dataclass
+class HandleConfig:
+    """A region of a body that follows an animation: the tet vertices in a box, held to a rigid motion.
+
+    Attributes:
+        object: The body's name.
+        min: Lower corner of the box (m, world coordinates at rest).
+        max: Upper corner of the box (m).
+        keys: Rows ``[t, tx, ty, tz, rx, ry, rz]`` (s, m, degrees about X then Y then Z): a rigid motion about
+            the box's centre, linear between keys (rotations by slerp), held after the last; or None.
+        usd: A USD file (absolute once loaded) whose animated ``prim`` the vertices follow instead: its world
+            transform relative to its transform at time 0; or None.
+        prim: The ``UsdGeom.Xformable`` prim of ``usd``.
+        name: Its name in output (default ``handle<index>``).
+    """
+
+    object: str
+    min: Vec3
+    max: Vec3
+    keys: list | None = None
+    usd: str | None = None
+    prim: str | None = None
+    name: str | None = None
+
+    def validate(self, origin: str = "<scene>", index: int = 0, objects: tuple[str, ...] = ()) -> None:
+        """Raise :class:`InputError` naming ``origin`` and ``handle[index]`` on the first bad value.
+
+        ``objects``: the scene's body names, which ``object`` must be one of.
+        """
+        err = _Problem(origin, f"handle[{index}]: ")
+        if not isinstance(self.object, str) or self.object not in objects:
+            raise err("object", f"must name an object ({', '.join(objects)}), got {_shown(self.object)}")
+        if self.name is not None:
+            _check_name(err, self.name)
+        _check_vec3(err, "min", self.min)
+        _check_vec3(err, "max", self.max)
+        if any(lo > hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise err("min", f"must be <= max componentwise, got {list(self.min)} > {list(self.max)}")
+        if (self.keys is None) == (self.usd is None):
+            raise err("keys", "or usd (with prim) is required, and only one of them")
+        if self.keys is not None:
+            if self.prim is not None:
+                raise err("prim", "names the animated prim of usd; this handle has keys")
+            _check_keys(err, "keys", self.keys)
+            return
+        if not isinstance(self.usd, str) or Path(self.usd).suffix.lower() not in USD_SUFFIXES:
+            raise err("usd", f"must be a .usd, .usda or .usdc file, got {_shown(self.usd)}")
+        if not Path(self.usd).is_file():
+            raise err("usd", f"file not found: {self.usd}")
+        if not isinstance(self.prim, str) or not self.prim.startswith("/"):
+            raise err("prim", f'must be the animated prim\'s path, such as "/World/Hand", got {_shown(self.prim)}')
 
 
 @dataclass
@@ -431,7 +562,8 @@ class Scene:
         collision: Body-body collision settings.
         camera: Preview camera.
         objects: The bodies (at least one, unique names).
-        obstacles: Static spheres and boxes.
+        obstacles: Spheres, boxes and meshes, still or keyed.
+        handles: Regions of bodies that follow animations.
     """
 
     path: Path
@@ -446,6 +578,7 @@ class Scene:
     camera: CameraConfig = field(default_factory=CameraConfig)
     objects: list[ObjectConfig] = field(default_factory=list)
     obstacles: list[ObstacleConfig] = field(default_factory=list)
+    handles: list[HandleConfig] = field(default_factory=list)
 
     @property
     def dt(self) -> float:
@@ -475,6 +608,14 @@ class Scene:
             if obj.name in seen:
                 raise _object_table(origin, index, obj.name)("name", f"is already used by object[{seen[obj.name]}]")
             seen[obj.name] = index
+        for index, handle in enumerate(self.handles):
+            handle.validate(origin, index, tuple(seen))
+        for table, entries in (("obstacle", self.obstacles), ("handle", self.handles)):
+            names = [e.name for e in entries if e.name is not None]
+            for name in names:
+                if names.count(name) > 1:
+                    index = next(i for i, e in enumerate(entries) if e.name == name and i > names.index(name))
+                    raise InputError(f"{origin}: {table}[{index}]: name is already used: {name}")
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any], base_dir: str | Path = ".", name: str = "scene") -> Scene:
@@ -583,7 +724,7 @@ def load_scene(path: str | Path) -> Scene:
 def _from_doc(doc: dict[str, Any], path: Path) -> Scene:
     """Build and validate a scene from a parsed document; ``path`` names it in messages and anchors meshes."""
     origin = str(path)
-    known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle")
+    known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle", "handle")
     _apply_preset(doc, origin)
     for key in doc:
         if key not in known:
@@ -601,7 +742,8 @@ def _from_doc(doc: dict[str, Any], path: Path) -> Scene:
             "collision": _build(CollisionConfig, _sub_table(doc, origin, "collision"), _table(origin, "collision")),
             "camera": _build(CameraConfig, _sub_table(doc, origin, "camera"), _table(origin, "camera")),
             "objects": _objects(doc, origin, path.parent),
-            "obstacles": _obstacles(doc, origin),
+            "obstacles": _array_of(doc, origin, "obstacle", ObstacleConfig, path.parent, ("mesh",)),
+            "handles": _array_of(doc, origin, "handle", HandleConfig, path.parent, ("usd",)),
         },
     )
     scene.validate()
@@ -622,13 +764,21 @@ def _objects(doc: dict[str, Any], origin: str, folder: Path) -> list[ObjectConfi
     return objects
 
 
-def _obstacles(doc: dict[str, Any], origin: str) -> list[ObstacleConfig]:
-    raw_obstacles = doc.get("obstacle", [])
-    if not isinstance(raw_obstacles, list) or not all(isinstance(o, dict) for o in raw_obstacles):
-        raise InputError(f"{origin}: obstacle must be an array of tables, written [[obstacle]]")
-    return [
-        _build(ObstacleConfig, raw, _Problem(origin, f"obstacle[{index}]: ")) for index, raw in enumerate(raw_obstacles)
-    ]
+def _array_of(
+    doc: dict[str, Any], origin: str, table: str, cls: type, folder: Path, paths: tuple[str, ...]
+) -> list[Any]:
+    """The entries of an array of tables (``[[obstacle]]``, ``[[handle]]``), file keys resolved against ``folder``."""
+    raw_entries = doc.get(table, [])
+    if not isinstance(raw_entries, list) or not all(isinstance(o, dict) for o in raw_entries):
+        raise InputError(f"{origin}: {table} must be an array of tables, written [[{table}]]")
+    entries = []
+    for index, raw in enumerate(raw_entries):
+        raw = dict(raw)
+        for key in paths:
+            if key in raw:
+                raw[key] = _resolve_mesh(raw[key], folder)
+        entries.append(_build(cls, raw, _Problem(origin, f"{table}[{index}]: ")))
+    return entries
 
 
 def default_scene_path() -> Path:

@@ -15,13 +15,22 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from warpfem.build import add_prepared_body, placed_geometry, prepare_scene, scene_samples, solver_of
+from warpfem.build import (
+    add_prepared_body,
+    held_masks,
+    obstacle_names,
+    placed_geometry,
+    prepare_scene,
+    scene_samples,
+    solver_of,
+)
 from warpfem.errors import InputError, SimulationError
 from warpfem.memory import check_fits, scene_estimate
 from warpfem.prep.pipeline import default_cache_dir
 from warpfem.scene import Scene
 from warpfem.sim.embedding import map_dense
 from warpfem.sim.fem import RotationWatch
+from warpfem.sim.integrate import Box, MeshCollider, collider_pose, mesh_reach
 from warpfem.sim.model import Body, Model, ModelBuilder, State
 from warpfem.sim.solver import Solver
 
@@ -49,6 +58,30 @@ class FrameStats:
     contacts: float = 0.0
     contacts_max: int = 0
     deepest_contact: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Posed:
+    """A rigid shape of a scene (an obstacle or a handle's box) at one time: its rest mesh and where it is.
+
+    Attributes:
+        name: Its name (the scene's ``name`` key, else ``obstacle<i>`` / ``handle<i>``).
+        kind: ``"sphere"``, ``"box"``, ``"mesh"`` (obstacles) or ``"handle"`` (a handle's box).
+        vertices: (n, 3) float64 vertices in its own frame (m): a mesh's file vertices scaled, a sphere's or box's
+            triangulated surface about its centre, a handle box's corners at rest in the world.
+        faces: (m, 3) int32 triangles, wound outward.
+        matrix: 4x4 float64 taking its own frame to the world at that time, for column vectors
+            (``world = matrix @ [x, 1]``; USD's row-vector ``GfMatrix4d`` is its transpose).
+        shape: A sphere's ``radius`` or a box's ``half_extents`` (m); a mesh's ``closed`` and ``reach`` (how far
+            behind its faces it acts, m: its whole inside where closed); empty for handles.
+    """
+
+    name: str
+    kind: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    matrix: np.ndarray
+    shape: dict
 
 
 @dataclass
@@ -150,11 +183,13 @@ class Simulation:
         samples = scene_samples(scene, prepared)
         placed = [placed_geometry(*where) for where in zip(scene.objects, prepared, samples, strict=True)]
         check_fits(scene_estimate(scene, prepared, [geometry for _, geometry in placed]), dev.alias)
+        held = held_masks(scene, [tet_x for tet_x, _ in placed])
         builder = ModelBuilder()
         for obj, body, where in zip(scene.objects, prepared, placed, strict=True):
-            add_prepared_body(builder, obj, body, where)
+            masks = [m for h, m in zip(scene.handles, held, strict=True) if h.object == obj.name]
+            add_prepared_body(builder, obj, body, where, np.any(masks, axis=0) if masks else None)
         model = builder.finalize(dev)
-        self._attach(model, solver_of(scene, model, cg_path), scene.substeps, scene.fps)
+        self._attach(model, solver_of(scene, model, cg_path, held), scene.substeps, scene.fps)
         self.seconds["build"] = time.perf_counter() - clock
 
     @classmethod
@@ -221,6 +256,31 @@ class Simulation:
                 return b
         raise InputError(f"no body named '{name}' (bodies: {', '.join(self.body_names)})")
 
+    def obstacles_at(self, time: float | None = None) -> list[Posed]:
+        """Every obstacle at ``time`` (s; default: the current :attr:`time`), in scene order (for output).
+
+        Evaluated on the host from the obstacles' keys; a still obstacle's ``matrix`` is its rest placement.
+        """
+        time = self.time if time is None else float(time)
+        names = obstacle_names(self.scene) if self.scene is not None else None
+        return [
+            Posed(names[i] if names else f"obstacle{i}", *collider_shape(c), collider_pose(c, time), collider_info(c))
+            for i, c in enumerate(self.solver.obstacles)
+        ]
+
+    def handles_at(self, time: float | None = None) -> list[Posed]:
+        """Every handle's box at ``time`` (s; default: the current :attr:`time`): where its held vertices are."""
+        time = self.time if time is None else float(time)
+        out = []
+        for handle in self.solver.handles:
+            rest = self.model.rest_x.numpy()[handle.vertices].astype(np.float64)
+            vertices, faces = box_surface(rest.min(axis=0), rest.max(axis=0))
+            r, t = handle.motion.at(time)
+            matrix = np.eye(4)
+            matrix[:3, :3], matrix[:3, 3] = r, t
+            out.append(Posed(handle.name, "handle", vertices, faces, matrix, {}))
+        return out
+
     def step_frame(self, profile: bool = False) -> FrameStats:
         """Advance one output frame and read its statistics (one host synchronisation).
 
@@ -266,12 +326,20 @@ class Simulation:
                 if timer:
                     timer.lap(name)
             return
-        if self._graph is None:
+        self.capture()
+        wp.capture_launch(self._graph)
+
+    def capture(self) -> None:
+        """Capture the frame's CUDA graph now if it is not yet (nothing runs; nothing on the CPU).
+
+        A capture forbids host synchronisation on the device from any thread, so a caller with another
+        thread waiting on the device (the file writer) captures before starting it.
+        """
+        if self.device.is_cuda and self._graph is None:
             with wp.ScopedCapture(device=self.device) as capture:
                 for _, phase in self.frame_phases():
                     phase()
             self._graph = capture.graph
-        wp.capture_launch(self._graph)
 
     def map_dense(self) -> wp.array:
         """Map every dense mesh from the current state on the device; returns the flat (V, 3) device array."""
@@ -378,6 +446,35 @@ class Simulation:
         if self.warn is not None and kind not in self._warned:
             self._warned.add(kind)
             self.warn(message)
+
+
+def box_surface(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 8 corners and 12 outward triangles of the box ``[lo, hi]``."""
+    corners = np.array([[(lo, hi)[(k >> a) & 1][a] for a in range(3)] for k in range(8)], np.float64)
+    faces = [(0, 2, 3), (0, 3, 1), (4, 5, 7), (4, 7, 6), (0, 1, 5), (0, 5, 4)]
+    faces += [(2, 6, 7), (2, 7, 3), (0, 4, 6), (0, 6, 2), (1, 3, 7), (1, 7, 5)]
+    return corners, np.asarray(faces, np.int32)
+
+
+def collider_shape(c) -> tuple[str, np.ndarray, np.ndarray]:
+    """An obstacle's kind and its surface in its own frame (a sphere's as an icosphere of 320 triangles)."""
+    if isinstance(c, MeshCollider):
+        return "mesh", np.asarray(c.vertices, np.float64), np.asarray(c.faces, np.int32)
+    if isinstance(c, Box):
+        return ("box", *box_surface(-np.asarray(c.half_extents), np.asarray(c.half_extents)))
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=c.radius)
+    return "sphere", np.asarray(ball.vertices, np.float64), np.asarray(ball.faces, np.int32)
+
+
+def collider_info(c) -> dict:
+    """A sphere's radius, a box's half extents, or whether a mesh is closed."""
+    if isinstance(c, MeshCollider):
+        return {"closed": c.closed, "reach": mesh_reach(c)}
+    if isinstance(c, Box):
+        return {"half_extents": tuple(c.half_extents)}
+    return {"radius": c.radius}
 
 
 def check_device(name: str | None, option: str = "device") -> None:

@@ -257,6 +257,30 @@ def _read_trimesh_or_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return points, np.concatenate(fans)
 
 
+def read_triangles(path: str | Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A triangle mesh as it is (a collider's: open or closed), welded and without degenerate faces.
+
+    Returns:
+        Vertices (n, 3) float64 in the file's units (a USD file's: metres, its world frame at time 0), triangles
+        (m, 3) int32, and whether the mesh is closed (every edge shared by two faces wound oppositely).
+
+    Raises:
+        InputError: An unreadable, empty or unsupported file, non-finite coordinates or no triangle with an area.
+    """
+    path = Path(path)
+    vertices, faces = _read_file(path, prim)
+    if not np.isfinite(vertices).all():
+        raise InputError(f"{path}: mesh has non-finite coordinates")
+    if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"{path}: mesh has no triangles, or triangles naming missing vertices")
+    vertices, faces = _weld(vertices, faces, [])
+    faces = _clean_faces(vertices, faces, [])
+    if len(faces) == 0:
+        raise InputError(f"{path}: mesh has no triangle with an area")
+    vertices, faces = _drop_unused(vertices, faces, [])
+    return vertices, faces.astype(np.int32), topology_defects(faces) is None
+
+
 def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read an OBJ's positions and triangles through trimesh's parser, ignoring UVs and materials.
 

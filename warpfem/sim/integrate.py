@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
+from warpfem.sim.drive import Motion, quat_of_matrix
 from warpfem.sim.launch import spread_block_dim
 from warpfem.sim.model import Model, State
 
@@ -32,58 +33,179 @@ class Ground:
 
 @dataclass(frozen=True)
 class Sphere:
-    """A static sphere collider: ``center`` (m), ``radius`` (m), penalty ``stiffness`` (1/s^2), ``friction``."""
+    """A sphere collider: ``center`` (m), ``radius`` (m), penalty ``stiffness`` (1/s^2), ``friction``.
+
+    ``motion``: a rigid motion of it (about its centre, as the motion's pivot says), or None: it stays.
+    """
 
     center: tuple[float, float, float]
     radius: float
     stiffness: float = 1.0e7
     friction: float = 0.5
+    motion: Motion | None = None
 
 
 @dataclass(frozen=True)
 class Box:
-    """A static axis-aligned box collider: ``center`` and ``half_extents`` (m), ``stiffness`` (1/s^2), ``friction``."""
+    """A box collider, axis-aligned at rest: ``center`` and ``half_extents`` (m), ``stiffness`` (1/s^2), ``friction``.
+
+    ``motion``: a rigid motion of it (which may turn it), or None: it stays.
+    """
 
     center: tuple[float, float, float]
     half_extents: tuple[float, float, float]
     stiffness: float = 1.0e7
     friction: float = 0.5
+    motion: Motion | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class MeshCollider:
+    """A triangle mesh collider, placed at rest by ``x -> rotation x + translation`` (m).
+
+    A closed mesh pushes points out of its inside, an open one (a terrain) out from behind its faces, along
+    their normals (faces wound counter-clockwise seen from the side points are kept on), up to
+    :data:`OPEN_REACH` of its size behind them and not past its open edges. ``motion``: a rigid motion of the
+    placed mesh, or None: it stays.
+
+    Attributes:
+        vertices: (n, 3) vertex positions in the mesh's own frame (m).
+        faces: (m, 3) triangles.
+        rotation: (3, 3) its rest rotation.
+        translation: Its rest translation (m).
+        stiffness: Penalty per unit mass (1/s^2).
+        friction: Coulomb friction coefficient.
+        motion: Its rigid motion, or None.
+        closed: Whether it is closed (every edge shared by two faces).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    stiffness: float = 1.0e7
+    friction: float = 0.5
+    motion: Motion | None = None
+    closed: bool = True
+
+
+Collider = Ground | Sphere | Box | MeshCollider
+
+
+def rest_pose(c: Collider) -> tuple[np.ndarray, np.ndarray]:
+    """A collider's rest rotation (3x3) and translation: its own frame in the world at rest."""
+    if isinstance(c, MeshCollider):
+        return np.asarray(c.rotation, np.float64), np.asarray(c.translation, np.float64)
+    if isinstance(c, Ground):
+        return np.eye(3), np.zeros(3)
+    return np.eye(3), np.asarray(c.center, np.float64)
+
+
+def collider_pose(c: Collider, time: float) -> np.ndarray:
+    """A collider's own frame in the world at ``time`` (s): the 4x4 matrix taking its points there (column vectors)."""
+    r, t = rest_pose(c)
+    motion = getattr(c, "motion", None)
+    if motion is not None:
+        mr, mt = motion.at(time)
+        r, t = mr @ r, mr @ t + mt
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = r, t
+    return pose
+
+
+OPEN_REACH = 0.05
+"""How far behind its faces an open mesh (a terrain) acts, as a fraction of its bounding-box diagonal: its
+thickness. A closed mesh acts on its whole inside."""
+
+
+def mesh_reach(c: MeshCollider) -> float:
+    """How far behind its surface a mesh collider acts (m): a closed one's size, an open one's thickness."""
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(c.vertices, np.float64), axis=0)))
+    return diagonal if c.closed else OPEN_REACH * diagonal
+
+
+def open_edge_flags(faces: np.ndarray) -> np.ndarray:
+    """Per face: which of its edges no other face shares, and which of its corners lie on such an edge.
+
+    Bits 0-2 flag the edges of corners 0-1, 1-2, 2-0; bits 3-5 corners 0-2.
+    """
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    lone = (counts[inverse.reshape(-1)] == 1).reshape(-1, 3)
+    on_edge = np.zeros(faces.max() + 1, bool)
+    for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        on_edge[faces[lone[:, k]][:, [a, b]]] = True
+    flags = (lone * np.array([1, 2, 4])).sum(axis=1) + (on_edge[faces] * np.array([8, 16, 32])).sum(axis=1)
+    return flags.astype(np.int32)
 
 
 class StaticColliders:
-    """Device arrays of the static colliders (ground, spheres, boxes); one loop over them per vertex."""
+    """Device arrays of the colliders (ground, spheres, boxes, meshes); one loop over them per point.
 
-    def __init__(self, colliders: Sequence[Ground | Sphere | Box], device) -> None:
-        kind, center, size, response = [], [], [], []
-        for c in colliders:
+    ``arrays`` is the :class:`warpfem.kernels.integrate.Colliders` the kernels take; ``moving`` lists the
+    moving colliders as ``(index, motion, rest rotation, rest translation)`` for :class:`~warpfem.sim.drive.Drive`.
+    """
+
+    def __init__(self, colliders: Sequence[Collider], device) -> None:
+        self.colliders = list(colliders)
+        kind, center, rotation, size, response, meshes, self.moving = [], [], [], [], [], [], []
+        face_start, open_edges = [], [np.zeros(0, np.int32)]
+        self.meshes: list[wp.Mesh] = []
+        for index, c in enumerate(colliders):
+            face_start.append(sum(len(e) for e in open_edges))
+            r, t = rest_pose(c)
             if isinstance(c, Ground):
                 up = np.asarray(c.up, dtype=np.float64)
                 up /= np.linalg.norm(up)
                 kind.append(int(K.PLANE))
-                center.append(c.height * up)
+                t = c.height * up
                 size.append(up)
             elif isinstance(c, Sphere):
                 kind.append(int(K.SPHERE))
-                center.append(c.center)
                 size.append((c.radius, 0.0, 0.0))
-            else:
+            elif isinstance(c, Box):
                 kind.append(int(K.BOX))
-                center.append(c.center)
                 size.append(c.half_extents)
+            else:
+                kind.append(int(K.MESH))
+                v = np.asarray(c.vertices, np.float64)
+                points = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
+                indices = wp.array(np.asarray(c.faces, np.int32).reshape(-1), dtype=wp.int32, device=device)
+                mesh = wp.Mesh(points, indices)
+                self.meshes.append(mesh)
+                open_edges.append(open_edge_flags(c.faces))
+                size.append((mesh_reach(c), 0.0, 0.0))
+            meshes.append(self.meshes[-1].id if kind[-1] == int(K.MESH) else 0)
+            center.append(t)
+            rotation.append(quat_of_matrix(r))
             response.append((c.stiffness, c.friction))
+            if getattr(c, "motion", None) is not None:
+                self.moving.append((index, c.motion, r, t))
 
-        def arr(data, dtype, shape):
-            return wp.array(
-                np.asarray(data, dtype=np.float32 if dtype != wp.int32 else np.int32).reshape(shape),
-                dtype=dtype,
-                device=device,
-            )
+        def arr(data, dtype, width):
+            np_type = {wp.int32: np.int32, wp.uint64: np.uint64}.get(dtype, np.float32)
+            shape = (len(kind), width) if width else (len(kind),)
+            return wp.array(np.asarray(data, dtype=np_type).reshape(shape), dtype=dtype, device=device)
 
-        n = len(kind)
-        self.kind = arr(kind, wp.int32, (n,))
-        self.center = arr(center, wp.vec3, (n, 3))
-        self.size = arr(size, wp.vec3, (n, 3))
-        self.response = arr(response, wp.vec2, (n, 2))
+        a = K.Colliders()
+        a.kind = arr(kind, wp.int32, 0)
+        a.center, a.center_next = arr(center, wp.vec3, 3), arr(center, wp.vec3, 3)
+        a.rotation, a.rotation_next = arr(rotation, wp.quat, 4), arr(rotation, wp.quat, 4)
+        a.moving = arr([int(getattr(c, "motion", None) is not None) for c in colliders], wp.int32, 0)
+        a.size = arr(size, wp.vec3, 3)
+        a.response = arr(response, wp.vec2, 2)
+        a.mesh = arr(meshes, wp.uint64, 0)
+        a.face_start = arr(face_start, wp.int32, 0)
+        a.open_edges = wp.array(np.concatenate(open_edges).astype(np.int32), dtype=wp.int32, device=device)
+        self.arrays = a
+        self.kind = a.kind
+
+    @property
+    def poses(self) -> list[wp.array]:
+        """The pose arrays a :class:`~warpfem.sim.drive.Drive` writes: centre, rotation, then at the step's end."""
+        a = self.arrays
+        return [a.center, a.rotation, a.center_next, a.rotation_next]
 
 
 def body_momentum(model: Model, state: State, momentum_out: wp.array) -> None:
@@ -112,13 +234,15 @@ def build_system(
     v_guess_out: wp.array,
     direction_out: wp.array,
     momentum: wp.array,
+    held_v: wp.array,
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
     ``matrix_out`` must already hold the elastic blocks; mass, damping and static-collider terms are added to
     its diagonal. ``v_guess_out`` receives the CG start (the current velocity) and ``direction_out`` the direction
     CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
-    pinned vertices and where not finite).
+    pinned vertices and where not finite). A held vertex starts, and stays, at its ``held_v`` (m/s; a handle's
+    velocity this step), or at rest where ``held_v`` is empty.
     """
     wp.launch(
         K.build_system,
@@ -133,10 +257,8 @@ def build_system(
             model.vertex_depth,
             force,
             gravity,
-            colliders.kind,
-            colliders.center,
-            colliders.size,
-            colliders.response,
+            colliders.arrays,
+            held_v,
             state.dv,
             model.vertex_body,
             momentum,
@@ -179,10 +301,7 @@ def skin_colliders(
             model.tet_body,
             momentum,
             model.body_mass,
-            colliders.kind,
-            colliders.center,
-            colliders.size,
-            colliders.response,
+            colliders.arrays,
             dt,
         ],
         outputs=[force_out, matrix_out],
@@ -211,8 +330,8 @@ def late_contacts(
     wp.launch(
         K.late_vertex_contacts,
         dim=model.vertex_count,
-        inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.kind,
-                c.center, c.size, c.response, model.vertex_body, momentum, model.body_mass, dt],
+        inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.arrays,
+                model.vertex_body, momentum, model.body_mass, dt],
         outputs=[late[0], count_out, matrix_out, rhs_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
@@ -222,8 +341,7 @@ def late_contacts(
             K.late_skin_contacts,
             dim=model.skin_tet.shape[0],
             inputs=[state.x, state.v, v_new, model.tets, model.tet_slots, model.free, model.skin_tet, model.skin_bary,
-                    model.skin_mass, model.tet_body, momentum, model.body_mass, c.kind, c.center, c.size, c.response,
-                    dt],
+                    model.skin_mass, model.tet_body, momentum, model.body_mass, c.arrays, dt],
             outputs=[late[1], count_out, matrix_out, rhs_out],
             device=model.device,
         )  # fmt: skip

@@ -16,7 +16,8 @@ import warp as wp
 from warpfem.sim import fem, integrate
 from warpfem.sim.cg import CGSolver, CGStats
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
-from warpfem.sim.integrate import Box, Ground, Sphere, StaticColliders
+from warpfem.sim.drive import Drive, Handle
+from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
 from warpfem.sim.model import Model, State
 
 DEFAULT_GROUND = Ground()
@@ -38,7 +39,7 @@ class Solver:
         model: The scene's model.
         gravity: Gravity (m/s^2).
         ground: The ground plane, or None for none.
-        obstacles: Static spheres and boxes.
+        obstacles: Spheres, boxes and meshes, each still or moving rigidly (its ``motion``).
         cg_iterations: Fixed iteration count (``cg_tolerance == 0``) or cap.
         cg_tolerance: Relative residual at which CG stops; 0 runs exactly ``cg_iterations``.
         collision: Body-body and self collision settings, or None for none. A model whose bodies cannot
@@ -50,6 +51,9 @@ class Solver:
         cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
             "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
+        handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
+            or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
+            to advance the clock); without, ``drive`` is None and a step launches nothing for them.
     """
 
     def __init__(
@@ -57,12 +61,13 @@ class Solver:
         model: Model,
         gravity: tuple[float, float, float] = (0.0, -9.81, 0.0),
         ground: Ground | None = DEFAULT_GROUND,
-        obstacles: Sequence[Sphere | Box] = (),
+        obstacles: Sequence[Sphere | Box | MeshCollider] = (),
         cg_iterations: int = 100,
         cg_tolerance: float = 1.0e-4,
         collision: CollisionSettings | None = DEFAULT_COLLISION,
         cg_path: str | None = None,
         contact_passes: int = DEFAULT_CONTACT_PASSES,
+        handles: Sequence[Handle] = (),
     ) -> None:
         if contact_passes < 0:
             raise ValueError(f"contact_passes must be >= 0, got {contact_passes}")
@@ -79,6 +84,11 @@ class Solver:
         self.momentum = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
         self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
+        self.obstacles = list(obstacles)
+        self.handles = list(handles)
+        moving = self.colliders.moving
+        self.drive = Drive(model, handles, moving, self.colliders.poses) if handles or moving else None
+        self.held_v = self.drive.held_v if self.drive is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
@@ -147,6 +157,8 @@ class Solver:
             self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
 
         def solve() -> None:
+            if self.drive is not None:
+                self.drive.pose(state_in.x, dt)
             if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
                 integrate.body_momentum(model, state_in, self.momentum)
             integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix)
@@ -163,6 +175,7 @@ class Solver:
                 state_out.v,
                 self.direction,
                 self.momentum,
+                self.held_v,
             )
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
             advance()
@@ -179,6 +192,8 @@ class Solver:
                 if self.collider is not None and k < LATE_BODY_PASSES:
                     self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, self.late_count)
                 wp.capture_if(self.late_count, on_true=solve_again)
+            if self.drive is not None:
+                self.drive.tick()
 
         def advance() -> None:
             integrate.advance_positions(

@@ -1,0 +1,155 @@
+"""End-to-end benchmark: what a user waits for, the USD file written, beside the simulation alone.
+
+Each case runs in a child process through ``warpfem.run`` (the real writer on its background thread, to a
+real file), then writes the same bytes raw to the same folder (the floor any writer pays). Per frame: wall
+(first step to file written), simulate, write and check (on the writer's thread), waiting for the writer,
+and the raw write; the child's peak resident memory; the file's size on disk. One JSON per run under
+scripts/results/.
+
+    python scripts/bench_end_to_end.py --quick                # CPU: the default scene and paper C, 30 frames
+    python scripts/bench_end_to_end.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU: all cases
+
+Cases: the paper scenes (a, b, c), the default scene, piles of N armadillos (pile64, pile256...). Meshes must
+already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+sys.path.insert(0, str(ROOT))
+
+PAPER = {"a": "paper_a_armadillo_stack", "b": "paper_b_four_horses", "c": "paper_c_two_bodies"}
+
+
+def case_scene(case: str, assets: Path, frames: int):
+    """The scene of ``case`` (a, b, c, default or pileN) with ``frames`` frames."""
+    import bench
+
+    import warpfem
+
+    if case in PAPER:
+        scene = bench.load_with_assets(ROOT / "scenes" / f"{PAPER[case]}.toml", assets)
+    elif case == "default":
+        scene = warpfem.load_scene(ROOT / "scenes" / "default.toml")
+    elif case.startswith("pile") and case[4:].isdigit():
+        defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
+        scene = bench.pile(defaults, int(case[4:]), str((assets / "armadillo.off").resolve()), 500)
+    else:
+        raise SystemExit(f"unknown case '{case}': expected a, b, c, default or pileN")
+    return scene.with_frames(frames)
+
+
+def raw_write_seconds(path: Path, frame_bytes: int, frames: int) -> float:
+    """Seconds to write ``frames`` buffers of ``frame_bytes`` to ``path`` with plain writes (page cache, no sync)."""
+    import numpy as np
+
+    buffer = np.random.default_rng(0).random(frame_bytes // 4 + 1, dtype=np.float32)[: frame_bytes // 4]
+    clock = time.perf_counter()
+    with open(path, "wb") as f:
+        for _ in range(frames):
+            f.write(buffer.data)
+    seconds = time.perf_counter() - clock
+    path.unlink()
+    return seconds
+
+
+def run_case(case: str, args: argparse.Namespace) -> dict:
+    """Run one case in this process and return its figures."""
+    import warpfem
+    from warpfem.io.usd import clips_folder
+
+    scene = case_scene(case, args.assets, args.frames)
+    folder = Path(args.workdir)
+    out = folder / f"{case}.usdc"
+    clock = time.perf_counter()
+    summary = warpfem.run(scene, out, device=args.device, cache_dir=args.cache_dir, overwrite=True)
+    command = time.perf_counter() - clock
+    written = summary.frames + 1
+    raw = raw_write_seconds(folder / f"{case}.raw", 12 * summary.dense_vertices, written)
+    clips = clips_folder(out)
+    size = out.stat().st_size + (sum(p.stat().st_size for p in clips.glob("*")) if clips.is_dir() else 0)
+    per = {k: 1e3 * v / summary.frames for k, v in summary.seconds.items() if k not in ("prepare", "build")}
+    return {
+        "case": case,
+        "frames": summary.frames,
+        "bodies": summary.bodies,
+        "tets": summary.tets,
+        "dense_vertices": summary.dense_vertices,
+        "ms_per_frame": per,
+        "raw_write_ms_per_frame": 1e3 * raw / summary.frames,
+        "write_over_raw": summary.seconds["write"] / raw,
+        "wall_over_larger_of_simulate_and_write": summary.seconds["wall"]
+        / max(summary.seconds["simulate"], summary.seconds["write"]),
+        "seconds": {k: summary.seconds[k] for k in ("prepare", "build") if k in summary.seconds},
+        "command_seconds": command,
+        "file_bytes": size,
+        "clips": clips.is_dir(),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "penetration": {"relative": summary.penetration.relative, "below_ground": summary.penetration.below_ground},
+        "cg_iterations_per_step": summary.cg_iterations_per_step,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="CPU: the default scene and paper C, 30 frames")
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
+    parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
+    parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--cases", default="a,b,c,default,pile64,pile256")
+    parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.device, args.frames, args.cases = args.device or "cpu", 30, "default,c"
+    if args.one:
+        print(json.dumps(run_case(args.one, args)))
+        return 0
+
+    import warp as wp
+    from bench import environment
+
+    wp.config.log_level = wp.LOG_WARNING
+    device = wp.get_device(args.device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
+    results = {"environment": environment(device), "mode": "end-to-end", "frames": args.frames, "runs": []}
+    with tempfile.TemporaryDirectory(dir=args.workdir) as folder:
+        for case in args.cases.split(","):
+            cmd = [sys.executable, __file__, "--one", case, "--device", device.alias, "--frames", str(args.frames)]
+            cmd += ["--assets", str(args.assets), "--cache-dir", str(args.cache_dir), "--workdir", folder]
+            done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            if done.returncode != 0:
+                results["runs"].append({"case": case, "error": done.stderr.strip().splitlines()[-1:]})
+                print(f"{case}: failed: {done.stderr.strip()[-500:]}")
+                continue
+            run = json.loads(done.stdout.strip().splitlines()[-1])
+            results["runs"].append(run)
+            ms = run["ms_per_frame"]
+            print(
+                f"{case:8s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
+                f"  raw {run['raw_write_ms_per_frame']:6.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
+                f"  peak {run['peak_rss_mb']:7.0f} MB  file {run['file_bytes'] / 2**20:7.0f} MB"
+            )
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    path = args.out / f"bench-end-to-end-{device.alias.replace(':', '')}-{stamp}.json"
+    path.write_text(json.dumps(results, indent=1))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
