@@ -8,6 +8,9 @@ sharing an edge are neighbours and are not tested; nor are coplanar pairs. Posit
 
 import warp as wp
 
+COPLANAR = wp.constant(wp.float64(1.0e-12))
+"""Relative orientation (to the product of the lengths involved) below which a point is in a plane."""
+
 
 @wp.func
 def orient(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d) -> wp.float64:
@@ -17,11 +20,17 @@ def orient(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d) -> wp.float64:
 
 @wp.func
 def segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> bool:
-    """Whether the closed segment pq meets the closed triangle abc (False when pq lies in its plane)."""
+    """Whether the closed segment pq meets the closed triangle abc (False when pq lies in its plane).
+
+    Both ends within rounding of the plane (``COPLANAR`` of the volume scale) count as in it: coplanar
+    faces of a CAD part, far apart, would otherwise cross by the rounding of their orientations' signs.
+    """
     zero = wp.float64(0.0)
     sp = orient(a, b, c, p)
     sq = orient(a, b, c, q)
-    if (sp > zero and sq > zero) or (sp < zero and sq < zero) or (sp == zero and sq == zero):
+    area = wp.length(wp.cross(b - a, c - a))
+    scale = area * wp.max(wp.length(p - a), wp.length(q - a)) * COPLANAR
+    if (sp > zero and sq > zero) or (sp < zero and sq < zero) or (wp.abs(sp) <= scale and wp.abs(sq) <= scale):
         return False
     s0 = orient(p, q, a, b)
     s1 = orient(p, q, b, c)

@@ -79,3 +79,23 @@ def test_cow_intersects_itself(asset):
     pairs, mask = intersecting_faces(surface.vertices, surface.faces)
     assert pairs == 81  # measured independently with libigl (docs: measured.md)
     assert 81 <= mask.sum() <= 162
+
+
+def test_coplanar_faces_sharing_a_corner_do_not_cross():
+    """Two faces of one flat strip of a remeshed CAD part (points off their common plane by rounding only),
+    sharing one corner, with two far triangles that fix the bounding box: they touch at that corner only."""
+    points = [
+        [-0.26432743668556213, -0.19163739681243896, 0.13216371834278107],
+        [-0.23128651082515717, -0.19163739681243896, 0.13216371834278107],
+        [-0.26432743668556213, -0.13418037732706944, 0.07470669885741155],
+        [-0.23128651082515717, -0.1157305276402476, 0.05625684917058971],
+        [-0.23128651082515717, -0.15496200179586878, 0.09548832332621088],
+        [-0.3964911699295044, -0.23128651082515717, -0.1982455849647522],
+        [-0.3954911699295044, -0.23128651082515717, -0.1982455849647522],
+        [-0.3964911699295044, -0.23028651082515716, -0.1982455849647522],
+        [0.3964911699295044, 0.23128651082515717, 0.1982455849647522],
+        [0.3954911699295044, 0.23128651082515717, 0.1982455849647522],
+        [0.3964911699295044, 0.23028651082515716, 0.1982455849647522],
+    ]
+    faces = np.array([[4, 3, 2], [0, 1, 4], [5, 6, 7], [8, 9, 10]])
+    assert intersecting_faces(np.array(points), faces)[0] == 0

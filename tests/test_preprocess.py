@@ -1,12 +1,14 @@
 """Simplification, Netgen tetrahedralization and prepare() with its cache."""
 
 import sys
+import time
 from collections import Counter
 
 import igl
 import numpy as np
 import pytest
 import trimesh
+from mesh_kinds import cad_bracket, write_obj
 
 from warpfem.errors import InputError
 from warpfem.prep.pipeline import prepare
@@ -200,3 +202,62 @@ def test_stats_report_quality_volume_and_hausdorff(ellipsoid_file):
         body.dense_vertices, body.dense_faces.astype(np.int64), body.coarse_vertices, body.coarse_faces.astype(np.int64)
     )
     assert body.stats["hausdorff"] == pytest.approx(reference, rel=0.05)
+
+
+def _min_dihedral_deg(points, tets):
+    """Smallest dihedral angle of any tet, from the angle between each pair of face normals (degrees)."""
+    x = points[tets]
+    smallest = 180.0
+    for i, j in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]:
+        # the edge shared by faces opposite corners i and j joins the other two corners
+        k, m = (c for c in range(4) if c not in (i, j))
+        edge = x[:, m] - x[:, k]
+        # the two faces' directions perpendicular to the edge, towards corners i and j
+        u = x[:, i] - x[:, k] - edge * (np.einsum("ij,ij->i", x[:, i] - x[:, k], edge) / (edge**2).sum(1))[:, None]
+        w = x[:, j] - x[:, k] - edge * (np.einsum("ij,ij->i", x[:, j] - x[:, k], edge) / (edge**2).sum(1))[:, None]
+        cos = np.einsum("ij,ij->i", u, w) / np.linalg.norm(u, axis=1) / np.linalg.norm(w, axis=1)
+        smallest = min(smallest, float(np.degrees(np.arccos(np.clip(cos, -1, 1))).min()))
+    return smallest
+
+
+def test_a_cad_part_is_remeshed_before_netgen(tmp_path):
+    """An angle bracket of long thin CAD triangles: QEM keeps needles (Netgen made 0.006 deg slivers on them
+    for 40 s and more); the remeshing rung gives well-shaped tets of the part's volume within seconds."""
+    from manifold3d import Manifold  # noqa: F401 - the reference volume below comes from the same booleans
+
+    vertices, faces = cad_bracket()
+    volume = trimesh.Trimesh(vertices, faces, process=False).volume
+    clock = time.perf_counter()
+    body = prepare(write_obj(tmp_path / "bracket.obj", vertices, faces), faces=400)
+    assert time.perf_counter() - clock < 30
+    assert body.stats["failed_rungs"].startswith("1) the simplified surface has needle triangles")
+    assert body.stats["rung"].startswith("5 (qslim, remeshed")
+    assert np.all(tet_signed_volumes(body.tet_vertices, body.tets) > 0)
+    assert _min_dihedral_deg(body.tet_vertices, body.tets) > 5.0
+    assert body.stats["tet_min_dihedral_deg"] == pytest.approx(_min_dihedral_deg(body.tet_vertices, body.tets))
+    # the cage holds the part: its volume is the part's, a little more
+    assert 1.0 <= tet_signed_volumes(body.tet_vertices, body.tets).sum() / volume < 1.05
+    assert body.stats["hausdorff_relative"] < 0.02
+
+
+def test_the_time_budget_ends_a_preparation_in_one_line(ellipsoid_file):
+    clock = time.perf_counter()
+    with pytest.raises(InputError, match="no valid tet mesh at 200 faces within the time budget") as err:
+        prepare(ellipsoid_file, faces=200, budget_s=0.05)
+    assert time.perf_counter() - clock < 10
+    assert "1) QEM simplification did not finish within" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_tet_quality_measures_every_dihedral_angle():
+    """Against the angle between the two faces' directions perpendicular to each edge, on random tets of
+    both orientations of their corner order (turned positive) and the regular tet (70.53 deg, ratio 1)."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(400, 3))
+    tets = np.arange(400).reshape(-1, 4)
+    negative = tet_signed_volumes(points, tets) < 0
+    tets[negative] = tets[negative][:, [0, 2, 1, 3]]
+    dihedral, _ = tet_quality(points, tets)
+    np.testing.assert_allclose(dihedral, [_min_dihedral_deg(points, t[None]) for t in tets], rtol=1e-9)
+    regular = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=float)
+    dihedral, ratio = tet_quality(regular, np.array([[0, 1, 2, 3]]))
+    assert dihedral[0] == pytest.approx(np.degrees(np.arccos(1 / 3))) and ratio[0] == pytest.approx(1.0)

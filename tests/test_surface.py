@@ -108,22 +108,24 @@ def test_flat_closed_surface_is_rejected(tmp_path):
         load_surface(path)
 
 
-def test_non_manifold_edge(tmp_path):
-    # two tetrahedra sharing the edge (0,1): that edge has four faces
+def test_non_manifold_edge_is_split(tmp_path):
+    # two tetrahedra sharing the edge (0,1): that edge has four faces; split, they are two closed shells
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, -1, 0], [0, 0, -1]], dtype=float)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3], [0, 1, 4], [0, 5, 1], [0, 4, 5], [1, 5, 4]])
-    path = _write_obj(tmp_path / "bowtie.obj", vertices, faces)
-    with pytest.raises(InputError, match="bowtie.obj: non-manifold: 1 edges"):
-        load_surface(path)
+    surface = load_surface(_write_obj(tmp_path / "bowtie.obj", vertices, faces))
+    assert surface.repairs[0] == "split 1 non-manifold edges and 2 vertices where separate sheets met"
+    assert "merged 2 shells into one body" in surface.repairs
+    assert topology_defects(surface.faces) is None and len(surface.vertices) == 8
+    assert signed_volume(surface.vertices, surface.faces) == pytest.approx(2 / 6, rel=1e-12)  # two 1/6 tets
 
 
-def test_inconsistent_winding(tmp_path):
+def test_inconsistent_winding_is_turned(tmp_path):
     sphere = trimesh.creation.icosphere(subdivisions=1)
     faces = sphere.faces.copy()
     faces[5] = faces[5, ::-1]
-    path = _write_obj(tmp_path / "twisted.obj", sphere.vertices, faces)
-    with pytest.raises(InputError, match="twisted.obj: winding inconsistent"):
-        load_surface(path)
+    surface = load_surface(_write_obj(tmp_path / "twisted.obj", sphere.vertices, faces))
+    assert surface.repairs == ("turned 1 faces wound against their neighbours",)
+    np.testing.assert_array_equal(surface.faces, sphere.faces)
 
 
 def test_inside_out_mesh_is_flipped(tmp_path):

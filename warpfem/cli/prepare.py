@@ -35,6 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
     prep.add_argument("--timeout", type=float, default=120.0, help="time limit per stage in s (default 120)")
     prep.add_argument(
+        "--budget",
+        type=float,
+        default=60.0,
+        help="time budget of the whole preparation in s: no retry starts after it (default 60)",
+    )
+    prep.add_argument(
         "--shells",
         default="merge",
         help="several closed shells: merge (default), largest, error, or K (keep the K-th largest, from 0)",
@@ -56,6 +62,8 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--maxh must be in (0, 1], got {args.maxh}")
     if args.timeout <= 0:
         raise InputError(f"--timeout must be > 0 s, got {args.timeout}")
+    if args.budget <= 0:
+        raise InputError(f"--budget must be > 0 s, got {args.budget}")
     if args.max_hole is not None and args.max_hole < 0:
         raise InputError(f"--max-hole must be >= 0, got {args.max_hole}")
     shells = args.shells
@@ -71,6 +79,7 @@ def main(args: argparse.Namespace) -> int:
         maxh=args.maxh,
         cache_dir=cache,
         timeout_s=args.timeout,
+        budget_s=args.budget,
         shells=shells,
         max_hole=args.max_hole,
         prim=args.prim,

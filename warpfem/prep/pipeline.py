@@ -51,6 +51,21 @@ intersects itself or has overlapping shells: the outer surface's). QEM of armadi
 loses 9.4%, to 1,000 faces 3%."""
 
 
+BUDGET_S = 60.0
+"""Default time budget of one :func:`prepare` (seconds): no rung starts after it, and every child stage's
+time limit is cut to what is left of it, so a mesh no rung can handle ends in a one-line reason."""
+
+NETGEN_SHARE = 0.5
+"""Netgen may use at most this fraction of the budget left when it starts, so that a rung stuck in
+Netgen (slivers it keeps optimizing) leaves time for the rungs after it."""
+
+MIN_TRIANGLE_ANGLE_DEG = 0.5
+"""A coarse surface with a triangle whose smallest angle is below this (degrees) is not given to Netgen
+as it is: Netgen keeps the surface, and the tets on such needles are slivers (a CAD part's QEM surface:
+0.004 deg, tets of 0.006 deg). The remeshing rungs even its triangles out first. QEM surfaces of the
+scans in docs/preprocessing.md have no angle below 1.1 deg at 400 to 2,500 faces."""
+
+
 @dataclass(frozen=True)
 class Rung:
     """One attempt of the retry ladder.
@@ -63,6 +78,8 @@ class Rung:
         maxh_factor: Netgen's maxh relative to the requested one.
         optsteps: Netgen's 3D optimization passes.
         cells_factor: Outer-surface grid resolution relative to :func:`warpfem.prep.simplify.outer_cells`.
+        remesh: Whether the surface is remeshed to even triangles (:func:`warpfem.prep.simplify.remesh`)
+            from QEM at :data:`REMESH_INPUT_FACTOR` times the target, instead of QEM to the target.
     """
 
     label: str
@@ -71,14 +88,20 @@ class Rung:
     maxh_factor: float = 1.0
     optsteps: int = 3
     cells_factor: float = 1.0
+    remesh: bool = False
 
+
+REMESH_INPUT_FACTOR = 4.0
+"""A remeshing rung remeshes QEM's surface at this many times the target faces (sharp features kept)."""
 
 LADDER = (
     Rung("qslim", "qslim"),
     Rung("qslim, Netgen maxh/2 and 8 optimization passes", "qslim", maxh_factor=0.5, optsteps=8),
     Rung("qslim at 0.8x faces", "qslim", faces_factor=0.8),
     Rung("qslim at 1.25x faces", "qslim", faces_factor=1.25),
+    Rung("qslim, remeshed to even triangles", "qslim", remesh=True),
     Rung("outer surface (winding number + marching cubes) + qslim", "outer"),
+    Rung("outer surface, remeshed to even triangles", "outer", remesh=True),
     Rung("outer surface on a 0.6x grid (smoother) + qslim", "outer", cells_factor=0.6),
     Rung("outer surface + qslim at 0.8x faces, Netgen 8 passes", "outer", faces_factor=0.8, optsteps=8),
 )
@@ -202,7 +225,7 @@ def _write_cache(path: Path, body: PreparedBody) -> None:
 
 @dataclass
 class _Attempt:
-    """Coarse surfaces made so far (memoized per rung source), failures and time per stage."""
+    """Coarse surfaces made so far (memoized per rung source), failures, time per stage and the deadline."""
 
     dense: Surface
     faces: int
@@ -212,6 +235,18 @@ class _Attempt:
     dense_clean: bool
     surfaces: dict[tuple, tuple[np.ndarray, np.ndarray, float, dict[str, float]] | InputError]
     seconds: dict[str, float]
+    deadline: float = float("inf")
+
+    def limit(self, share: float = 1.0) -> float:
+        """Time limit of the next child stage: ``timeout_s``, cut to ``share`` of what is left of the budget.
+
+        Raises:
+            InputError: When the budget is spent.
+        """
+        left = self.deadline - time.perf_counter()
+        if left <= 0:
+            raise InputError(f"{self.dense.source}: the time budget is spent")
+        return min(self.timeout_s, share * left)
 
     def coarse(self, rung: Rung) -> tuple[np.ndarray, np.ndarray, float, dict[str, float]]:
         """Return the validated coarse surface of ``rung`` (the cage), its reference volume and cage stats.
@@ -227,10 +262,10 @@ class _Attempt:
 
         target = max(4, round(self.faces * rung.faces_factor))
         cells = outer_cells(target) if rung.source == "outer" else 0
-        key = (rung.source, target, max(8, round(cells * rung.cells_factor)) if cells else 0)
+        key = (rung.source, target, max(8, round(cells * rung.cells_factor)) if cells else 0, rung.remesh)
         if key not in self.surfaces:
             try:
-                self.surfaces[key] = self._make(rung.source, target, key[2])
+                self.surfaces[key] = self._make(rung.source, target, key[2], rung.remesh)
             except InputError as err:
                 self.surfaces[key] = err
         made = self.surfaces[key]
@@ -238,37 +273,56 @@ class _Attempt:
             raise made
         return made
 
-    def _make(self, source: str, target: int, cells: int) -> tuple[np.ndarray, np.ndarray, float, dict[str, float]]:
+    def _clock(self, stage: str, since: float) -> float:
+        """Add the time since ``since`` to ``stage``; return the time now."""
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - since
+        return now
+
+    def _make(
+        self, source: str, target: int, cells: int, remesh: bool
+    ) -> tuple[np.ndarray, np.ndarray, float, dict[str, float]]:
         from warpfem.prep.cage import enclose
         from warpfem.prep.intersect import intersecting_faces
-        from warpfem.prep.simplify import outer_surface, simplify
+        from warpfem.prep.simplify import outer_surface, simplify, smallest_angle
+        from warpfem.prep.simplify import remesh as remesh_surface
         from warpfem.prep.surface import signed_volume
 
         name = self.dense.source
         vertices, faces = self.dense.vertices, self.dense.faces
         reference = self.dense_volume
-        if source == "qslim" and self.dense.overlapping:
+        if source != "outer" and self.dense.overlapping:
             raise InputError(f"{name}: shells overlap, so the body is their union (an outer surface)")
         clock = time.perf_counter()
         if source == "outer":
             self.say(f"{name}: rebuilding the outer surface on a {cells}-cell grid")
-            vertices, faces = outer_surface(vertices, faces, cells, name=name, timeout_s=self.timeout_s)
+            vertices, faces = outer_surface(vertices, faces, cells, name=name, timeout_s=self.limit())
             if not self.dense_clean:
                 reference = signed_volume(vertices, faces)
-            self.seconds["outer"] = self.seconds.get("outer", 0.0) + time.perf_counter() - clock
-            clock = time.perf_counter()
-        self.say(f"{name}: simplifying {len(faces)} faces to {target}")
-        coarse_v, coarse_f = simplify(vertices, faces, target, name=name, timeout_s=self.timeout_s)
-        self.seconds["simplify"] = self.seconds.get("simplify", 0.0) + time.perf_counter() - clock
-        clock = time.perf_counter()
+            clock = self._clock("outer", clock)
+        goal = round(REMESH_INPUT_FACTOR * target) if remesh else target
+        self.say(f"{name}: simplifying {len(faces)} faces to {goal}")
+        coarse_v, coarse_f = simplify(vertices, faces, goal, name=name, timeout_s=self.limit())
+        clock = self._clock("simplify", clock)
+        if remesh:
+            if intersecting_faces(coarse_v, coarse_f)[0]:  # Netgen's surface mesher crashes on these
+                raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself")
+            self.say(f"{name}: remeshing {len(coarse_f)} faces to about {target} even triangles")
+            coarse_v, coarse_f = remesh_surface(coarse_v, coarse_f, target, name=name, timeout_s=self.limit())
+            clock = self._clock("remesh", clock)
+        angle = smallest_angle(coarse_v, coarse_f)
+        if angle < MIN_TRIANGLE_ANGLE_DEG:
+            raise InputError(
+                f"{name}: the simplified surface has needle triangles (smallest angle {angle:.2g} deg), on which"
+                " Netgen makes slivers"
+            )
         pairs, _ = intersecting_faces(coarse_v, coarse_f)
-        self.seconds["validate"] = self.seconds.get("validate", 0.0) + time.perf_counter() - clock
+        clock = self._clock("validate", clock)
         if pairs:
             raise InputError(f"{name}: simplified surface ({len(coarse_f)} faces) intersects itself ({pairs} pairs)")
-        clock = time.perf_counter()
         self.say(f"{name}: enclosing the dense surface in the coarse one")
         cage_v, cage = enclose(coarse_v, coarse_f, self.dense.vertices, lambda v, f: intersecting_faces(v, f)[0] > 0)
-        self.seconds["cage"] = self.seconds.get("cage", 0.0) + time.perf_counter() - clock
+        self._clock("cage", clock)
         cage["qem_volume_ratio"] = signed_volume(coarse_v, coarse_f) / reference
         cage["cage_volume_ratio"] = signed_volume(cage_v, coarse_f) / reference
         return cage_v, coarse_f, reference, cage
@@ -288,7 +342,7 @@ def _tet_mesh(
     clock = time.perf_counter()
     try:
         tet_v, tets = tetrahedralize(
-            coarse_v, coarse_f, h, timeout_s=attempt.timeout_s, name=name, optsteps=rung.optsteps
+            coarse_v, coarse_f, h, timeout_s=attempt.limit(NETGEN_SHARE), name=name, optsteps=rung.optsteps
         )
     finally:
         attempt.seconds["tetrahedralize"] = attempt.seconds.get("tetrahedralize", 0.0) + time.perf_counter() - clock
@@ -314,11 +368,12 @@ def _tet_mesh(
 
 
 def _build(
-    dense: Surface, faces: int, maxh: float, timeout_s: float, say: Callable[[str], None]
+    dense: Surface, faces: int, maxh: float, timeout_s: float, deadline: float, say: Callable[[str], None]
 ) -> tuple[dict[str, np.ndarray], dict[str, float | int | str]]:
     """Climb the retry ladder to a valid tet mesh, then embed and compute the distance field and stats.
 
-    ``dense`` is in the caller's coordinates; the work is done on a copy scaled to a unit diagonal.
+    ``dense`` is in the caller's coordinates; the work is done on a copy scaled to a unit diagonal. No rung
+    starts after ``deadline`` (a :func:`time.perf_counter` value).
     """
     from warpfem.prep.distance import distance_field, hausdorff
     from warpfem.prep.intersect import intersecting_faces
@@ -334,9 +389,15 @@ def _build(
     seconds = {"validate": time.perf_counter() - clock}
     # a surface crossing itself or overlapping shells count some volume twice: the outer surface's is used
     clean = dense_pairs == 0 and not dense.overlapping
-    attempt = _Attempt(unit, faces, timeout_s, say, signed_volume(unit.vertices, unit.faces), clean, {}, seconds)
+    volume = signed_volume(unit.vertices, unit.faces)
+    attempt = _Attempt(unit, faces, timeout_s, say, volume, clean, {}, seconds, deadline)
     failures = []
     for index, rung in enumerate(LADDER):
+        if time.perf_counter() >= deadline:
+            raise InputError(
+                f"{name}: no valid tet mesh at {faces} faces within the time budget; rungs 1-{index} failed:"
+                f" {' '.join(failures)}; rungs {index + 1}-{len(LADDER)} not tried (a larger budget tries them)"
+            )
         say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
         try:
             coarse_v, coarse_f, tet_v, tets, quality = _tet_mesh(attempt, rung, maxh)
@@ -421,6 +482,7 @@ def prepare(
     cache_dir: Path | None = None,
     timeout_s: float = 120.0,
     progress: Callable[[str], None] | None = None,
+    budget_s: float | None = BUDGET_S,
     shells: str | int = "merge",
     max_hole: float | None = None,
     prim: str | None = None,
@@ -433,8 +495,11 @@ def prepare(
         subdivide: Loop subdivision rounds applied to the dense surface after loading.
         maxh: Largest tet edge, as a fraction of the coarse surface's bounding-box diagonal.
         cache_dir: Folder of cached results (``<sha256>.npz``), or None for no caching.
-        timeout_s: Time limit of each child-process stage (QEM, outer surface, Netgen), in seconds.
+        timeout_s: Time limit of each child-process stage (QEM, outer surface, remeshing, Netgen), in seconds.
         progress: Receives one-line status messages.
+        budget_s: Time budget of the whole preparation, in seconds (None: unbounded): no rung of the
+            ladder starts after it, each stage's limit is cut to what is left, and Netgen's to
+            :data:`NETGEN_SHARE` of that.
         shells: What to do with several shells: ``"merge"`` them into one body, keep the ``"largest"``,
             ``"error"``, or an int k to keep the k-th largest (one body per shell: prepare each k).
         max_hole: Largest hole closed automatically, relative to the bounding-box diagonal (None: the
@@ -451,7 +516,7 @@ def prepare(
         (mesh units), ``hausdorff`` (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to
         the bounding-box diagonal and each one-sided value), ``embedding_coverage`` (fraction of dense
         vertices inside a tet), ``embedding_max_error`` (max reconstruction error / bbox diagonal),
-        ``max_depth`` and ``seconds_<stage>`` for load, validate, outer (if used), simplify,
+        ``max_depth`` and ``seconds_<stage>`` for load, validate, outer and remesh (if used), simplify,
         tetrahedralize, embed, distance, hausdorff (on a cache hit, those of the run that filled the
         cache, plus ``seconds_cache_read``).
 
@@ -459,6 +524,9 @@ def prepare(
         InputError: For a bad mesh or parameter, or when a stage fails on this mesh (one line).
     """
     say = progress or (lambda _message: None)
+    started = time.perf_counter()
+    if budget_s is not None and not budget_s > 0:
+        raise InputError(f"{mesh}: budget_s must be positive, got {budget_s}")
     if faces < 4:
         raise InputError(f"{mesh}: faces must be >= 4, got {faces}")
     if not maxh > 0:
@@ -484,7 +552,8 @@ def prepare(
     clock = time.perf_counter()
     dense = subdivide_surface(surface, subdivide)
     seconds_load += time.perf_counter() - clock
-    arrays, built = _build(dense, faces, maxh, timeout_s, say)
+    deadline = started + budget_s if budget_s is not None else float("inf")
+    arrays, built = _build(dense, faces, maxh, timeout_s, deadline, say)
     stats: dict[str, float | int | str] = {
         "mesh": str(mesh),
         "repairs": "; ".join(dense.repairs) or "none",

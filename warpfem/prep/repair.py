@@ -242,12 +242,18 @@ def select_shells(
         raise InputError(f"{name}: shells must be 'merge', 'largest', 'error' or a shell index >= 0, got {shells!r}")
     labels = shell_labels(faces, len(vertices))
     volumes = _shell_volumes(vertices, faces, labels)
-    count = len(volumes)
     diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    if np.any(np.abs(volumes) <= 1e-12 * diag**3):
-        flat = int(np.sum(np.abs(volumes) <= 1e-12 * diag**3))
-        what = "encloses zero volume (flat surface)" if count == 1 else f"{flat} of {count} shells enclose zero volume"
-        raise InputError(f"{name}: {what}")
+    flat = np.abs(volumes) <= 1e-12 * diag**3
+    if np.all(flat):
+        what = "encloses zero volume (flat surface)" if len(volumes) == 1 else "all its shells enclose zero volume"
+        raise InputError(f"{name}: {what}: there is nothing to fill with tets")
+    if np.any(flat):  # flaps and sheets (capped or two-sided) carry no volume: the body is the rest
+        repairs.append(
+            f"removed {int(flat.sum())} shells enclosing no volume (flaps or sheets, {int(flat[labels].sum())} faces)"
+        )
+        faces, labels = faces[~flat[labels]], np.cumsum(~flat)[labels[~flat[labels]]] - 1
+        volumes = volumes[~flat]
+    count = len(volumes)
     inward = volumes < 0
     if np.any(inward):
         faces = np.where(inward[labels][:, None], faces[:, ::-1], faces)
@@ -268,12 +274,149 @@ def select_shells(
 
 
 def _any_nested(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, count: int) -> bool:
-    """Whether a vertex of some shell lies inside another shell (winding number >= 1/2)."""
+    """Whether a vertex of some shell lies inside another shell (winding number >= 1/2).
+
+    Only the shells whose bounding box holds the probe vertex can hold it: a pile of 44 parts is tested
+    against its neighbours, not against every other part.
+    """
     import igl
 
+    corners = vertices[faces]  # (m, 3, 3)
+    lower = np.full((count, 3), np.inf)
+    upper = np.full((count, 3), -np.inf)
+    np.minimum.at(lower, labels, corners.min(axis=1))
+    np.maximum.at(upper, labels, corners.max(axis=1))
     for s in range(count):
-        probe = vertices[faces[labels == s][0, 0]][None, :]
-        others = faces[labels != s].astype(np.int64)
-        if abs(float(igl.winding_number(vertices, others, probe)[0])) >= 0.5:
+        probe = vertices[faces[labels == s][0, 0]]
+        around = np.all((lower <= probe) & (probe <= upper), axis=1)
+        around[s] = False
+        if not around.any():
+            continue
+        others = faces[around[labels]].astype(np.int64)
+        if abs(float(igl.winding_number(vertices, others, probe[None, :])[0])) >= 0.5:
             return True
     return False
+
+
+def _half_edge_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half-edges (corner 3f+k to corner 3f+k+1) and, for edges of exactly two faces, the pairs sharing one.
+
+    Returns:
+        ``(counts, first, second)``: faces per undirected edge of every half-edge (3m,), and the two
+        half-edge indices of each edge shared by exactly two faces.
+    """
+    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2).astype(np.int64)
+    _, inverse, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    two = counts[inverse[order]] == 2
+    paired = order[two].reshape(-1, 2)  # sorted by edge: each edge of two faces gives consecutive entries
+    return counts[inverse], paired[:, 0], paired[:, 1]
+
+
+def split_non_manifold(vertices: np.ndarray, faces: np.ndarray, repairs: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Give each fan of faces around a vertex its own copy of it, so that no edge is non-manifold.
+
+    Two faces around a vertex belong to one fan when they share an edge of that vertex that has exactly two
+    faces. At the ends of an edge of three or more faces (a flap welded onto a surface, two bodies sharing
+    an edge), and where a boundary pinches, each fan gets its own vertex: the pieces become separate sheets
+    or shells, which hole closing and shell selection then handle.
+
+    Args:
+        vertices: (n, 3) positions.
+        faces: (m, 3) vertex indices.
+        repairs: Receives a line saying how many edges and vertices were split.
+
+    Returns:
+        ``(vertices, faces)``: the split vertices are repeated (same positions), one per fan.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    counts, first, second = _half_edge_pairs(faces)
+    corner_vertex = faces.reshape(-1).astype(np.int64)
+    # half-edge h runs from corner h to corner _next_corner(h); the corners of a shared edge's two
+    # half-edges at the same vertex are joined
+    same = corner_vertex[first] == corner_vertex[second]  # both run the same way round
+    a = [first, _next_corner(first)]
+    b = [np.where(same, second, _next_corner(second)), np.where(same, _next_corner(second), second)]
+    # a closed surface pinched at a vertex (cow.obj) stays as it is: only vertices on an edge of one or
+    # of more than two faces are split
+    loose = np.zeros(len(vertices), dtype=bool)
+    odd = np.flatnonzero(counts != 2)
+    loose[corner_vertex[odd]] = loose[corner_vertex[_next_corner(odd)]] = True
+    kept = np.flatnonzero(~loose[corner_vertex])
+    kept = kept[np.argsort(corner_vertex[kept], kind="stable")]
+    chain = corner_vertex[kept[1:]] == corner_vertex[kept[:-1]]
+    a, b = np.concatenate([*a, kept[:-1][chain]]), np.concatenate([*b, kept[1:][chain]])
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(corner_vertex), len(corner_vertex)))
+    fans, label = connected_components(graph, directed=False)
+    if fans == len(np.unique(corner_vertex)):
+        return vertices, faces
+    source = np.zeros(fans, dtype=np.int64)
+    source[label] = corner_vertex
+    split = int(np.sum(np.bincount(source, minlength=len(vertices)) > 1))
+    edges = _count_edges(faces, counts)
+    repairs.append(f"split {edges} non-manifold edges and {split} vertices where separate sheets met")
+    return vertices[source], label.reshape(-1, 3).astype(faces.dtype)
+
+
+def _next_corner(h: np.ndarray) -> np.ndarray:
+    """The corner after corner ``h`` (3f+k) in its face."""
+    return h - h % 3 + (h % 3 + 1) % 3
+
+
+def _count_edges(faces: np.ndarray, counts: np.ndarray) -> int:
+    """Number of undirected edges of more than two faces."""
+    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    return len(np.unique(np.sort(directed[counts > 2], axis=1), axis=0))
+
+
+def orient_consistently(faces: np.ndarray, name: str, repairs: list[str]) -> np.ndarray:
+    """Turn the faces wound against their neighbours, so that every sheet is wound one way round.
+
+    Faces sharing an edge of two faces are wound consistently when they run along it in opposite
+    directions. Within each connected sheet the smaller set of faces is turned (a few flipped faces in
+    a scan); which side is outward is decided later, per shell, by its signed volume.
+
+    Args:
+        faces: (m, 3) vertex indices, no edge shared by more than two faces.
+        name: Name of the mesh for error messages.
+        repairs: Receives a line saying how many faces were turned.
+
+    Returns:
+        (m, 3) faces, consistently wound.
+
+    Raises:
+        InputError: If a sheet cannot be wound consistently (it is one-sided, like a Moebius strip).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+    from warpfem.errors import InputError
+
+    _, first, second = _half_edge_pairs(faces)
+    corner_vertex = faces.reshape(-1)
+    same = corner_vertex[first] == corner_vertex[second]
+    if not same.any():
+        return faces
+    f1, f2 = first // 3, second // 3
+    # relation 2: turn exactly one of the two faces; 1: turn both or neither
+    graph = coo_matrix((1 + same, (f1, f2)), shape=(len(faces), len(faces))).tocsr()
+    graph = graph + graph.T
+    _, component = connected_components(graph, directed=False)
+    turn = np.zeros(len(faces), dtype=bool)
+    for sheet in np.unique(component[f1[same]]):
+        root = int(np.argmax(component == sheet))
+        order, parent = breadth_first_order(graph, root, directed=False, return_predecessors=True)
+        relation = np.asarray(graph[parent[order[1:]], order[1:]]).reshape(-1) == 2
+        for node, link, up in zip(order[1:].tolist(), relation.tolist(), parent[order[1:]].tolist(), strict=True):
+            turn[node] = turn[up] ^ link
+        if np.count_nonzero(turn[order]) * 2 > len(order):
+            turn[order] = ~turn[order]
+    if np.any((turn[f1] != turn[f2]) != same):
+        raise InputError(
+            f"{name}: one-sided surface (like a Moebius strip): it has no inside, so it encloses no volume"
+        )
+    repairs.append(f"turned {int(turn.sum())} faces wound against their neighbours")
+    return np.where(turn[:, None], faces[:, ::-1], faces)

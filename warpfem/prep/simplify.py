@@ -117,3 +117,55 @@ def outer_surface(
     if signed_volume(out_v, out_f) <= 0.0:
         raise InputError(f"{name}: the winding-number outer surface at {cells} cells has no positive volume")
     return np.ascontiguousarray(out_v), np.ascontiguousarray(out_f, dtype=np.int32)
+
+
+def smallest_angle(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Return the smallest corner angle of any triangle, in degrees (60 for an equilateral mesh)."""
+    corners = np.asarray(vertices, dtype=np.float64)[faces]  # (m, 3, 3)
+    smallest = np.inf
+    for k in range(3):
+        u = corners[:, (k + 1) % 3] - corners[:, k]
+        w = corners[:, (k + 2) % 3] - corners[:, k]
+        angle = np.arctan2(np.linalg.norm(np.cross(u, w), axis=1), np.einsum("ij,ij->i", u, w))
+        smallest = min(smallest, float(angle.min()))
+    return float(np.degrees(smallest))
+
+
+def remesh(
+    vertices: np.ndarray, faces: np.ndarray, target_faces: int, name: str = "mesh", timeout_s: float = 120.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Remesh a closed surface into about ``target_faces`` well-shaped triangles, keeping its sharp edges.
+
+    Netgen's STL surface mesher (in a child process) finds the feature edges (dihedral angle over 30 deg),
+    divides them and fills each smooth patch with near-equilateral triangles of the size that gives the
+    target count; features it must keep (small holes, short edges) can make it more. A CAD part's needles
+    (QEM keeps long thin triangles on flat faces) become triangles on which Netgen's tets are well shaped.
+
+    Args:
+        vertices: (n, 3) positions of a closed, outward-wound surface.
+        faces: (m, 3) vertex indices.
+        target_faces: Number of triangles aimed at.
+        name: Name of the mesh for error messages.
+        timeout_s: Wall-clock limit, in seconds.
+
+    Returns:
+        ``(V, F)``: float64 positions and int32 faces, closed, manifold and outward.
+
+    Raises:
+        InputError: On a timeout or crash, or if the result is not a closed manifold of positive volume.
+    """
+    inputs = {
+        "vertices": np.asarray(vertices, dtype=np.float64),
+        "faces": np.asarray(faces, dtype=np.int32),
+        "target": np.int64(target_faces),
+    }
+    out, _ = run_in_child("remesh", inputs, timeout_s, name, "surface remeshing")
+    out_v, out_f = _compact(out["vertices"], out["faces"].astype(np.int64))
+    defect = topology_defects(out_f) if len(out_f) else "empty"
+    if defect is not None:
+        raise InputError(f"{name}: the remeshed surface ({len(out_f)} faces) is {defect}")
+    if signed_volume(out_v, out_f) < 0.0:
+        out_f = out_f[:, ::-1]
+    if signed_volume(out_v, out_f) <= 0.0:
+        raise InputError(f"{name}: the remeshed surface ({len(out_f)} faces) has no volume")
+    return np.ascontiguousarray(out_v), np.ascontiguousarray(out_f, dtype=np.int32)

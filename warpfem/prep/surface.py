@@ -188,7 +188,6 @@ def read_usd_mesh(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.n
 
 
 def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
 
     from warpfem.prep.ply_strips import has_strips, read_strip_ply
 
@@ -210,14 +209,52 @@ def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndar
         elif path.suffix.lower() == ".ply" and has_strips(path):
             vertices, faces = read_strip_ply(path)
         else:
-            mesh = trimesh.load(path, force="mesh", process=False)
-            vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
-            faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
-    except Exception as exc:  # trimesh raises many exception types for malformed files
+            vertices, faces = _read_trimesh_or_meshio(path)
+    except Exception as exc:  # trimesh and meshio raise many exception types for malformed files
         raise InputError(f"{path}: unreadable mesh file ({type(exc).__name__}: {exc})".splitlines()[0]) from exc
     if len(vertices) == 0:
         raise InputError(f"{path}: mesh file has no vertices")
     return vertices, faces.reshape(-1, 3)
+
+
+def _read_trimesh_or_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a PLY, STL or OFF through trimesh, or through meshio where trimesh fails or finds no faces.
+
+    meshio's polygons (quads included) are split into fans. When both fail, trimesh's error is raised.
+    """
+    import trimesh
+
+    error: Exception | None = None
+    vertices, faces = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+        vertices = np.asarray(getattr(mesh, "vertices", vertices), dtype=np.float64)
+        faces = np.asarray(getattr(mesh, "faces", faces), dtype=np.int64)
+        if len(faces):
+            return vertices, faces
+    except Exception as exc:  # meshio may still read it
+        error = exc
+    try:
+        import meshio
+
+        mesh = meshio.read(path)
+    except (Exception, SystemExit):  # meshio exits on some formats it cannot read
+        if error is not None:
+            raise error from None
+        return vertices, faces
+    polygons = [np.asarray(block.data, dtype=np.int64) for block in mesh.cells if block.dim == 2]
+    fans = [
+        np.stack([p[:, 0].repeat(p.shape[1] - 2), p[:, 1:-1].reshape(-1), p[:, 2:].reshape(-1)], axis=1)
+        for p in polygons
+        if p.ndim == 2 and p.shape[1] >= 3
+    ]
+    if not fans:
+        if error is not None:
+            raise error
+        return vertices, faces
+    points = np.zeros((len(mesh.points), 3))
+    points[:, : mesh.points.shape[1]] = mesh.points
+    return points, np.concatenate(fans)
 
 
 def read_triangles(path: str | Path, prim: str | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -358,7 +395,13 @@ def load_surface(
             NaN/Inf or overflowing coordinates, all vertices coincident, holes over the limit,
             non-manifold edges, inconsistent winding, zero volume, unwanted shells).
     """
-    from warpfem.prep.repair import MAX_HOLE_FRACTION, close_small_holes, select_shells
+    from warpfem.prep.repair import (
+        MAX_HOLE_FRACTION,
+        close_small_holes,
+        orient_consistently,
+        select_shells,
+        split_non_manifold,
+    )
 
     name = str(path)
     if name == BUILTIN_BUNNY:
@@ -391,6 +434,8 @@ def load_surface(
     if len(faces) == 0:
         raise InputError(f"{name}: mesh has no faces with nonzero area")
     vertices, faces = _drop_unused(vertices, faces, repairs)
+    vertices, faces = split_non_manifold(vertices, faces, repairs)
+    faces = orient_consistently(faces, name, repairs)
     defect = topology_defects(faces)
     if defect is not None and defect.startswith("not closed"):
         limit = MAX_HOLE_FRACTION if max_hole is None else max_hole

@@ -134,11 +134,13 @@ def tet_quality(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nd
         flat one).
     """
     x = np.asarray(points, dtype=np.float64)[tets]  # (q, 4, 3)
-    # outward face normals, face k opposite corner k
+    # face normals, face k opposite corner k, turned away from that corner (outward)
     normals = np.stack(
         [np.cross(x[:, (k + 2) % 4] - x[:, (k + 1) % 4], x[:, (k + 3) % 4] - x[:, (k + 1) % 4]) for k in range(4)],
         axis=1,
     )
+    towards = np.einsum("qkj,qkj->qk", normals, x - x[:, [1, 2, 3, 0]])
+    normals = np.where((towards > 0)[:, :, None], -normals, normals)
     areas2 = np.linalg.norm(normals, axis=2)  # twice the face areas
     unit = normals / np.maximum(areas2, 1e-300)[:, :, None]
     # the dihedral angle between faces i and j is pi minus the angle between their outward normals

@@ -14,6 +14,8 @@ Tasks:
     ``outer``: ``vertices``, ``faces``, ``cells`` -> ``vertices``, ``faces``: the 1/2 level set of the
         generalized winding number (``igl.fast_winding_number``) sampled on a grid with ``cells`` cells
         along the longest side, by marching cubes.
+    ``remesh``: ``vertices``, ``faces``, ``target`` -> ``vertices``, ``faces``: Netgen's STL surface mesh of
+        the surface, its element size chosen for about ``target`` triangles.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ def run_in_child(
     """Run ``task`` in a child Python process and return its output arrays and console output.
 
     Args:
-        task: ``"netgen"``, ``"qslim"`` or ``"outer"``.
+        task: ``"netgen"``, ``"qslim"``, ``"outer"`` or ``"remesh"``.
         inputs: The task's input arrays.
         timeout_s: Wall-clock limit, in seconds; the child is killed when it is exceeded.
         name: Name of the mesh for error messages.
@@ -139,10 +141,53 @@ def outer_surface(vertices: np.ndarray, faces: np.ndarray, cells: int) -> tuple[
     return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int64)
 
 
+REMESH_TRIES = 3
+"""Netgen surface meshes made to approach the target count (each rescales the element size)."""
+
+
+def _write_stl(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a binary STL (normals from the winding)."""
+    corners = vertices[faces].astype(np.float32)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    records = np.zeros(len(faces), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    records["n"], records["v"] = normals, corners
+    with open(path, "wb") as stream:
+        stream.write(b"warpfem remesh".ljust(80, b" ") + np.uint32(len(faces)).tobytes() + records.tobytes())
+
+
+def remesh_surface(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Netgen's STL surface mesh of a closed surface, with about ``target`` triangles where its features allow.
+
+    The element size starts at that of ``target`` equilateral triangles covering the area and is rescaled
+    by the square root of the count's ratio to the target, up to :data:`REMESH_TRIES` meshes.
+    """
+    from netgen.meshing import MeshingStep
+    from netgen.stl import STLGeometry
+
+    path = Path("surface.stl")
+    _write_stl(path, vertices, faces)
+    corners = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    size = float(np.sqrt(4.0 * area / (np.sqrt(3.0) * target)))
+    best = None
+    for _ in range(REMESH_TRIES):
+        mesh = STLGeometry(str(path)).GenerateMesh(maxh=size, perfstepsend=MeshingStep.MESHSURFACE)
+        points = np.array(mesh.Coordinates(), dtype=np.float64, copy=True).reshape(-1, 3)
+        tris = np.array(mesh.Elements2D().NumPy()["nodes"], dtype=np.int64, copy=True)[:, :3] - 1
+        if best is None or abs(np.log(len(tris) / target)) < abs(np.log(len(best[1]) / target)):
+            best = (points, tris)
+        ratio = len(tris) / target
+        if 0.8 < ratio < 1.25:
+            break
+        size *= float(np.sqrt(ratio))
+    return best
+
+
 def main(argv: list[str]) -> int:
     """Read IN.npz, run the task, write OUT.npz; return the process exit code."""
-    if len(argv) != 3 or argv[0] not in ("netgen", "qslim", "outer"):
-        print("usage: python -m warpfem.prep.worker netgen|qslim|outer IN.npz OUT.npz", file=sys.stderr)
+    if len(argv) != 3 or argv[0] not in ("netgen", "qslim", "outer", "remesh"):
+        print("usage: python -m warpfem.prep.worker netgen|qslim|outer|remesh IN.npz OUT.npz", file=sys.stderr)
         return 2
     task, src, dst = argv
     with np.load(src, allow_pickle=False) as data:
@@ -151,6 +196,9 @@ def main(argv: list[str]) -> int:
     if task == "netgen":
         points, tets = mesh_volume(vertices, faces, float(inputs["maxh"]), int(inputs["optsteps"]))
         np.savez(dst, points=points, tets=tets)
+    elif task == "remesh":
+        out_v, out_f = remesh_surface(vertices, faces, int(inputs["target"]))
+        np.savez(dst, vertices=out_v, faces=out_f)
     elif task == "qslim":
         out_v, out_f = qslim(vertices, faces.astype(np.int32), int(inputs["target"]))
         np.savez(dst, vertices=out_v, faces=out_f)
