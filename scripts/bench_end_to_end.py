@@ -9,7 +9,8 @@ scripts/results/.
     python scripts/bench_end_to_end.py --quick                # CPU: the default scene and paper C, 30 frames
     python scripts/bench_end_to_end.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU: all cases
 
-Cases: the paper scenes (a, b, c), the default scene, piles of N armadillos (pile64, pile256...). Meshes must
+Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), or any shipped scene by name
+(default, shake, slide). Meshes must
 already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
 """
 
@@ -34,20 +35,20 @@ PAPER = {"a": "paper_a_armadillo_stack", "b": "paper_b_four_horses", "c": "paper
 
 
 def case_scene(case: str, assets: Path, frames: int):
-    """The scene of ``case`` (a, b, c, default or pileN) with ``frames`` frames."""
+    """The scene of ``case`` (a, b, c, pileN, or a shipped scene's name) with ``frames`` frames."""
     import bench
 
     import warpfem
 
     if case in PAPER:
         scene = bench.load_with_assets(ROOT / "scenes" / f"{PAPER[case]}.toml", assets)
-    elif case == "default":
-        scene = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     elif case.startswith("pile") and case[4:].isdigit():
         defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
         scene = bench.pile(defaults, int(case[4:]), str((assets / "armadillo.off").resolve()), 500)
+    elif (ROOT / "scenes" / f"{case}.toml").is_file():
+        scene = warpfem.load_scene(ROOT / "scenes" / f"{case}.toml")
     else:
-        raise SystemExit(f"unknown case '{case}': expected a, b, c, default or pileN")
+        raise SystemExit(f"unknown case '{case}': expected a, b, c, pileN or a scene of scenes/")
     return scene.with_frames(frames)
 
 
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
     parser.add_argument("--frames", type=int, default=120)
-    parser.add_argument("--cases", default="a,b,c,default,pile64,pile256")
+    parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
