@@ -1,4 +1,4 @@
-"""Launch shapes shared by the host stages."""
+"""Launch shapes shared by the host stages, from a fixed set so that no scene compiles a module of its own."""
 
 from __future__ import annotations
 
@@ -10,15 +10,21 @@ WARP_THREADS = 32
 WIDE_BLOCK = 256
 """Threads per block of a launch large enough to fill the device (Warp's default)."""
 
+SPREAD_BLOCKS = (WARP_THREADS, WIDE_BLOCK)
+"""The block sizes :func:`spread_block_dim` chooses from. Warp compiles a module once per block size it is
+launched with, so a size that followed the scene's would compile again for a scene of another size; the
+modules of the spread launches are compiled (and loaded) in both sizes instead (docs/decisions.md)."""
+
 
 def spread_block_dim(count: int, device) -> int:
-    """Threads per block (32 to 256, whole warps) that spread a launch of ``count`` threads over every SM.
+    """Threads per block (one of :data:`SPREAD_BLOCKS`) that spread a launch of ``count`` threads over every SM.
 
     In blocks of 256 a small launch runs on a handful of SMs, whose issue of its loads and atomic adds, not
-    the memory, sets its time; smaller blocks put a block on every SM where the count allows. A launch of 256
-    or more threads per SM keeps the default; the CPU ignores it. Meant for launches whose threads issue many
-    loads or atomic adds of their own (elastic forces, the system's rows), not for tree walks, whose threads
-    read the same nodes and gain from sharing an SM's cache.
+    the memory, sets its time; blocks of one warp put work on every SM where the count allows. Below 256
+    threads per SM every block of a warp is resident at once (an SM holds 32 blocks), so a single warp per
+    block costs no occupancy; from 256 per SM on, the default. The CPU ignores it. Meant for launches whose
+    threads issue many loads or atomic adds of their own (elastic forces, the system's rows), not for tree
+    walks, whose threads read the same nodes and gain from sharing an SM's cache.
 
     Args:
         count: Threads of the launch.
@@ -26,7 +32,6 @@ def spread_block_dim(count: int, device) -> int:
     """
     if not hasattr(device, "is_cuda"):
         device = wp.get_device(device)
-    if not device.is_cuda:
+    if not device.is_cuda or int(count) >= device.sm_count * WIDE_BLOCK:
         return WIDE_BLOCK
-    warps_per_sm = int(count) // (device.sm_count * WARP_THREADS)  # the most that still give every SM a block
-    return min(WIDE_BLOCK, max(WARP_THREADS, warps_per_sm * WARP_THREADS))
+    return WARP_THREADS
