@@ -32,6 +32,7 @@ from warpfem.sim.embedding import map_dense
 from warpfem.sim.fem import RotationWatch
 from warpfem.sim.integrate import Box, MeshCollider, collider_pose, mesh_reach
 from warpfem.sim.model import Body, Model, ModelBuilder, State
+from warpfem.sim.modules import STEP_MODULES, load_modules
 from warpfem.sim.solver import Solver
 
 CAP_SLACK = 1.01
@@ -143,6 +144,8 @@ class Simulation:
         warn: Receives one-line warnings, each kind at most once (contact buffer overflow; a body moving more
             than half a tet per step; a body turning fast enough to gain energy).
         cg_path: How CG runs (see :class:`~warpfem.sim.solver.Solver`); None: the default.
+        notify: Receives one-line notices of work before the first step that takes long only once: compiling
+            the kernels on a first run (before it starts, then its time).
 
     Raises:
         InputError: A bad mesh (naming the scene file and object), or a scene that would not fit in the
@@ -157,7 +160,9 @@ class Simulation:
         frame: Output frames stepped so far (0: the initial pose).
         stats: The last frame's :class:`FrameStats`.
         totals: :class:`RunTotals` over all frames stepped.
-        seconds: Wall time (s) of ``prepare`` (preprocessing, or reading the cache) and ``build``.
+        seconds: Wall time (s) of ``prepare`` (preprocessing, or reading the cache), ``compile`` (loading
+            every kernel module the step can use, compiled where Warp's kernel cache lacks it: a first run)
+            and ``build``.
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
     """
 
@@ -170,6 +175,7 @@ class Simulation:
         progress: Callable[[str, str], None] | None = None,
         warn: Callable[[str], None] | None = None,
         cg_path: str | None = None,
+        notify: Callable[[str], None] | None = None,
     ) -> None:
         self.scene = scene
         self.warn = warn
@@ -179,6 +185,9 @@ class Simulation:
         folder = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) if cache else None
         prepared = prepare_scene(scene, folder, progress)
         self.seconds = {"prepare": time.perf_counter() - clock}
+        clock = time.perf_counter()
+        load_modules(STEP_MODULES, [dev], notify)  # before anything launches: the step's timing holds no compile
+        self.seconds["compile"] = time.perf_counter() - clock
         clock = time.perf_counter()
         samples = scene_samples(scene, prepared)
         placed = [placed_geometry(*where) for where in zip(scene.objects, prepared, samples, strict=True)]

@@ -93,6 +93,7 @@ def _build(args: argparse.Namespace, scene: Any, device: str, show: bool) -> Any
             cache=not args.no_cache,
             progress=progress,
             warn=None if args.quiet else (lambda message: print(f"warpfem: {message}", file=sys.stderr, flush=True)),
+            notify=None if args.quiet else (lambda message: tqdm.write(f"warpfem: {message}", file=sys.stderr)),
         )
         bar.n = len(scene.objects)
     return sim
@@ -251,6 +252,7 @@ def _report(
             f"check {per * s['check']:.2f}; waiting for the writer {per * s['wait']:.2f})",
         ),
         ("preprocessing", f"{s['prepare']:.2f} s"),
+        ("compiling kernels", f"{s['compile']:.2f} s (first run only; else loading them)"),
         ("bodies", str(summary.bodies)),
         ("tets / tet vertices", f"{summary.tets} / {summary.tet_vertices}"),
         ("dense triangles / vertices", f"{summary.dense_triangles} / {summary.dense_vertices}"),
