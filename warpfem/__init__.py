@@ -41,6 +41,7 @@ _EXPORTS = {
     "Solver": "warpfem.sim.solver",
     "prepare": "warpfem.prep.pipeline",
     "PreparedBody": "warpfem.prep.pipeline",
+    "warmup": "warpfem.compilation",
 }
 
 __all__ = [
@@ -64,10 +65,12 @@ __all__ = [
     "Solver",
     "prepare",
     "PreparedBody",
+    "warmup",
 ]
 
 if TYPE_CHECKING:
     from warpfem.build import add_body
+    from warpfem.compilation import warmup
     from warpfem.errors import InputError, SimulationError
     from warpfem.io.penetration import Penetration, frame_penetration
     from warpfem.prep.pipeline import PreparedBody, prepare

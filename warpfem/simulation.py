@@ -186,7 +186,7 @@ class Simulation:
         prepared = prepare_scene(scene, folder, progress)
         self.seconds = {"prepare": time.perf_counter() - clock}
         clock = time.perf_counter()
-        load_modules(STEP_MODULES, [dev], notify)  # before anything launches: the step's timing holds no compile
+        load_modules([(dev, STEP_MODULES)], notify)  # before anything launches: the step's timing holds no compile
         self.seconds["compile"] = time.perf_counter() - clock
         clock = time.perf_counter()
         samples = scene_samples(scene, prepared)

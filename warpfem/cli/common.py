@@ -18,7 +18,7 @@ from typing import Any
 
 from warpfem.errors import InputError
 
-COMMANDS = ("run", "render", "prepare", "info", "tradeoff")
+COMMANDS = ("run", "render", "prepare", "warmup", "info", "tradeoff")
 """Command modules in the order ``--help`` lists them."""
 
 

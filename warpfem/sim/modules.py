@@ -81,23 +81,25 @@ def is_cached(name: str, device: wp.context.Device, block_dim: int) -> bool:
 
 
 def load_modules(
-    modules: Mapping[str, Sequence[int]],
-    devices: Sequence[str | wp.context.Device],
+    plan: Sequence[tuple[str | wp.context.Device, Mapping[str, Sequence[int]]]],
     notify: Callable[[str], None] | None = None,
 ) -> list[ModuleLoad]:
-    """Load (compiling where the kernel cache lacks them) every variant of ``modules`` on ``devices``.
+    """Load (compiling where the kernel cache lacks them) every variant of the modules planned per device.
 
     Args:
-        modules: Module names and their block sizes on CUDA, as :data:`STEP_MODULES`.
-        devices: Warp devices or their names.
+        plan: Pairs of a Warp device (or its name) and the modules to load there with their block sizes on
+            CUDA, as :data:`STEP_MODULES`. A variant planned twice is loaded once.
         notify: Receives "compiling kernels (first run only): ..." before anything is compiled and the time it
             took after, one line each; nothing when every variant was cached.
 
     Returns:
-        One entry per variant and device, in order.
+        One entry per variant and device.
     """
     wp.init()
-    jobs = [(wp.get_device(d), name, dim) for d in devices for name, dim in variants(modules, wp.get_device(d))]
+    jobs = []
+    for where, modules in plan:
+        device = wp.get_device(where)
+        jobs += [(device, name, dim) for name, dim in variants(modules, device) if (device, name, dim) not in jobs]
     missing = [(d, name, dim) for d, name, dim in jobs if not is_cached(name, d, dim)]
     if missing and notify is not None:
         where = ", ".join(sorted({d.alias for d, _, _ in missing}))
