@@ -11,7 +11,8 @@ import trimesh
 from mesh_kinds import cad_bracket, write_obj
 
 from warpfem.errors import InputError
-from warpfem.prep.pipeline import prepare
+from warpfem.prep.geometry import surface_samples
+from warpfem.prep.pipeline import cached_surface_samples, prepare
 from warpfem.prep.simplify import simplify
 from warpfem.prep.tetmesh import tet_quality, tet_signed_volumes, tetrahedralize
 
@@ -118,8 +119,8 @@ def test_prepare_builds_a_consistent_body(ellipsoid_file):
 def test_cache_hit_and_rebuild_of_a_damaged_file(ellipsoid_file, tmp_path):
     cache = tmp_path / "cache"
     first = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
-    files = list(cache.iterdir())
-    assert first.stats["cache"] == "miss" and len(files) == 1 and files[0].suffix == ".npz"
+    files = sorted(cache.iterdir(), key=lambda p: p.suffix)  # the entry, and the index naming it by file bytes
+    assert first.stats["cache"] == "miss" and [p.suffix for p in files] == [".npz", ".txt"]
 
     second = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
     assert second.stats["cache"] == "hit"
@@ -136,7 +137,58 @@ def test_cache_hit_and_rebuild_of_a_damaged_file(ellipsoid_file, tmp_path):
 
     other = prepare(ellipsoid_file, faces=150, maxh=0.3, cache_dir=cache)  # other parameters, other entry
     assert other.stats["cache"] == "miss"
-    assert sorted(p.suffix for p in cache.iterdir()) == [".npz", ".npz"]  # no temporary files left
+    assert sorted(p.suffix for p in cache.iterdir()) == [".npz", ".npz", ".txt", ".txt"]  # no temporary files left
+
+
+def test_a_cached_mesh_file_is_found_by_its_bytes_without_loading_it(ellipsoid_file, tmp_path, monkeypatch):
+    """The second prepare of the same file and parameters reads the cache without loading and repairing the
+    mesh; a file whose bytes changed is loaded again; the index never outlives a damaged entry."""
+    cache = tmp_path / "cache"
+    first = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the mesh was loaded")
+
+    with monkeypatch.context() as patch:
+        patch.setattr("warpfem.prep.pipeline.load_surface", no_load)
+        again = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+        assert again.stats["cache"] == "hit"
+        np.testing.assert_array_equal(again.embed_bary, first.embed_bary)
+        with pytest.raises(AssertionError, match="was loaded"):  # other parameters: not in the index
+            prepare(ellipsoid_file, faces=150, maxh=0.3, cache_dir=cache)
+
+    moved = _ellipsoid()
+    moved.vertices *= 1.5
+    moved.export(ellipsoid_file)  # new bytes at the same path
+    changed = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    assert changed.stats["cache"] == "miss"
+    np.testing.assert_allclose(changed.dense_vertices, 1.5 * first.dense_vertices)
+
+    for npz in cache.glob("*.npz"):
+        npz.write_bytes(npz.read_bytes()[:300])  # every entry damaged: the index leads nowhere
+    assert prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache).stats["cache"] == "miss"
+
+
+def test_collision_samples_are_cached_beside_the_body(ellipsoid_file, tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    body = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
+    expected = surface_samples(body.dense_vertices, body.dense_faces, 0.1, 1e-3)
+    first = cached_surface_samples(body, 0.1, 1e-3, cache)
+    (entry,) = cache.glob("samples-*.npz")
+
+    def no_samples(*args, **kwargs):
+        raise AssertionError("the samples were computed")
+
+    with monkeypatch.context() as patch:
+        patch.setattr("warpfem.prep.pipeline.surface_samples", no_samples)
+        second = cached_surface_samples(body, 0.1, 1e-3, cache)
+        with pytest.raises(AssertionError, match="computed"):  # another spacing is another entry
+            cached_surface_samples(body, 0.05, 1e-3, cache)
+    entry.write_bytes(entry.read_bytes()[:200])  # damaged: computed again
+    third = cached_surface_samples(body, 0.1, 1e-3, cache)
+    for got in (first, second, third):
+        np.testing.assert_array_equal(got.collision, expected.collision)
+        np.testing.assert_array_equal(got.skin, expected.skin)
 
 
 def test_prepare_reports_bad_input(tmp_path):
@@ -174,7 +226,7 @@ def test_every_stage_has_a_time_limit(ellipsoid_file):
 def test_a_corrupted_cache_entry_is_rebuilt(ellipsoid_file, tmp_path):
     cache = tmp_path / "cache"
     first = prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache)
-    (entry,) = cache.iterdir()
+    (entry,) = cache.glob("*.npz")
     data = bytearray(entry.read_bytes())
     data[len(data) // 2] ^= 0xFF  # one flipped byte in the middle, same length
     entry.write_bytes(bytes(data))

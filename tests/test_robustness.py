@@ -294,7 +294,7 @@ class _Trap:
 def test_pickled_cache_file_is_refused_and_never_run(folder, tmp_path):
     cache = tmp_path / "cache"
     cache.mkdir()
-    (entry,) = (folder / "cache").glob("*.npz")
+    (entry,) = (p for p in (folder / "cache").glob("*.npz") if not p.name.startswith("samples-"))  # the body's
     with np.load(entry, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
     marker = tmp_path / "code-ran"

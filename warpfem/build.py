@@ -20,9 +20,8 @@ from warpfem.prep.geometry import (
     BodyGeometry,
     SurfaceSamples,
     body_geometry,
-    surface_samples,
 )
-from warpfem.prep.pipeline import PreparedBody, prepare
+from warpfem.prep.pipeline import PreparedBody, cached_surface_samples, prepare
 from warpfem.prep.surface import read_triangles
 from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
@@ -76,10 +75,11 @@ def prepare_scene(
     return prepared
 
 
-def scene_samples(scene: Scene, prepared: list[PreparedBody]) -> list[SurfaceSamples]:
+def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | None = None) -> list[SurfaceSamples]:
     """Which dense vertices of each object collide (:func:`~warpfem.prep.geometry.surface_samples`).
 
-    Chosen in the mesh's own coordinates, once per distinct mesh and spacing: a pile of one mesh pays once.
+    Chosen in the mesh's own coordinates, once per distinct mesh and spacing: a pile of one mesh pays once;
+    read from the preprocessing cache ``cache_dir`` where it holds them (None: computed, not stored).
     """
     done: dict[tuple[int, float], SurfaceSamples] = {}
     samples = []
@@ -88,7 +88,7 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody]) -> list[SurfaceSam
         spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else DEFAULT_SPACING * size
         key = (id(body), spacing)
         if key not in done:
-            done[key] = surface_samples(body.dense_vertices, body.dense_faces, spacing, SKIN_TOLERANCE * size)
+            done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir)
         samples.append(done[key])
     return samples
 

@@ -189,7 +189,7 @@ class Simulation:
         load_modules([(dev, STEP_MODULES)], notify)  # before anything launches: the step's timing holds no compile
         self.seconds["compile"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        samples = scene_samples(scene, prepared)
+        samples = scene_samples(scene, prepared, folder)
         placed = [placed_geometry(*where) for where in zip(scene.objects, prepared, samples, strict=True)]
         check_fits(scene_estimate(scene, prepared, [geometry for _, geometry in placed]), dev.alias)
         held = held_masks(scene, [tet_x for tet_x, _ in placed])

@@ -14,7 +14,10 @@ child processes under a time limit each, so a crash or hang there is a failed ru
 
 The cache is content-addressed: a file is named by the sha256 of the welded input mesh and the
 parameters, so an edited mesh or changed parameter never hits a stale entry; it is written atomically
-and carries a checksum of its arrays, so a damaged or truncated entry is rebuilt, not loaded.
+and carries a checksum of its arrays, so a damaged or truncated entry is rebuilt, not loaded. A small
+index entry per (file bytes, parameters) names that file, so a cached mesh is found without reading and
+repairing the mesh again (USD files excepted: a layer can pull in others). The collision samples of a
+prepared body are cached beside it (:func:`cached_surface_samples`).
 """
 
 from __future__ import annotations
@@ -30,9 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from warpfem.errors import InputError
+from warpfem.prep import geometry
 from warpfem.prep.embedding import embed
-from warpfem.prep.geometry import LATTICE_POINTS, face_lattice
-from warpfem.prep.surface import Surface, load_surface, subdivide_surface
+from warpfem.prep.geometry import LATTICE_POINTS, SurfaceSamples, face_lattice, surface_samples
+from warpfem.prep.surface import Surface, load_surface, source_file, subdivide_surface
 
 CACHE_FORMAT = 3
 """Version of the cache file layout and of the preprocessing algorithm; bump to invalidate old entries."""
@@ -209,18 +213,82 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
 
 def _write_cache(path: Path, body: PreparedBody) -> None:
     """Write ``body`` to ``path`` atomically (temporary file in the same folder, then rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {name: getattr(body, name) for name in _ARRAY_FIELDS}
     payload["checksum"] = np.array(_checksum(payload))
     payload.update({_STAT_PREFIX + key: np.array(value) for key, value in body.stats.items()})
+    _save_atomically(path, lambda stream: np.savez(stream, **payload))
+
+
+def _save_atomically(path: Path, write: Callable) -> None:
+    """Call ``write(stream)`` on a temporary file beside ``path``, then rename it to ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem + ".", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as stream:
-            np.savez(stream, **payload)
+            write(stream)
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
         raise
+
+
+def _source_index(cache_dir: Path, mesh: str | Path, params: str) -> Path | None:
+    """The index entry naming the cache file of ``mesh`` prepared with ``params``, keyed by its file's bytes.
+
+    None where no one file decides the mesh (:func:`~warpfem.prep.surface.source_file`).
+    """
+    source = source_file(mesh)
+    if source is None:
+        return None
+    digest = hashlib.sha256(f"warpfem-source v{CACHE_FORMAT} {params}\n".encode())
+    digest.update(source.read_bytes())
+    return Path(cache_dir) / f"source-{digest.hexdigest()}.txt"
+
+
+def _read_indexed(index: Path | None) -> tuple[Path, PreparedBody] | None:
+    """The cache file an index entry names and the body in it, if both are there and sound."""
+    try:
+        key = index.read_text().strip()
+    except (AttributeError, OSError, UnicodeDecodeError):
+        return None
+    if len(key) != 64 or not all(c in "0123456789abcdef" for c in key):
+        return None
+    path = index.parent / f"{key}.npz"
+    body = _read_cache(path)
+    return None if body is None else (path, body)
+
+
+SAMPLES_FORMAT = 1
+"""Version of the cached collision samples' layout; they are also keyed by the source of
+:mod:`warpfem.prep.geometry`, so a change to how samples are chosen never reads old ones."""
+
+
+def cached_surface_samples(
+    body: PreparedBody, spacing: float, tolerance: float, cache_dir: Path | None
+) -> SurfaceSamples:
+    """:func:`~warpfem.prep.geometry.surface_samples` of ``body``'s dense mesh, read from ``cache_dir`` when there.
+
+    Keyed by the dense mesh's bytes, ``spacing``, ``tolerance`` (mesh units) and the geometry module's
+    source; None: computed, nothing stored. (About 0.8 s for the default scene's 97,602 vertices.)
+    """
+    if cache_dir is None:
+        return surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance)
+    digest = hashlib.sha256(f"warpfem-samples v{SAMPLES_FORMAT} {spacing!r} {tolerance!r}\n".encode())
+    digest.update(Path(geometry.__file__).read_bytes())
+    digest.update(np.ascontiguousarray(body.dense_vertices, dtype="<f8").tobytes())
+    digest.update(np.ascontiguousarray(body.dense_faces, dtype="<i4").tobytes())
+    path = Path(cache_dir) / f"samples-{digest.hexdigest()}.npz"
+    n = len(body.dense_vertices)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            found = SurfaceSamples(np.array(data["collision"]), np.array(data["skin"]))
+        if all(len(a) and a.dtype.kind == "i" and 0 <= a.min() and a.max() < n for a in (found.collision, found.skin)):
+            return found
+    except Exception:  # absent, or damaged anywhere from zipfile to the OS layer: compute it again
+        pass
+    made = surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance)
+    _save_atomically(path, lambda stream: np.savez(stream, collision=made.collision, skin=made.skin))
+    return made
 
 
 @dataclass
@@ -533,21 +601,24 @@ def prepare(
         raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
     clock = time.perf_counter()
     say(f"{mesh}: loading")
+    options = f"shells={shells!r} max_hole={max_hole!r}" + (f" prim={prim!r}" if prim is not None else "")
+    index = None
+    if cache_dir is not None:
+        index = _source_index(cache_dir, mesh, f"faces={faces} subdivide={subdivide} maxh={maxh!r} {options}")
+        found = _read_indexed(index)
+        if found is not None:
+            return _hit(found[1], mesh, found[0], say, seconds_load=0.0, clock=clock)
     surface = load_surface(mesh, max_hole=max_hole, shells=shells, prim=prim)
     seconds_load = time.perf_counter() - clock
 
     path = None
     if cache_dir is not None:
-        options = f"shells={shells!r} max_hole={max_hole!r}" + (f" prim={prim!r}" if prim is not None else "")
         path = Path(cache_dir) / f"{cache_key(surface, faces, subdivide, maxh, options)}.npz"
         clock = time.perf_counter()
         cached = _read_cache(path)
         if cached is not None:
-            say(f"{mesh}: loaded from cache {path}")
-            cached.stats.update(
-                mesh=str(mesh), cache="hit", seconds_load=seconds_load, seconds_cache_read=time.perf_counter() - clock
-            )
-            return cached
+            _remember(index, path)
+            return _hit(cached, mesh, path, say, seconds_load, clock)
 
     clock = time.perf_counter()
     dense = subdivide_surface(surface, subdivide)
@@ -566,4 +637,22 @@ def prepare(
     body = PreparedBody(dense_vertices=dense.vertices, dense_faces=dense.faces, **arrays, stats=stats)
     if path is not None:
         _write_cache(path, body)
+        _remember(index, path)
     return body
+
+
+def _hit(
+    body: PreparedBody, mesh: str | Path, path: Path, say: Callable[[str], None], seconds_load: float, clock: float
+) -> PreparedBody:
+    """A body read from the cache file ``path``, its stats saying so (``clock``: when reading began)."""
+    say(f"{mesh}: loaded from cache {path}")
+    body.stats.update(
+        mesh=str(mesh), cache="hit", seconds_load=seconds_load, seconds_cache_read=time.perf_counter() - clock
+    )
+    return body
+
+
+def _remember(index: Path | None, path: Path) -> None:
+    """Point the index entry ``index`` (if any) at the cache file ``path``."""
+    if index is not None:
+        _save_atomically(index, lambda stream: stream.write(path.stem.encode()))

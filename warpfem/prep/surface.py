@@ -112,11 +112,29 @@ def topology_defects(faces: np.ndarray) -> str | None:
     return None
 
 
+def _bunny_path() -> Path:
+    """Warp's bunny asset, found beside Warp's package without importing Warp."""
+    from importlib.util import find_spec
+
+    return Path(os.path.dirname(find_spec("warp").origin)) / "examples" / "assets" / "bunny.usd"
+
+
+def source_file(mesh: str | Path) -> Path | None:
+    """The one file whose bytes alone decide what :func:`load_surface` makes of ``mesh``, if there is one.
+
+    An OBJ, PLY, STL or OFF file, or Warp's bunny for ``"builtin:bunny"``; None for a USD file (a layer can
+    pull in others) or a file that does not exist.
+    """
+    path = _bunny_path() if str(mesh) == BUILTIN_BUNNY else Path(mesh)
+    if str(mesh) != BUILTIN_BUNNY and path.suffix.lower() in USD_SUFFIXES:
+        return None
+    return path if path.is_file() else None
+
+
 def _read_usd_bunny() -> tuple[np.ndarray, np.ndarray]:
-    import warp as wp
     from pxr import Usd, UsdGeom
 
-    path = Path(os.path.dirname(wp.__file__)) / "examples" / "assets" / "bunny.usd"
+    path = _bunny_path()
     if not path.exists():
         raise InputError(f"{BUILTIN_BUNNY}: Warp's bunny asset is missing at {path}")
     stage = Usd.Stage.Open(str(path))
