@@ -218,9 +218,14 @@ class Simulation:
             substeps: Steps per output frame.
             fps: Output frames per second.
             warn: As for the constructor.
+
+        The step's kernel modules are loaded here (those the model's and solver's construction did not load
+        already); ``seconds["compile"]`` says how long that took.
         """
         sim = cls.__new__(cls)
-        sim.scene, sim.warn, sim.seconds = None, warn, {}
+        clock = time.perf_counter()
+        load_modules([(model.device, STEP_MODULES)])
+        sim.scene, sim.warn, sim.seconds = None, warn, {"compile": time.perf_counter() - clock}
         sim._attach(model, solver, substeps, fps)
         return sim
 
@@ -345,7 +350,8 @@ class Simulation:
         thread waiting on the device (the file writer) captures before starting it.
         """
         if self.device.is_cuda and self._graph is None:
-            with wp.ScopedCapture(device=self.device) as capture:
+            # every module the step uses is loaded (see STEP_MODULES): the capture need not load all of Warp's
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 for _, phase in self.frame_phases():
                     phase()
             self._graph = capture.graph
