@@ -39,6 +39,17 @@ substeps = 3
 kind = "sphere"
 center = [0.6, 0.0, 0.0]
 radius = 0.2
+keys = [[0, 0, 0, 0, 0, 0, 0], [1, 0, 0.05, 0, 0, 0, 0]]
+[[obstacle]]
+kind = "mesh"
+mesh = "ball.obj"
+scale = 0.15
+translate = [-0.6, 0.15, 0.0]
+[[handle]]
+object = "b"
+min = [-0.5, 1.15, -0.5]
+max = [0.7, 1.5, 0.5]
+keys = [[0, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0]]
 [[object]]
 name = "a"
 mesh = "ball.obj"
@@ -96,7 +107,8 @@ def _run(cache: Path, scenes: Path, scene: str, device: str) -> tuple[dict, str]
 @pytest.mark.slow
 def test_kernels_compile_once_per_machine_never_per_scene(scenes, tmp_path, device):
     """On a fresh kernel cache the first run compiles, says so and times it apart from the frames; a scene of
-    other sizes and body count (tets, collision points, an obstacle, self-collision) then compiles nothing;
+    other sizes and body count (tets, collision points, moving and mesh obstacles, a handle, self-collision)
+    then compiles nothing;
     `warpfem warmup` compiles every variant it lists, after which a run compiles nothing either."""
     cache = tmp_path / "kernels"
     first, said = _run(cache, scenes, "one.toml", device)
@@ -121,7 +133,7 @@ def test_kernels_compile_once_per_machine_never_per_scene(scenes, tmp_path, devi
 
 
 def test_every_launch_of_a_step_is_a_loaded_variant(scenes, device, monkeypatch):
-    """Each kernel a simulation launches (bodies colliding, obstacle, ground, late contacts, the dense map)
+    """Each kernel a simulation launches (bodies colliding, obstacles, a handle, ground, late contacts, the dense map)
     belongs to a module of STEP_MODULES, in a block size listed there: what Simulation loads up front and
     warmup compiles is what the step uses."""
     cpu = wp.get_device(device).is_cpu
@@ -139,7 +151,12 @@ def test_every_launch_of_a_step_is_a_loaded_variant(scenes, device, monkeypatch)
         sim.step_frame()
     sim.dense_points()
     modules = {name for name, _ in launched}
-    assert {"warpfem.kernels.fem", "warpfem.kernels.collision", "warpfem.kernels.cg"} <= modules
+    assert {
+        "warpfem.kernels.fem",
+        "warpfem.kernels.collision",
+        "warpfem.kernels.cg",
+        "warpfem.kernels.drive",
+    } <= modules
     assert launched <= set(variants(STEP_MODULES, sim.device))
 
 
