@@ -15,8 +15,8 @@ import warp as wp
 from warpfem.sim.launch import WIDE_BLOCK
 from warpfem.sim.modules import STEP_MODULES, ModuleLoad, load_modules
 
-RENDER_MODULES = {"warpfem.kernels.render": (WIDE_BLOCK,)}
-"""The preview renderer's module, on the simulation's device."""
+OUTPUT_MODULES = {"warpfem.kernels.penetration": (WIDE_BLOCK,), "warpfem.kernels.render": (WIDE_BLOCK,)}
+"""The run's penetration check and the preview renderer, on the simulation's device."""
 
 PREP_MODULES = {
     "warpfem.kernels.distance": (WIDE_BLOCK,),
@@ -29,8 +29,8 @@ PREP_MODULES = {
 def warmup(devices: Sequence[str] | None = None, notify: Callable[[str], None] | None = None) -> list[ModuleLoad]:
     """Compile (or load, where Warp's kernel cache has them) every Warp module of warpfem on ``devices``.
 
-    Each device gets every block-size variant of the simulation's and the renderer's modules; the CPU also
-    gets preprocessing's.
+    Each device gets every block-size variant of the simulation's modules, the penetration check's and the
+    renderer's; the CPU also gets preprocessing's.
 
     Args:
         devices: Warp device names; None: every device here (the CPU and each GPU).
@@ -48,5 +48,5 @@ def warmup(devices: Sequence[str] | None = None, notify: Callable[[str], None] |
         check_device(name)
     wp.init()
     chosen = [wp.get_device(name) for name in devices] if devices else wp.get_devices()
-    plan = [(d, STEP_MODULES | RENDER_MODULES | (PREP_MODULES if d.is_cpu else {})) for d in chosen]
+    plan = [(d, STEP_MODULES | OUTPUT_MODULES | (PREP_MODULES if d.is_cpu else {})) for d in chosen]
     return load_modules(plan, notify)
