@@ -1,9 +1,9 @@
-"""Frames handed from the device to the file on a background thread, while the next frames simulate.
+"""Frames handed from the device to the file on background threads, while the next frames simulate.
 
 Each frame's dense points are mapped on the device and copied asynchronously into one of a few pinned
-host buffers; a thread waits for the copy, hands the points to the consumers (the USD writer, the
-penetration check) and frees the buffer. The simulation waits only when every buffer is taken, i.e. when
-the writer is more than a few frames behind.
+host buffers; each consumer (the USD writer, the penetration check) has a thread of its own that waits for
+the copy and takes the frames in order; a buffer is free again once every consumer is done with it. The
+simulation waits only when every buffer is taken, i.e. when a consumer is more than a few frames behind.
 """
 
 from __future__ import annotations
@@ -28,19 +28,19 @@ Consumer = Callable[[int, list[np.ndarray]], None]
 
 
 class FrameStream:
-    """Streams a simulation's dense frames to consumers on a background thread.
+    """Streams a simulation's dense frames to consumers, each on a background thread of its own.
 
     Args:
         sim: A :class:`~warpfem.simulation.Simulation` (anything with ``map_dense()``, ``model`` and ``device``).
-        consumers: ``(name, consumer)`` pairs called in order for every frame; their wall time is summed
-            per name in :attr:`seconds`.
+        consumers: ``(name, consumer)`` pairs, each called for every frame in order on its thread
+            (``warpfem-<name>``); their wall time is summed per name in :attr:`seconds`.
 
     Use as a context manager: leaving the block waits until every submitted frame is consumed, then raises
-    the first consumer error if there was one (a consumer error also stops further submits). The thread
-    waits on the device, so no CUDA graph capture may run on it meanwhile (``Simulation.capture`` first).
+    the first consumer error if there was one (a consumer error also stops further submits). The threads
+    wait on the device, so no CUDA graph capture may run on it meanwhile (``Simulation.capture`` first).
 
     Attributes:
-        seconds: Wall time per consumer name (s), spent on the background thread.
+        seconds: Wall time per consumer name (s), spent on its thread.
         waited: Wall time the caller spent waiting for a free buffer (s).
     """
 
@@ -52,7 +52,9 @@ class FrameStream:
         frame_bytes = max(12 * model.dense_count, 1)
         count = min(MAX_SLOTS, max(MIN_SLOTS, QUEUE_BYTES // frame_bytes))
         self._free: queue.Queue[int] = queue.Queue()
-        self._work: queue.Queue[tuple[int, int] | None] = queue.Queue()
+        self._work: list[queue.Queue[tuple[int, int] | None]] = [queue.Queue() for _ in self._consumers]
+        self._users = [0] * count  # consumers not yet done with each buffer
+        self._lock = threading.Lock()
         self._slots = [
             wp.empty(model.dense_count, dtype=wp.vec3, device="cpu", pinned=self._cuda) for _ in range(count)
         ]
@@ -63,8 +65,12 @@ class FrameStream:
         self.seconds = {name: 0.0 for name, _ in self._consumers}
         self.waited = 0.0
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="warpfem-writer", daemon=True)
-        self._thread.start()
+        self._threads = [
+            threading.Thread(target=self._run, args=(i,), name=f"warpfem-{name}", daemon=True)
+            for i, (name, _) in enumerate(self._consumers)
+        ]
+        for thread in self._threads:
+            thread.start()
 
     def submit(self, frame: int) -> None:
         """Map the current state's dense points and queue frame ``frame`` (waits only if every buffer is taken).
@@ -84,13 +90,17 @@ class FrameStream:
         wp.copy(self._slots[slot], self._sim.map_dense(), stream=self._stream)
         if self._cuda:
             self._stream.record_event(self._events[slot])
-        self._work.put((frame, slot))
+        self._users[slot] = len(self._work)
+        for work in self._work:
+            work.put((frame, slot))
 
     def close(self) -> None:
-        """Wait until every queued frame is consumed and stop the thread; raise the first consumer error."""
-        if self._thread.is_alive():
-            self._work.put(None)
-            self._thread.join()
+        """Wait until every queued frame is consumed and stop the threads; raise the first consumer error."""
+        for work, thread in zip(self._work, self._threads, strict=True):
+            if thread.is_alive():
+                work.put(None)
+        for thread in self._threads:
+            thread.join()
         self._raise_error()
 
     def _raise_error(self) -> None:
@@ -98,24 +108,32 @@ class FrameStream:
             error, self._error = self._error, None
             raise error
 
-    def _run(self) -> None:
-        """The background thread: consume frames in order until the end mark; after an error, only drain."""
-        while (item := self._work.get()) is not None:
+    def _run(self, index: int) -> None:
+        """Consumer ``index``'s thread: its frames in order until the end mark; after any error, only drain."""
+        name, consume = self._consumers[index]
+        while (item := self._work[index].get()) is not None:
             frame, slot = item
             try:
                 if self._error is None:
                     if self._cuda:
                         wp.synchronize_event(self._events[slot])
                     flat = self._slots[slot].numpy()
-                    points = [flat[start:end] for start, end in self._ranges]
-                    for name, consume in self._consumers:
-                        clock = time.perf_counter()
-                        consume(frame, points)
-                        self.seconds[name] += time.perf_counter() - clock
+                    clock = time.perf_counter()
+                    consume(frame, [flat[start:end] for start, end in self._ranges])
+                    self.seconds[name] += time.perf_counter() - clock
             except BaseException as err:  # handed to the simulating thread at its next submit or close
-                self._error = err
+                with self._lock:
+                    self._error = self._error or err
             finally:
-                self._free.put(slot)
+                self._release(slot)
+
+    def _release(self, slot: int) -> None:
+        """One consumer is done with buffer ``slot``: free it when it was the last."""
+        with self._lock:
+            self._users[slot] -= 1
+            last = self._users[slot] == 0
+        if last:
+            self._free.put(slot)
 
     def __enter__(self) -> FrameStream:
         return self
