@@ -209,9 +209,44 @@ def main() -> int:
                 f"| {r['kind']} | {r['substeps']} | {r['ms_per_frame']:.1f} | {r['fps']:.0f} | "
                 f"{r['cg_iterations_per_step']:.0f} | {1e3 * r['dense_penetration_m']:.0f} mm |"
             )
+    lines += end_to_end_lines(newest("bench-end-to-end-cuda*.json"))
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines) + "\n")
     print("wrote BENCHMARKS.md")
     return 0
+
+
+def end_to_end_lines(found: tuple[Path, dict] | None) -> list[str]:
+    """The end-to-end table (``scripts/bench_end_to_end.py``): what a user waits for, the file written."""
+    if not found:
+        return []
+    path, data = found
+    env = data["environment"]
+    lines = [
+        "",
+        "## End to end: the file written",
+        "",
+        f"`{path.name}` ({env['device']}, driver {env['driver']}, Warp {env['warp']}, commit `{env['commit'][:10]}`): "
+        f"`warpfem run` of {data['frames']} frames to a real file, each case in a fresh process. Per frame: "
+        "wall from the first step to the file written; simulate (the stepping thread, including its waits for "
+        "the interpreter lock); write and check, each on a thread of its own beside it; raw, writing the same "
+        "bytes with plain writes to the same disk; peak resident memory of the whole process; the file with its clips.",
+        "",
+        "| case | bodies | dense vertices | wall ms | simulate | write | check | raw write "
+        "| wall / max(simulate, write) | write / raw | peak memory | file |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in data["runs"]:
+        if "error" in r:
+            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 10)
+            continue
+        ms = r["ms_per_frame"]
+        lines.append(
+            f"| {r['case']} | {r['bodies']} | {r['dense_vertices']:,} | {ms['wall']:.2f} | {ms['simulate']:.2f} | "
+            f"{ms['write']:.2f} | {ms['check']:.2f} | {r['raw_write_ms_per_frame']:.2f} | "
+            f"{r['wall_over_larger_of_simulate_and_write']:.2f} | {r['write_over_raw']:.1f} | "
+            f"{r['peak_rss_mb'] / 1024:.2f} GB | {r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''} |"
+        )
+    return lines
 
 
 if __name__ == "__main__":

@@ -84,12 +84,20 @@ def _mesh_depth(p: np.ndarray, vertices: np.ndarray, faces: np.ndarray, closed: 
     Behind an open mesh: the nearest point is not on an edge no other face shares (nor at a corner of one),
     the point is on that face's back side and at most ``reach`` (m) from it; its depth is that distance.
     """
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    pad = 0.0 if closed else reach  # nothing outside the mesh's box (padded by how far it acts) is in it
+    near = np.all((p >= v.min(axis=0) - pad) & (p <= v.max(axis=0) + pad), axis=1)
+    depth = np.zeros(len(p))
+    if near.any():
+        q = np.ascontiguousarray(p[near], np.float64)
+        depth[near] = _depth_inside(q, v, f) if closed else _depth_behind(q, v, f, reach)
+    return depth
+
+
+def _depth_behind(q: np.ndarray, v: np.ndarray, f: np.ndarray, reach: float) -> np.ndarray:
+    """Depth of each point behind an open mesh's faces (see :func:`_mesh_depth`)."""
     import igl
 
-    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
-    q = np.ascontiguousarray(p, np.float64)
-    if closed:
-        return _depth_inside(q, v, f)
     squared, face, nearest = igl.point_mesh_squared_distance(q, v, f)
     a, b, c = (v[f[face, k]] for k in range(3))
     normal = np.cross(b - a, c - a)

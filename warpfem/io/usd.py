@@ -41,7 +41,7 @@ _MARKER = "warpfem.clips"  # the topology layer's comment: marks a clips folder 
 SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
 
-CHUNK_BYTES = 128 << 20
+CHUNK_BYTES = 256 << 20
 """Bytes of point samples after which a chunk is cut (one export of about this size)."""
 
 
