@@ -30,14 +30,15 @@ def still(scene_path: Path | None, out_dir: Path, frame: int | None, size: tuple
     for _ in range(target):
         sim.step_frame()
     points = sim.dense_points()
+    obstacles = sim.obstacles_at()
+    shapes = [o.vertices @ o.matrix[:3, :3].T + o.matrix[:3, 3] for o in obstacles]
     ground = scene.ground.height if scene.ground.enabled else None
-    renderer = Renderer(
-        [b.dense_faces for b in sim.model.bodies], *size, device=device, up_axis=scene.up_axis, ground=ground
-    )
-    box = framing_box(points, scene.up_axis, ground, margin=0.1)  # framing the frame shown, down to the ground
+    faces = [b.dense_faces for b in sim.model.bodies] + [o.faces for o in obstacles]
+    renderer = Renderer(faces, *size, device=device, up_axis=scene.up_axis, ground=ground)
+    box = framing_box(points + shapes, scene.up_axis, ground, margin=0.1)  # the frame shown, down to the ground
     renderer.camera = auto_camera(*box, scene.up_axis, size[0] / size[1])
     path = out_dir / f"{Path(scene.path).stem}.png"
-    Image.fromarray(renderer.render(points)).save(path, optimize=True)
+    Image.fromarray(renderer.render(points + shapes)).save(path, optimize=True)
     return path
 
 
