@@ -110,7 +110,10 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
     sim = warpfem.Simulation(scene, device=device, cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
     held = {}
     out = tmp_path / "a.usdc"
+    stream = sim.device.stream if sim.device.is_cuda else None
     summary = record(sim, out, save_every=0.0, on_points=lambda frame, points: held.__setitem__(frame, points))
+    if stream is not None:  # the writer's and the check's threads left the device's current stream alone
+        assert sim.device.stream is stream
     assert sorted(held) == list(range(13))
     assert len(list((tmp_path / "a.clips").glob("a.*.usdc"))) == 13
     stage = Usd.Stage.Open(str(out))

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from warpfem.errors import InputError
-from warpfem.io.penetration import Penetration, frame_penetration
+from warpfem.io.penetration import Penetration, scene_colliders
 from warpfem.scene import Scene
 from warpfem.simulation import Simulation
 
@@ -265,6 +265,10 @@ class _Check:
 
     The ground and obstacles every frame; bodies inside each other on the last frame and on frames spaced so
     that the check takes about a tenth of the run's time (every frame where it is cheap).
+
+    It runs on its own thread, on the CPU whatever the simulation's device: Warp's reads of CUDA arrays swap
+    the device's current stream, a state of the whole device, so a second thread reading CUDA arrays while the
+    simulation steps could leave the device on another stream (graph captures then fail with "unknown stream").
     """
 
     SHARE = 0.1
@@ -272,9 +276,11 @@ class _Check:
     def __init__(self, sim: Simulation) -> None:
         import warp as wp
 
+        from warpfem.io.penetration import PenetrationCheck
         from warpfem.kernels import penetration
 
-        wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
+        wp.load_module(penetration, device="cpu")  # compiled here, not inside the first check's time
+        self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, "cpu")
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
         self.worst = self.end = Penetration()
@@ -285,7 +291,8 @@ class _Check:
         """Check frame ``frame``'s dense meshes; ``elapsed``: seconds since the run began."""
         clock = time.perf_counter()
         bodies = self.bodies and (last or frame >= self.next)
-        result = frame_penetration(self.sim, points, bodies=bodies, time=frame / self.sim.fps)
+        ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
+        result = self.body_check.measure(points, ground, obstacles, bodies=bodies)
         if bodies:
             self.frames_checked += 1
             cost = time.perf_counter() - clock

@@ -241,6 +241,7 @@ class Simulation:
         self.totals = RunTotals()
         self.phase_timer = PhaseTimer(model.device)
         self._graph = None
+        self._rest_x: np.ndarray | None = None
         self._rotation = RotationWatch(model, solver.rotation)
         self._warned: set[str] = set()
 
@@ -285,9 +286,11 @@ class Simulation:
     def handles_at(self, time: float | None = None) -> list[Posed]:
         """Every handle's box at ``time`` (s; default: the current :attr:`time`): where its held vertices are."""
         time = self.time if time is None else float(time)
+        if self.solver.handles and self._rest_x is None:  # read once: later calls touch no device array
+            self._rest_x = self.model.rest_x.numpy().astype(np.float64)
         out = []
         for handle in self.solver.handles:
-            rest = self.model.rest_x.numpy()[handle.vertices].astype(np.float64)
+            rest = self._rest_x[handle.vertices]
             vertices, faces = box_surface(rest.min(axis=0), rest.max(axis=0))
             r, t = handle.motion.at(time)
             matrix = np.eye(4)
