@@ -201,20 +201,17 @@ def record(
     def write(frame: int, points: list[np.ndarray]) -> None:
         writer.add_frame(frame, points, poses(frame / scene.fps))
 
-    def checked(frame: int, points: list[np.ndarray]) -> None:
-        check.frame(points, frame, last=frame == scene.frames, elapsed=time.perf_counter() - started)
-
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
     clock = time.perf_counter()
     sim.capture()  # before the writer's thread waits on the device: no capture may be active then
     seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
     started = time.perf_counter()
     with writer:
-        with FrameStream(sim, [("write", write), ("check", checked)]) as stream:
-            _stream_frames(sim, stream, seconds, on_frame, on_points, every)
+        with FrameStream(sim, [("write", write), ("check", check.ground)]) as stream:
+            _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
-    seconds["check"] = stream.seconds["check"]
+    seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited
     seconds["wall"] = time.perf_counter() - started
     return _summary(sim, out, seconds, check)
@@ -238,13 +235,18 @@ def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarr
 def _stream_frames(
     sim: Simulation,
     stream: FrameStream,
+    check: _Check,
     seconds: dict[str, float],
     on_frame: Callable[[], None] | None,
     on_points: Callable[[int, list[np.ndarray]], None] | None,
     every: int,
 ) -> None:
-    """Step every frame of ``sim``'s scene, handing frame 0, every ``every``-th and the last to ``stream``."""
+    """Step every frame of ``sim``'s scene, handing frame 0, every ``every``-th and the last to ``stream``.
+
+    The bodies are checked against each other where ``check`` says so, after the frame is handed over.
+    """
     frames = sim.scene.frames
+    started = time.perf_counter()
     for frame in range(frames + 1):
         t0 = time.perf_counter()
         if frame:
@@ -254,6 +256,8 @@ def _stream_frames(
         if frame % every == 0 or frame == frames:
             stream.submit(frame)
             seconds["map"] += time.perf_counter() - t1
+            if check.bodies_due(frame):
+                check.bodies_now(frame, time.perf_counter() - started)
             if on_points:
                 on_points(frame, sim.dense_points())
         if frame and on_frame:
@@ -263,12 +267,11 @@ def _stream_frames(
 class _Check:
     """The independent penetration check along a run.
 
-    The ground and obstacles every frame; bodies inside each other on the last frame and on frames spaced so
-    that the check takes about a tenth of the run's time (every frame where it is cheap).
-
-    It runs on its own thread, on the CPU whatever the simulation's device: Warp's reads of CUDA arrays swap
-    the device's current stream, a state of the whole device, so a second thread reading CUDA arrays while the
-    simulation steps could leave the device on another stream (graph captures then fail with "unknown stream").
+    The ground and obstacles on every written frame, on a thread of its own (NumPy only). Bodies inside each
+    other on the simulation's device, on the stepping thread between frames: on the last frame and on frames
+    spaced so that the check takes about a tenth of the run's time (every frame where it is cheap). Only the
+    stepping thread touches the device: Warp's reads of CUDA arrays swap the device's current stream, a state
+    of the whole device, which a second thread doing the same could leave on another stream.
     """
 
     SHARE = 0.1
@@ -279,27 +282,47 @@ class _Check:
         from warpfem.io.penetration import PenetrationCheck
         from warpfem.kernels import penetration
 
-        wp.load_module(penetration, device="cpu")  # compiled here, not inside the first check's time
-        self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, "cpu")
+        wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
+        self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, sim.device)
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
-        self.worst = self.end = Penetration()
+        self.ground_worst = self.ground_end = self.body_worst = self.body_end = Penetration()
         self.frames_checked = 0
         self.next = 1
+        self.seconds = 0.0
 
-    def frame(self, points: list[np.ndarray], frame: int, last: bool, elapsed: float) -> None:
-        """Check frame ``frame``'s dense meshes; ``elapsed``: seconds since the run began."""
-        clock = time.perf_counter()
-        bodies = self.bodies and (last or frame >= self.next)
+    def ground(self, frame: int, points: list[np.ndarray]) -> None:
+        """Check frame ``frame``'s dense meshes against the ground and obstacles (any thread)."""
         ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
-        result = self.body_check.measure(points, ground, obstacles, bodies=bodies)
-        if bodies:
-            self.frames_checked += 1
-            cost = time.perf_counter() - clock
-            self.next = frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
-        self.worst = self.worst.worst(result)
-        if last:
-            self.end = result
+        result = self.body_check.measure(points, ground, obstacles, bodies=False)
+        self.ground_worst = self.ground_worst.worst(result)
+        if frame == self.sim.scene.frames:
+            self.ground_end = result
+
+    def bodies_due(self, frame: int) -> bool:
+        """Whether the bodies are checked against each other at frame ``frame`` (written)."""
+        return self.bodies and (frame == self.sim.scene.frames or (frame >= self.next and frame > 0))
+
+    def bodies_now(self, frame: int, elapsed: float) -> None:
+        """Check the bodies against each other at the simulation's current frame (the stepping thread only)."""
+        clock = time.perf_counter()
+        ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
+        result = self.body_check.measure(self.sim.dense_points(), ground, obstacles, bodies=True)
+        cost = time.perf_counter() - clock
+        self.seconds += cost
+        self.frames_checked += 1
+        self.next = frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
+        self.body_worst = self.body_worst.worst(result)
+        if frame == self.sim.scene.frames:
+            self.body_end = result
+
+    @property
+    def worst(self) -> Penetration:
+        return self.body_worst.worst(self.ground_worst)
+
+    @property
+    def end(self) -> Penetration:
+        return self.body_end.worst(self.ground_end)
 
 
 def _summary(sim: Simulation, out: Path, seconds: dict[str, float], check: _Check) -> RunSummary:
