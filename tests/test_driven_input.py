@@ -43,6 +43,45 @@ def _usd(path, scale_at_1=1.0):
     stage.GetRootLayer().Save()
 
 
+SKELETON = """#usda 1.0
+(
+    timeCodesPerSecond = 10
+    metersPerUnit = 1
+)
+
+def SkelRoot "Rig"
+{
+    def Skeleton "Skel" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {
+        uniform token[] joints = ["root", "root/arm"]
+        uniform matrix4d[] bindTransforms = [
+            ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1)),
+            ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,1,0,1)),
+        ]
+        uniform matrix4d[] restTransforms = [
+            ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1)),
+            ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,1,0,1)),
+        ]
+        rel skel:animationSource = </Rig/Skel/Anim>
+
+        def SkelAnimation "Anim"
+        {
+            uniform token[] joints = ["root", "root/arm"]
+            float3[] translations.timeSamples = {0: [(0, 0, 0), (0, 1, 0)], 10: [(1, 0, 0), (0, 1, 0)]}
+            quatf[] rotations.timeSamples = {
+                0: [(1, 0, 0, 0), (1, 0, 0, 0)],
+                10: [(1, 0, 0, 0), (0.70710678, 0, 0, 0.70710678)],
+            }
+            half3[] scales = [(1, 1, 1), (1, 1, 1)]
+        }
+    }
+}
+"""
+"""A root joint moving 1 m along x over a second and an arm 1 m above it turning 90 degrees about z meanwhile."""
+
+
 @pytest.fixture
 def folder(tmp_path):
     trimesh.creation.icosphere(subdivisions=3).export(tmp_path / "ball.obj")
@@ -50,6 +89,7 @@ def folder(tmp_path):
     (tmp_path / "plane.obj").write_text("v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 3 2\nf 1 4 3\n")
     _usd(tmp_path / "hand.usda")
     _usd(tmp_path / "stretch.usda", scale_at_1=2.0)
+    (tmp_path / "skel.usda").write_text(SKELETON)
     return tmp_path
 
 
@@ -65,6 +105,13 @@ CASES = [
     ("usd without prim", HANDLE + 'usd = "hand.usda"\n', "handle[0]: prim", "animated prim"),
     ("usd prim missing", HANDLE + 'usd = "hand.usda"\nprim = "/World/Foot"\n', "handle[0]: usd", "no prim"),
     ("usd prim scales", HANDLE + 'usd = "stretch.usda"\nprim = "/World/Hand"\n', "handle[0]: usd", "rigid"),
+    ("prim and joint", HANDLE + 'usd = "skel.usda"\nprim = "/Rig"\njoint = "/Rig/Skel:root"\n', "handle[0]: prim",
+     "only one"),
+    ("joint without its skeleton", HANDLE + 'usd = "skel.usda"\njoint = "root/arm"\n', "handle[0]: joint",
+     "/Path/To/Skeleton:joint/path"),
+    ("joint of no skeleton", HANDLE + 'usd = "skel.usda"\njoint = "/Rig:root"\n', "handle[0]: usd", "Skeleton prim"),
+    ("no such joint", HANDLE + 'usd = "skel.usda"\njoint = "/Rig/Skel:root/leg"\n', "handle[0]: usd",
+     "joints: root, root/arm"),
     ("box holds nothing", HANDLE.replace("0.9", "1.5") + KEYS, "handle[0]: min, max", "holds no tet vertex"),
     ("handle over a pin", HANDLE + KEYS, "handle[0]: min, max", "pin box"),
     ("unknown handle key", HANDLE + KEYS + "speed = 2\n", "handle[0]: speed", "not a known key"),
@@ -111,4 +158,22 @@ def test_a_handle_follows_a_usd_prim(folder):
         angle = np.radians(90.0 * t)
         r = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
         expected = rest[held] @ r.T + (0.3 * t, 0, 0)  # USD: scale, rotate, then translate (ops in order)
+        assert np.abs(sim.tet_points("ball")[held] - expected).max() < 1e-3 * sim.model.bodies[0].size
+
+
+def test_a_handle_follows_a_usd_skel_joint(folder):
+    """Held vertices follow the arm joint's world transform relative to time 0, worked out by hand: the joint
+    moves from (0, 1, 0) to (t, 1, 0) and turns by 90 t degrees about z over t = 0..1 s."""
+    scene = folder / "scene.toml"
+    text = BALL.replace("frames = 2", "frames = 30") + HANDLE + 'usd = "skel.usda"\njoint = "/Rig/Skel:root/arm"\n'
+    scene.write_text(text)
+    sim = warpfem.Simulation(warpfem.load_scene(scene), device="cpu", cache_dir=folder / "cache")
+    rest = sim.tet_points("ball")
+    held = np.flatnonzero(np.all((rest >= (-1, 0.9, -1)) & (rest <= (1, 2, 1)), axis=1))
+    for frame in range(1, 31):
+        sim.step_frame()
+        t = frame / 60.0
+        angle = np.radians(90.0 * t)
+        r = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+        expected = (rest[held] - (0, 1, 0)) @ r.T + (t, 1, 0)
         assert np.abs(sim.tet_points("ball")[held] - expected).max() < 1e-3 * sim.model.bodies[0].size

@@ -290,21 +290,26 @@ def held_masks(scene: Scene, tet_x: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def handle_motion(scene: Scene, index: int) -> Motion:
-    """Handle ``index``'s motion: its keys about its box's centre, or its USD prim's relative transform.
+    """Handle ``index``'s motion: its keys about its box's centre, or its USD prim's or joint's relative transform.
 
     Raises:
         InputError: The USD file or prim cannot give a rigid motion (naming the scene file and the key).
     """
-    from warpfem.io.usd_motion import read_motion
+    from warpfem.io.usd_motion import read_joint_motion, read_motion
 
     h: HandleConfig = scene.handles[index]
     if h.keys is not None:
         return keyed_motion(h.keys, 0.5 * (np.asarray(h.min) + np.asarray(h.max)))
     try:
-        times, rotations, translations = read_motion(h.usd, h.prim)
+        if h.joint is not None:
+            times, rotations, translations, origin = read_joint_motion(h.usd, h.joint)
+        else:
+            times, rotations, translations, origin = read_motion(h.usd, h.prim)
     except InputError as err:
         raise InputError(f"{scene.path}: handle[{index}]: usd {err}") from None
-    return Motion(times, [quat_of_matrix(r) for r in rotations], translations)
+    # about the prim's origin, so that between samples its path is interpolated, not a world point's
+    about_origin = translations + rotations @ origin - origin
+    return Motion(times, [quat_of_matrix(r) for r in rotations], about_origin, pivot=tuple(origin))
 
 
 def solver_of(scene: Scene, model: Model, cg_path: str | None = None, held: list[np.ndarray] | None = None) -> Solver:

@@ -370,6 +370,8 @@ class HandleConfig:
         usd: A USD file (absolute once loaded) whose animated ``prim`` the vertices follow instead: its world
             transform relative to its transform at time 0; or None.
         prim: The ``UsdGeom.Xformable`` prim of ``usd``.
+        joint: Instead of ``prim``, a ``UsdSkel`` joint of ``usd`` as ``"/Path/To/Skeleton:joint/path"``:
+            its animated world transform.
         name: Its name in output (default ``handle<index>``).
     """
 
@@ -379,6 +381,7 @@ class HandleConfig:
     keys: list | None = None
     usd: str | None = None
     prim: str | None = None
+    joint: str | None = None
     name: str | None = None
 
     def validate(self, origin: str = "<scene>", index: int = 0, objects: tuple[str, ...] = ()) -> None:
@@ -396,17 +399,23 @@ class HandleConfig:
         if any(lo > hi for lo, hi in zip(self.min, self.max, strict=True)):
             raise err("min", f"must be <= max componentwise, got {list(self.min)} > {list(self.max)}")
         if (self.keys is None) == (self.usd is None):
-            raise err("keys", "or usd (with prim) is required, and only one of them")
+            raise err("keys", "or usd (with prim or joint) is required, and only one of them")
         if self.keys is not None:
-            if self.prim is not None:
-                raise err("prim", "names the animated prim of usd; this handle has keys")
+            for key in ("prim", "joint"):
+                if getattr(self, key) is not None:
+                    raise err(key, "names what of usd the handle follows; this handle has keys")
             _check_keys(err, "keys", self.keys)
             return
         if not isinstance(self.usd, str) or Path(self.usd).suffix.lower() not in USD_SUFFIXES:
             raise err("usd", f"must be a .usd, .usda or .usdc file, got {_shown(self.usd)}")
         if not Path(self.usd).is_file():
             raise err("usd", f"file not found: {self.usd}")
-        if not isinstance(self.prim, str) or not self.prim.startswith("/"):
+        if (self.prim is None) == (self.joint is None):
+            raise err("prim", "(the animated prim) or joint is required with usd, and only one of them")
+        if self.joint is not None:
+            if not isinstance(self.joint, str) or not self.joint.startswith("/") or ":" not in self.joint:
+                raise err("joint", f'must be "/Path/To/Skeleton:joint/path", got {_shown(self.joint)}')
+        elif not isinstance(self.prim, str) or not self.prim.startswith("/"):
             raise err("prim", f'must be the animated prim\'s path, such as "/World/Hand", got {_shown(self.prim)}')
 
 
