@@ -48,9 +48,9 @@ class RunSummary:
         contacts_max: Most contacts in one step.
         contact_depth_max: Deepest contact the collision stage answered over the run (m).
         penetration: Measured on the dense meshes as written (:mod:`warpfem.io.penetration`), the worst over
-            the frames checked: every frame for the ground and obstacles; for bodies inside each other frames
-            spaced so that the check takes about a tenth of the run's time (every frame where it is cheap),
-            the last one always.
+            the frames checked: every frame for the ground, spheres and boxes; for mesh obstacles and for bodies
+            inside each other frames spaced so that each check takes about a tenth of the run's time (every
+            frame where it is cheap), the last one always.
         penetration_end: The same at the last frame.
         penetration_frames: Frames whose bodies were checked against each other.
     """
@@ -205,7 +205,7 @@ def record(
     clock = time.perf_counter()
     sim.capture()  # before the writer's thread waits on the device: no capture may be active then
     seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
-    started = time.perf_counter()
+    started = check.started = time.perf_counter()
     with writer:
         with FrameStream(sim, [("write", write), ("check", check.ground)]) as stream:
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
@@ -267,11 +267,12 @@ def _stream_frames(
 class _Check:
     """The independent penetration check along a run.
 
-    The ground and obstacles on every written frame, on a thread of its own (NumPy only). Bodies inside each
-    other on the simulation's device, on the stepping thread between frames: on the last frame and on frames
-    spaced so that the check takes about a tenth of the run's time (every frame where it is cheap). Only the
-    stepping thread touches the device: Warp's reads of CUDA arrays swap the device's current stream, a state
-    of the whole device, which a second thread doing the same could leave on another stream.
+    The ground, spheres and boxes on every written frame, on a thread of its own (NumPy only), and there too
+    mesh obstacles on the last frame and on frames spaced so that they take about a tenth of the run's time.
+    Bodies inside each other the same way, on the simulation's device, from the stepping thread between
+    frames. Only the stepping thread touches the device: Warp's reads of CUDA arrays swap the device's
+    current stream, a state of the whole device, which a second thread doing the same could leave on another
+    stream.
     """
 
     SHARE = 0.1
@@ -288,15 +289,29 @@ class _Check:
         self.bodies = len(sim.model.bodies) > 1
         self.ground_worst = self.ground_end = self.body_worst = self.body_end = Penetration()
         self.frames_checked = 0
-        self.next = 1
+        self.next = self.next_mesh = 1
         self.seconds = 0.0
+        self.started = time.perf_counter()  # reset by the run as it starts stepping
 
     def ground(self, frame: int, points: list[np.ndarray]) -> None:
-        """Check frame ``frame``'s dense meshes against the ground and obstacles (any thread)."""
+        """Check frame ``frame``'s dense meshes against the ground and obstacles (any thread).
+
+        Mesh obstacles (a winding number or closest-point query per point) on the frames spaced like the bodies'
+        checks, the last always; the ground, spheres and boxes every frame.
+        """
+        last = frame == self.sim.scene.frames
         ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
+        meshes = any(o.mesh is not None for o in obstacles)
+        due = last or frame >= self.next_mesh
+        if meshes and not due:
+            obstacles = [o for o in obstacles if o.mesh is None]
+        clock = time.perf_counter()
         result = self.body_check.measure(points, ground, obstacles, bodies=False)
+        if meshes and due and frame > 0:
+            cost, elapsed = time.perf_counter() - clock, time.perf_counter() - self.started
+            self.next_mesh = frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
         self.ground_worst = self.ground_worst.worst(result)
-        if frame == self.sim.scene.frames:
+        if last:
             self.ground_end = result
 
     def bodies_due(self, frame: int) -> bool:
