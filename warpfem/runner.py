@@ -246,7 +246,6 @@ def _stream_frames(
     The bodies are checked against each other where ``check`` says so, after the frame is handed over.
     """
     frames = sim.scene.frames
-    started = time.perf_counter()
     for frame in range(frames + 1):
         t0 = time.perf_counter()
         if frame:
@@ -257,7 +256,7 @@ def _stream_frames(
             stream.submit(frame)
             seconds["map"] += time.perf_counter() - t1
             if check.bodies_due(frame):
-                check.bodies_now(frame, time.perf_counter() - started)
+                check.bodies_now(frame)
             if on_points:
                 on_points(frame, sim.dense_points())
         if frame and on_frame:
@@ -291,7 +290,7 @@ class _Check:
         self.frames_checked = 0
         self.next = self.next_mesh = 1
         self.seconds = 0.0
-        self.started = time.perf_counter()  # reset by the run as it starts stepping
+        self.started = time.perf_counter()  # set again by the run as it starts stepping
 
     def ground(self, frame: int, points: list[np.ndarray]) -> None:
         """Check frame ``frame``'s dense meshes against the ground and obstacles (any thread).
@@ -308,8 +307,7 @@ class _Check:
         clock = time.perf_counter()
         result = self.body_check.measure(points, ground, obstacles, bodies=False)
         if meshes and due and frame > 0:
-            cost, elapsed = time.perf_counter() - clock, time.perf_counter() - self.started
-            self.next_mesh = frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
+            self.next_mesh = self._next(frame, time.perf_counter() - clock)
         self.ground_worst = self.ground_worst.worst(result)
         if last:
             self.ground_end = result
@@ -318,18 +316,25 @@ class _Check:
         """Whether the bodies are checked against each other at frame ``frame`` (written)."""
         return self.bodies and (frame == self.sim.scene.frames or (frame >= self.next and frame > 0))
 
-    def bodies_now(self, frame: int, elapsed: float) -> None:
-        """Check the bodies against each other at the simulation's current frame (the stepping thread only)."""
+    def bodies_now(self, frame: int) -> None:
+        """Check the bodies against each other at the simulation's current frame (the stepping thread only).
+
+        The ground and obstacles of this frame are :meth:`ground`'s, on the other thread.
+        """
         clock = time.perf_counter()
-        ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
-        result = self.body_check.measure(self.sim.dense_points(), ground, obstacles, bodies=True)
+        result = self.body_check.measure(self.sim.dense_points(), bodies=True)
         cost = time.perf_counter() - clock
         self.seconds += cost
         self.frames_checked += 1
-        self.next = frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
+        self.next = self._next(frame, cost)
         self.body_worst = self.body_worst.worst(result)
         if frame == self.sim.scene.frames:
             self.body_end = result
+
+    def _next(self, frame: int, cost: float) -> int:
+        """The next frame due for a check that cost ``cost`` s at ``frame``: a tenth of the run's time."""
+        elapsed = time.perf_counter() - self.started
+        return frame + max(1, math.ceil(cost / (self.SHARE * elapsed / frame)))
 
     @property
     def worst(self) -> Penetration:

@@ -2,8 +2,8 @@
 
 An independent check of what a user sees in the output: it takes only the dense meshes' points and
 triangles (as written to the USD file), never the simulator's contact buffers. A dense vertex of one body
-is inside another when the other's dense surface winds around it (libigl's fast winding number), and its
-depth is its distance to that surface.
+is inside another when the other's dense surface winds around it (Warp's fast winding number,
+``warpfem.kernels.penetration``), and its depth is its distance to that surface.
 """
 
 from __future__ import annotations

@@ -64,10 +64,6 @@ class UsdWriter:
         with UsdWriter("out.usdc", [("bunny", faces)], fps=60.0) as usd:
             for frame in range(121):
                 usd.add_frame(frame, [points])
-
-    Attributes:
-        chunks: Chunks written as clips so far (0 for a run written as one file).
-        export_seconds: Wall time spent exporting files (s).
     """
 
     def __init__(
@@ -142,8 +138,6 @@ class UsdWriter:
         self._chunk: Sdf.Layer | None = None
         self._chunk_first = 0
         self._chunk_bytes = 0
-        self.chunks = 0
-        self.export_seconds = 0.0
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
@@ -167,6 +161,11 @@ class UsdWriter:
         self._bodies.append((name, np.ascontiguousarray(faces, dtype=np.int32)))
         self._min_vertices.append(int(faces.max()) + 1)
         self._vertices.append(None)
+
+    @property
+    def chunks(self) -> int:
+        """Chunks written as clips so far (0 for a run written as one file)."""
+        return len(self._clips)
 
     @property
     def frames_added(self) -> int:
@@ -256,7 +255,6 @@ class UsdWriter:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         if self._chunk is None:
             return
-        clock = time.monotonic()
         if not self._clips:
             self._start_clips()
         name = f"{self.path.stem}.{self._chunk_first:06d}.usdc"
@@ -264,9 +262,7 @@ class UsdWriter:
         self._clips.append((self._chunk_first, f"./{self.clips_dir.name}/{name}"))
         self._chunk, self._chunk_bytes = None, 0
         self._write_top()
-        self.chunks += 1
         self._saved_at = time.monotonic()
-        self.export_seconds += self._saved_at - clock
 
     def _start_clips(self) -> None:
         """Make the clips folder with the topology and the manifest (replacing a folder of ours with ``overwrite``)."""
@@ -366,14 +362,12 @@ class UsdWriter:
 
     def _write_single(self) -> None:
         """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there."""
-        clock = time.monotonic()
         layer = self._chunk
         _add_topology(layer, self._bodies, self._props)
         self._stage_metadata(layer)
         self._export(layer, self.path, target=True)
         if self._overwrite and self.clips_dir.is_dir() and _is_ours(self.clips_dir):
             shutil.rmtree(self.clips_dir)
-        self.export_seconds += time.monotonic() - clock
 
     def abort(self) -> None:
         """Drop what is in memory and remove temporary files; the target keeps the chunks written before."""
