@@ -41,8 +41,11 @@ class Penetration:
         return Penetration(body.depth, body.relative, body.inside, ground.below_ground, ground.below_relative)
 
 
-def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (3,) lower and upper corners of (n, 3) points, reduced column by column (~25x faster than axis=0)."""
+def bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (3,) lower and upper corners of (n, 3) points.
+
+    Reduced column by column: NumPy reduces axis 0 of an (n, 3) array far more slowly (docs/decisions.md).
+    """
     return np.array([p[:, k].min() for k in range(3)]), np.array([p[:, k].max() for k in range(3)])
 
 
@@ -197,7 +200,7 @@ class PenetrationCheck:
         bodies: bool = True,
     ) -> Penetration:
         """Measure one frame: ``points`` as in :func:`measure`, one (V_i, 3) array per body (m)."""
-        boxes = [_bounds(p) if len(p) else None for p in points]
+        boxes = [bounds(p) if len(p) else None for p in points]
         sizes = [float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0 for b in boxes]
         worst = Penetration()
         for p, size in zip(points, sizes, strict=True):

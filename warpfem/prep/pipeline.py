@@ -269,7 +269,7 @@ def cached_surface_samples(
     """:func:`~warpfem.prep.geometry.surface_samples` of ``body``'s dense mesh, read from ``cache_dir`` when there.
 
     Keyed by the dense mesh's bytes, ``spacing``, ``tolerance`` (mesh units) and the geometry module's
-    source; None: computed, nothing stored. (About 0.8 s for the default scene's 97,602 vertices.)
+    source; None: computed, nothing stored.
     """
     if cache_dir is None:
         return surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance)
