@@ -128,6 +128,9 @@ def test_render_command_writes_mp4_and_png_frames(ran, capsys):
         (["run", "{f}/scene.toml", "--out", "{f}/y.usdc", "--preview", "{f}/y.png"], ("y.png", "folder")),
         (["run", "{f}/scene.toml", "--out", "{f}/y.usdc", "--preview", "{f}/no/y.gif"], ("does not exist",)),
         (["run", "{f}/nothere.toml", "--out", "{f}/y.usdc", "--preview", "{f}/y.gif"], ("nothere.toml",)),
+        (["prepare", "{f}/ball.obj", "--budget", "0", "--cache-dir", "{f}/c"], ("--budget", "> 0")),
+        (["prepare", "{f}/ball.obj", "--budget", "nan", "--cache-dir", "{f}/c"], ("--budget", "nan")),
+        (["prepare", "{f}/ball.obj", "--timeout", "inf", "--cache-dir", "{f}/c"], ("--timeout", "inf")),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_no_output(ran, capsys, args, needles):

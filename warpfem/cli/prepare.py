@@ -60,10 +60,10 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--faces must be >= 4, got {args.faces}")
     if not 0.0 < args.maxh <= 1.0:
         raise InputError(f"--maxh must be in (0, 1], got {args.maxh}")
-    if args.timeout <= 0:
-        raise InputError(f"--timeout must be > 0 s, got {args.timeout}")
-    if args.budget <= 0:
-        raise InputError(f"--budget must be > 0 s, got {args.budget}")
+    if not (0 < args.timeout < float("inf")):
+        raise InputError(f"--timeout must be a number of seconds > 0, got {args.timeout}")
+    if not (0 < args.budget < float("inf")):
+        raise InputError(f"--budget must be a number of seconds > 0, got {args.budget}")
     if args.max_hole is not None and args.max_hole < 0:
         raise InputError(f"--max-hole must be >= 0, got {args.max_hole}")
     shells = args.shells
