@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from warpfem.io.usd import UsdWriter
+from warpfem.io.usd import Prop, UsdWriter
 
 
 def bodies_and_frames(n_frames: int = 5, seed: int = 0):
@@ -233,6 +233,11 @@ def test_shape_checks(tmp_path):
         ("x.usdc", {"bodies": []}, "at least one body"),
         ("x.usdc", {"fps": 0.0}, "fps"),
         ("x.usdc", {"up_axis": "X"}, "up_axis"),
+        ("x.usdc", {"chunk_bytes": 0}, "chunk_bytes"),
+        ("x.usdc", {"props": [Prop("obstacles/1ramp", np.eye(3), np.array([[0, 1, 2]]))]}, "prim path"),
+        ("x.usdc", {"props": [Prop("obstacles/r", np.full((3, 3), np.nan), np.array([[0, 1, 2]]))]}, "finite"),
+        ("x.usdc", {"props": [Prop("obstacles/r", np.eye(3), np.array([[0, 1, 3]]))]}, "vertex indices"),
+        ("x.usdc", {"props": [Prop("a/r", np.eye(3), np.array([[0, 1, 2]]))]}, "a body is named 'a'"),
     ],
 )
 def test_constructor_checks(tmp_path, name, kwargs, match):
@@ -301,7 +306,8 @@ def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
     path = tmp_path / "killed.usdc"
     child = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(path)], stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
-    while len(list((tmp_path / "killed.clips").glob("killed.*.usdc"))) < 5 and time.monotonic() < deadline:
+    # six chunks on disk: the top-level file lists at least five (it is replaced after each chunk is in place)
+    while len(list((tmp_path / "killed.clips").glob("killed.*.usdc"))) < 6 and time.monotonic() < deadline:
         assert child.poll() is None, child.stderr.read()
         time.sleep(0.005)
     child.send_signal(signal.SIGKILL)
@@ -346,3 +352,14 @@ def test_a_clips_folder_is_replaced_only_if_ours(tmp_path):
         writer.add_frame(0, frames[0])
     writer.abort()
     assert (foreign / "notes.txt").read_text() == "mine" and not (tmp_path / "y.usdc").exists()
+
+
+def test_prop_transforms_are_checked_per_frame(tmp_path):
+    prop = Prop("obstacles/r", np.eye(3), np.array([[0, 1, 2]]))
+    writer = UsdWriter(tmp_path / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0, props=[prop])
+    with pytest.raises(ValueError, match="a transform for each of 1 props, got 0"):
+        writer.add_frame(0, [np.eye(3)])
+    with pytest.raises(ValueError, match="finite 4x4"):
+        writer.add_frame(0, [np.eye(3)], [np.full((4, 4), np.nan)])
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
