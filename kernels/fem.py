@@ -61,6 +61,7 @@ def elastic_forces_and_stiffness(
     rest_grad: wp.array(dtype=wp.vec3),
     # inputs: step
     dt: float,
+    given_rotation: int,
     # outputs
     rotation_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
@@ -69,8 +70,11 @@ def elastic_forces_and_stiffness(
 ):
     """Per tet: rotation, corotational elastic force (N), (dt^2 + dt beta) R K_ab R^T into the upper triangle.
 
-    With a ``grad_out`` (scenes with collisions; empty otherwise), also the distance gradients turned by the
-    tet's rotation, summed at its corners (see ``kernels.distance.add_rotated_gradients``).
+    The rotation is the polar part of the deformation gradient at ``x``, written to ``rotation_out``; with
+    ``given_rotation`` nonzero it is read from there instead (a step linearised about rotations it chose).
+    The force ``-R K (R^T x - X)`` is linear in ``x`` for a fixed ``R``. With a ``grad_out`` (scenes with
+    collisions; empty otherwise), also the distance gradients turned by the tet's rotation, summed at its
+    corners (see ``kernels.distance.add_rotated_gradients``).
     """
     e = wp.tid()
     t = tets[e]
@@ -78,8 +82,12 @@ def elastic_forces_and_stiffness(
     ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
     dmi = dm_inv[e]
     F = ds * dmi
-    R = rotation_of(F)
-    rotation_out[e] = R
+    R = wp.mat33()
+    if given_rotation != 0:
+        R = rotation_out[e]
+    else:
+        R = rotation_of(F)
+        rotation_out[e] = R
     if grad_out.shape[0] > 0:
         add_rotated_gradients(t, R, rest_grad, grad_out)
 
@@ -116,3 +124,36 @@ def rotation_change(
     # atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32
     axis = 0.5 * wp.vec3(turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1])
     wp.atomic_add(angle_sum_out, tet_body[e], wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)))
+
+
+@wp.kernel
+def turn_rotations(
+    x: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    dm_inv: wp.array(dtype=wp.mat33),
+    tolerance: float,
+    cg_tolerance: wp.array(dtype=float),
+    cg_residual: wp.array(dtype=float),
+    cg_slack: float,
+    rotation: wp.array(dtype=wp.mat33),
+    changed_out: wp.array(dtype=wp.int32),
+):
+    """Replace a tet's rotation by its rotation at ``x`` where the two differ by more than ``tolerance`` (rad).
+
+    Sets ``changed_out[0]`` to 1 where one was replaced. Does nothing once a solve stopped short of its
+    tolerance (``cg_residual[0]`` above ``cg_slack`` times ``cg_tolerance[0]``; 0: a fixed iteration count):
+    rotations read off an unconverged answer would steer the next solve wrong.
+    """
+    e = wp.tid()
+    tol = cg_tolerance[0]
+    if tol > 0.0 and cg_residual[0] > cg_slack * tol:
+        return
+    t = tets[e]
+    x0 = x[t[0]]
+    R = rotation_of(wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0) * dm_inv[e])
+    turn = R * wp.transpose(rotation[e])
+    # atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32
+    axis = 0.5 * wp.vec3(turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1])
+    if wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)) > tolerance:
+        rotation[e] = R
+        changed_out[0] = 1

@@ -209,6 +209,7 @@ def build_system(
     vertex_depth: wp.array(dtype=float),
     # inputs: forces and parameters
     force: wp.array(dtype=wp.vec3),
+    elastic_force: wp.array(dtype=wp.vec3),
     gravity: wp.array(dtype=wp.vec3),
     colliders: Colliders,
     held_v: wp.array(dtype=wp.vec3),
@@ -223,8 +224,12 @@ def build_system(
     diag_inv_out: wp.array(dtype=wp.mat33),
     v_guess_out: wp.array(dtype=wp.vec3),
     direction_out: wp.array(dtype=wp.vec3),
+    rhs_base_out: wp.array(dtype=wp.vec3),
 ):
     """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
+
+    The elastic force is ``force`` plus ``elastic_force`` where that is not empty; then ``rhs_base_out``
+    receives the right-hand side without it (what a step re-linearised about other rotations keeps).
 
     Each static collider acts on the vertex as :func:`static_contact` says: its force on the right-hand side,
     its matrix term in the diagonal block; not on a vertex outside the visible surface (a corner of the cage
@@ -249,6 +254,9 @@ def build_system(
             block += s
 
     matrix_out[slot] = block
+    if rhs_base_out.shape[0] > 0:
+        rhs_base_out[i] = wp.where(free[i] == 0, wp.vec3(), rhs)
+        rhs += dt * elastic_force[i]
     if free[i] == 0:
         rhs_out[i] = wp.vec3()
         v_guess_out[i] = wp.vec3()
@@ -432,6 +440,26 @@ def late_skin_contacts(
             add_symmetric(matrix_out, tet_slots, e, w, s)
             late_out[i] = 1
             wp.atomic_add(count_out, 0, 1)
+
+
+@wp.kernel
+def add_blocks(base: wp.array(dtype=wp.mat33), extra: wp.array(dtype=wp.mat33), matrix_out: wp.array(dtype=wp.mat33)):
+    """``matrix_out = base + extra``, block by block."""
+    s = wp.tid()
+    matrix_out[s] = base[s] + extra[s]
+
+
+@wp.kernel
+def add_elastic_rhs(
+    free: wp.array(dtype=wp.int32),
+    rhs_base: wp.array(dtype=wp.vec3),
+    elastic_force: wp.array(dtype=wp.vec3),
+    dt: float,
+    rhs_out: wp.array(dtype=wp.vec3),
+):
+    """The right-hand side with another elastic force: ``rhs_base + dt elastic_force`` (zero on held vertices)."""
+    i = wp.tid()
+    rhs_out[i] = wp.where(free[i] == 0, wp.vec3(), rhs_base[i] + dt * elastic_force[i])
 
 
 @wp.kernel

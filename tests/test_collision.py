@@ -205,9 +205,14 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
         names = _count_launches(monkeypatch, solver, model)
         assert not collision_kernels & set(names)
         assert solver.grad.shape[0] == 0  # the elastic launch sums no rotated distance gradients either
+        # the elastic part kept apart from the system (added in, with the preconditioner: 3 launches) and one
+        # look at the tets' rotations per rotation update (they did not turn: no second solve)
+        assert names.count("turn_rotations") == solver.rotation_updates
+        updates = 3 + solver.rotation_updates
         if mode == "grid":  # the whole solve is one launch after one reset
             solve = "cg_solve_held" if solver.cg.held else "cg_solve"  # held: every chunk has a thread (CUDA)
-            assert names.count(solve) == 1 and names.count("cg_solve_reset") == 1 and len(names) <= 2 + 8
+            assert names.count(solve) == 1 and names.count("cg_solve_reset") == 1
+            assert len(names) <= 2 + 8 + updates
         else:
             # a fixed count of 10 CG iterations: 2 launches each (one product, one update), the loop checked
             # every 4 iterations (3 checks for 10), plus the fixed stages and the start (reset, A x, A d, the
@@ -216,7 +221,7 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
             assert names.count("cg_update") == 12 and names.count("cg_advance") == 3
             assert names.count("cg_project") == 1 and names.count("cg_apply") == 12 + 3
             assert names.count("late_vertex_contacts") == solver.contact_passes
-            assert len(names) <= 2 * 12 + 3 + 12 + solver.contact_passes
+            assert len(names) <= 2 * 12 + 3 + 12 + solver.contact_passes + updates
 
     pair = ModelBuilder()
     add_body(pair, "one", *_box((0, 0.5, 0), (0.2, 0.2, 0.2), (2, 2, 2)), 1e5, 0.3, 1000.0)

@@ -32,6 +32,13 @@ def write(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:
     return path
 
 
+def test_scene_solver_defaults_are_the_solvers():
+    from warpfem.sim.solver import DEFAULT_ROTATION_TOLERANCE, DEFAULT_ROTATION_UPDATES
+
+    assert SolverConfig().rotation_updates == DEFAULT_ROTATION_UPDATES
+    assert SolverConfig().rotation_tolerance == DEFAULT_ROTATION_TOLERANCE
+
+
 def test_every_default_applied(tmp_path):
     scene = load_scene(write(tmp_path, MINIMAL))
     assert (scene.frames, scene.fps, scene.substeps) == (120, 60.0, 4)
@@ -153,6 +160,10 @@ ERRORS = [
     ("cg_iterations 0", "[solver]\ncg_iterations = 0\n" + OBJ, "solver.cg_iterations", ">= 1"),
     ("cg_tolerance 1", "[solver]\ncg_tolerance = 1.0\n" + OBJ, "solver.cg_tolerance", "< 1"),
     ("cg_tolerance 0", "[solver]\ncg_tolerance = 0\n" + OBJ, "solver.cg_tolerance", "> 0"),
+    ("rotation_updates -1", "[solver]\nrotation_updates = -1\n" + OBJ, "solver.rotation_updates", ">= 0"),
+    ("rotation_updates 1.5", "[solver]\nrotation_updates = 1.5\n" + OBJ, "solver.rotation_updates", "integer"),
+    ("rotation_tolerance -0.1", "[solver]\nrotation_tolerance = -0.1\n" + OBJ, "solver.rotation_tolerance", ">= 0"),
+    ("rotation_tolerance nan", "[solver]\nrotation_tolerance = nan\n" + OBJ, "solver.rotation_tolerance", "finite"),
     ("ground stiffness 0", "[ground]\nstiffness = 0\n" + OBJ, "ground.stiffness", "> 0 1/s^2"),
     ("ground friction < 0", "[ground]\nfriction = -0.1\n" + OBJ, "ground.friction", ">= 0"),
     (

@@ -163,12 +163,18 @@ class SolverConfig:
             choice: predictable frame time, less accuracy).
         cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1).
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
+        rotation_updates: After a step's solve, how many times at most to re-linearise the tets that turned
+            more than ``rotation_tolerance`` within it about their rotation at its end and solve again (>= 0;
+            0: one linear solve per step, which adds energy to a body turning fast).
+        rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
         quality: A preset of :data:`PRESETS` whose values fill the keys the scene leaves unset, or None.
     """
 
     cg_mode: str = "tolerance"
     cg_iterations: int = 100
     cg_tolerance: float = 1e-4
+    rotation_updates: int = 2
+    rotation_tolerance: float = 0.01
     quality: str | None = None
 
     @property
@@ -182,6 +188,8 @@ class SolverConfig:
         _check_choice(err, "cg_mode", self.cg_mode, ("tolerance", "fixed"))
         _check_int(err, "cg_iterations", self.cg_iterations, 1)
         _check_range(err, "cg_tolerance", self.cg_tolerance, gt=0.0, lt=1.0)
+        _check_int(err, "rotation_updates", self.rotation_updates, 0)
+        _check_range(err, "rotation_tolerance", self.rotation_tolerance, ge=0.0)
 
 
 @dataclass

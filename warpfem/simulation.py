@@ -28,15 +28,13 @@ from warpfem.errors import InputError, SimulationError
 from warpfem.memory import check_fits, scene_estimate
 from warpfem.prep.pipeline import default_cache_dir
 from warpfem.scene import Scene
+from warpfem.sim.cg import CAP_SLACK
 from warpfem.sim.embedding import map_dense
 from warpfem.sim.fem import RotationWatch
 from warpfem.sim.integrate import Box, MeshCollider, collider_pose, mesh_reach
 from warpfem.sim.model import Body, Model, ModelBuilder, State
 from warpfem.sim.modules import STEP_MODULES, load_modules
 from warpfem.sim.solver import Solver
-
-CAP_SLACK = 1.01
-"""A final residual this much above the tolerance (float32 rounding aside) means CG stopped at its cap."""
 
 FAST_TURN = 0.03
 """Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
@@ -434,7 +432,7 @@ class Simulation:
             self._warn_once(
                 "spin",
                 f"warning: frame {self.frame}: body '{body.name}' turns {per_step.max():.3g} rad per step (over "
-                f"{FAST_TURN}): one linear solve per step adds energy this fast; raise substeps",
+                f"{FAST_TURN}): {self._turn_effect(per_step.max())}; raise substeps",
             )
         self.stats = FrameStats(
             cg_iterations=cg.iterations / max(cg.solves, 1),
@@ -459,6 +457,14 @@ class Simulation:
                 f"{1e3 * speeds[fastest] * dt:.3g} mm per step, more than half a tet ({1e3 * cell:.3g} mm): thin "
                 "parts may pass through each other; raise substeps",
             )
+
+    def _turn_effect(self, per_step: float) -> str:
+        """What turning ``per_step`` rad per step does to a body's energy, in words."""
+        if self.solver.rotation_updates == 0:
+            return "one linear solve per step adds energy this fast"
+        # implicit Euler keeps about 1 / (1 + (omega dt)^2) of a spin's energy per step
+        lost = 1.0 - (1.0 + per_step**2) ** -(self.fps * self.substeps)
+        return f"implicit Euler takes about {100 * lost:.0f} % of a spin's energy per second this fast"
 
     def _warn_once(self, kind: str, message: str) -> None:
         if self.warn is not None and kind not in self._warned:

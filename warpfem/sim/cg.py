@@ -50,6 +50,10 @@ DEFAULT_MODE = "grid"
 latency-bound systems, and with its release/acquire arrival it keeps up on large ones too."""
 
 
+CAP_SLACK = 1.01
+"""A final residual this much above the tolerance (float32 rounding aside) means CG stopped at its cap."""
+
+
 @dataclass(frozen=True)
 class CGStats:
     """What the solves since the last :meth:`CGSolver.read_stats` did.

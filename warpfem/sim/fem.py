@@ -6,6 +6,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import fem as K
+from warpfem.sim.cg import CAP_SLACK, CGSolver
 from warpfem.sim.launch import spread_block_dim
 from warpfem.sim.model import Model
 
@@ -18,11 +19,13 @@ def elastic_forces_and_stiffness(
     force_out: wp.array,
     matrix_out: wp.array,
     grad_out: wp.array | None = None,
+    given_rotation: bool = False,
 ) -> None:
     """Add every tet's corotational elastic force (N) and (dt^2 + dt beta) R K R^T to the outputs.
 
     ``force_out`` and ``matrix_out`` are accumulated into (zero them first); ``rotation_out`` receives each
-    tet's rotation. ``grad_out`` (zeroed first; None or empty where nothing collides) accumulates the distance
+    tet's rotation at ``x``, or with ``given_rotation`` holds the rotations to linearise about. ``grad_out``
+    (zeroed first; None or empty where nothing collides) accumulates the distance
     gradients turned by the tets' rotations, for contact detection. One launch for all bodies.
     """
     if grad_out is None:
@@ -41,8 +44,27 @@ def elastic_forces_and_stiffness(
             model.tet_slots,
             model.vertex_grad,
             dt,
+            int(given_rotation),
         ],
         outputs=[rotation_out, force_out, matrix_out, grad_out],
+        device=model.device,
+        block_dim=spread_block_dim(model.tet_count, model.device),
+    )
+
+
+def turn_rotations(
+    model: Model, x: wp.array, tolerance: float, cg: CGSolver, rotation: wp.array, changed_out: wp.array
+) -> None:
+    """Replace each tet's ``rotation`` by its rotation at ``x`` where they differ by more than ``tolerance`` (rad).
+
+    ``changed_out[0]`` becomes 1 where one was replaced (zero it first); nothing is replaced once one of
+    ``cg``'s solves since its statistics were last read stopped short of its tolerance. One launch for all bodies.
+    """
+    wp.launch(
+        K.turn_rotations,
+        dim=model.tet_count,
+        inputs=[x, model.tets, model.dm_inv, tolerance, cg.tolerance, cg.residual_max, CAP_SLACK],
+        outputs=[rotation, changed_out],
         device=model.device,
         block_dim=spread_block_dim(model.tet_count, model.device),
     )
@@ -52,7 +74,8 @@ class RotationWatch:
     """Tracks how far each body's tets turn between checks, to warn about fast rotation.
 
     One linear solve per step moves vertices along the tangent of their rotation, which stretches a body by
-    sqrt(1 + (omega dt)^2) per step and adds energy; past about 0.03 rad per step the gain is visible.
+    sqrt(1 + (omega dt)^2) per step and adds energy; implicit Euler with the force at the step's end (rotation
+    updates) keeps it from gaining but takes about (omega dt)^2 of its spin's energy per step.
     """
 
     def __init__(self, model: Model, rotation: wp.array) -> None:

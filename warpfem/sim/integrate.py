@@ -235,6 +235,8 @@ def build_system(
     direction_out: wp.array,
     momentum: wp.array,
     held_v: wp.array,
+    elastic_force: wp.array | None = None,
+    rhs_base_out: wp.array | None = None,
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
@@ -242,8 +244,11 @@ def build_system(
     its diagonal. ``v_guess_out`` receives the CG start (the current velocity) and ``direction_out`` the direction
     CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
     pinned vertices and where not finite). A held vertex starts, and stays, at its ``held_v`` (m/s; a handle's
-    velocity this step), or at rest where ``held_v`` is empty.
+    velocity this step), or at rest where ``held_v`` is empty. With ``elastic_force`` (N), the elastic force kept
+    apart from ``force``: the right-hand side without it goes to ``rhs_base_out`` (see :func:`add_elastic`).
     """
+    empty = wp.zeros(0, dtype=wp.vec3, device=model.device)
+    base = empty if rhs_base_out is None else rhs_base_out
     wp.launch(
         K.build_system,
         dim=model.vertex_count,
@@ -256,6 +261,7 @@ def build_system(
             model.diag_slot,
             model.vertex_depth,
             force,
+            empty if elastic_force is None else elastic_force,
             gravity,
             colliders.arrays,
             held_v,
@@ -265,7 +271,7 @@ def build_system(
             model.body_mass,
             dt,
         ],
-        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out],
+        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out, base],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )
@@ -345,6 +351,37 @@ def late_contacts(
             outputs=[late[1], count_out, matrix_out, rhs_out],
             device=model.device,
         )  # fmt: skip
+
+
+def add_elastic(
+    model: Model,
+    matrix_base: wp.array,
+    elastic_matrix: wp.array,
+    rhs_base: wp.array,
+    elastic_force: wp.array,
+    dt: float,
+    matrix_out: wp.array,
+    rhs_out: wp.array,
+    diag_inv_out: wp.array,
+) -> None:
+    """The system with an elastic part kept apart: matrix, right-hand side and preconditioner from their bases."""
+    wp.launch(
+        K.add_blocks,
+        dim=matrix_out.shape[0],
+        inputs=[matrix_base, elastic_matrix],
+        outputs=[matrix_out],
+        device=model.device,
+        block_dim=spread_block_dim(matrix_out.shape[0], model.device),
+    )
+    wp.launch(
+        K.add_elastic_rhs,
+        dim=model.vertex_count,
+        inputs=[model.free, rhs_base, elastic_force, dt],
+        outputs=[rhs_out],
+        device=model.device,
+        block_dim=spread_block_dim(model.vertex_count, model.device),
+    )
+    refresh_preconditioner(model, matrix_out, diag_inv_out)
 
 
 def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.array) -> None:

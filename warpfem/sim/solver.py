@@ -29,6 +29,13 @@ LATE_BODY_PASSES = 1
 """Of those, how many look for late contacts between bodies too (each a detection at the predicted positions,
 the cost of the step's own); the others look at the static colliders only (docs/decisions.md)."""
 
+DEFAULT_ROTATION_UPDATES = 2
+"""Re-linearisations about the step's end rotations per step unless told (see :class:`Solver`)."""
+
+DEFAULT_ROTATION_TOLERANCE = 0.01
+"""A tet is re-linearised when its rotation at the step's end differs from the one solved with by more than
+this (rad) unless told (see :class:`Solver`)."""
+
 _NO_BAD_VERTEX = np.iinfo(np.int32).max
 
 
@@ -51,6 +58,13 @@ class Solver:
         cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
             "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
+        rotation_updates: After the first solve, how many times at most to re-linearise the tets that turned
+            more than ``rotation_tolerance`` (rad) within the step about their rotation at its end and solve
+            again from that answer (a solve only where some did; 0: never). One linear solve moves each vertex
+            along the tangent of its rotation, which stretches a fast-turning body and adds energy; these
+            updates converge to implicit Euler with the elastic force at the step's end, which does not.
+            Lowering ``rotation_updates`` after construction is allowed; raising it from 0 is not.
+        rotation_tolerance: See ``rotation_updates`` (rad, >= 0).
         handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
             or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
             to advance the clock); without, ``drive`` is None and a step launches nothing for them.
@@ -68,9 +82,16 @@ class Solver:
         cg_path: str | None = None,
         contact_passes: int = DEFAULT_CONTACT_PASSES,
         handles: Sequence[Handle] = (),
+        rotation_updates: int = DEFAULT_ROTATION_UPDATES,
+        rotation_tolerance: float = DEFAULT_ROTATION_TOLERANCE,
     ) -> None:
         if contact_passes < 0:
             raise ValueError(f"contact_passes must be >= 0, got {contact_passes}")
+        if rotation_updates < 0:
+            raise ValueError(f"rotation_updates must be >= 0, got {rotation_updates}")
+        if not rotation_tolerance >= 0.0:
+            raise ValueError(f"rotation_tolerance must be >= 0 rad, got {rotation_tolerance}")
+        self.rotation_updates, self.rotation_tolerance = rotation_updates, float(rotation_tolerance)
         self.model = model
         dev = model.device
         n = model.vertex_count
@@ -93,6 +114,18 @@ class Solver:
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
         self.contact_passes = contact_passes if static or self.collider is not None else 0
+        self.turned = wp.zeros(1, dtype=wp.int32, device=dev)
+        """Whether a rotation update changed some tet (the condition of its solve)."""
+        # with rotation updates the elastic part is kept apart from the rest of the system, so that a step
+        # re-linearised about new rotations is assembled afresh (differences of stiff blocks lose the mass term
+        # in float32); without, the elastic launch adds straight into the system
+        self.apart = apart = rotation_updates > 0
+        self.elastic_force = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self.force
+        self.elastic_matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
+        self.matrix_base = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
+        self.rhs_base = wp.zeros(n if apart else 0, dtype=wp.vec3, device=dev)
+        self._zeroed = [self.force, self.matrix_base, *((self.elastic_force, self.elastic_matrix) if apart else ())]
+        """What a step zeroes before it accumulates into (the matrix itself is the base when nothing is apart)."""
         self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
         """Late contacts a pass added (the condition of its solve)."""
         self.late = (
@@ -144,24 +177,27 @@ class Solver:
                 side.wait_stream(wp.get_stream(model.device))
                 with wp.ScopedStream(side, sync_enter=False):
                     self.collider.prepare(state_in.x, state_in.v)
-            self.force.zero_()
-            self.matrix.zero_()
+            for a in self._zeroed:
+                a.zero_()
             self.grad.zero_()
-            fem.elastic_forces_and_stiffness(model, state_in.x, dt, self.rotation, self.force, self.matrix, self.grad)
+            fem.elastic_forces_and_stiffness(
+                model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad
+            )
 
         def collision() -> None:
             if side is not None:
                 wp.get_stream(model.device).wait_stream(side)
             else:
                 self.collider.prepare(state_in.x, state_in.v)
-            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix)
+            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix_base)
 
         def solve() -> None:
             if self.drive is not None:
                 self.drive.pose(state_in.x, dt)
             if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
                 integrate.body_momentum(model, state_in, self.momentum)
-            integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix)
+            integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base)
+            apart = self.apart
             integrate.build_system(
                 model,
                 state_in,
@@ -169,16 +205,27 @@ class Solver:
                 self.gravity,
                 self.colliders,
                 dt,
-                self.matrix,
+                self.matrix_base,
                 self.rhs,
                 self.diag_inv,
                 state_out.v,
                 self.direction,
                 self.momentum,
                 self.held_v,
+                self.elastic_force if apart else None,
+                self.rhs_base if apart else None,
             )
+            if apart:
+                integrate.add_elastic(
+                    model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
+                    self.rhs, self.diag_inv,
+                )  # fmt: skip
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
             advance()
+            for _ in range(self.rotation_updates):
+                self.turned.zero_()
+                fem.turn_rotations(model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
+                wp.capture_if(self.turned, on_true=relinearise)
             if self.contact_passes:
                 self.late[0].zero_()
                 self.late[1].zero_()
@@ -199,6 +246,19 @@ class Solver:
             integrate.advance_positions(
                 model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
             )
+
+        def relinearise() -> None:
+            self.elastic_force.zero_()
+            self.elastic_matrix.zero_()
+            fem.elastic_forces_and_stiffness(
+                model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, given_rotation=True
+            )
+            integrate.add_elastic(
+                model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
+                self.rhs, self.diag_inv,
+            )  # fmt: skip
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+            advance()
 
         def solve_again() -> None:
             integrate.refresh_preconditioner(model, self.matrix, self.diag_inv)
