@@ -110,6 +110,11 @@ def int_list(text: str) -> list[int]:
     return comma_list(text, int, lambda v: v > 0, "positive integers")
 
 
+def comma_list_of_counts(text: str) -> list[int]:
+    """An argparse type: comma-separated integers >= 0 ('' for none)."""
+    return comma_list(text, int, lambda k: k >= 0, "integers >= 0")
+
+
 def tolerance_list(text: str) -> list[float]:
     """An argparse type: comma-separated CG tolerances in (0, 1) ('' for none)."""
     return comma_list(text, float, lambda v: 0.0 < v < 1.0, "tolerances between 0 and 1")
@@ -259,6 +264,8 @@ def time_scene(
         "dense_vertices": model.dense_count,
         "dense_triangles": int(sum(len(b.dense_faces) for b in model.bodies)),
         "cg_iterations_per_step": stats.cg_iterations,
+        "cg_solves_per_step": stats.cg_solves,
+        "rotation_updates": scene.solver.rotation_updates,
         "cg_residual_max": stats.cg_residual,
         "contacts_max_per_step": stats.contacts_max,
         "contact_depth_max_m": stats.deepest_contact,
@@ -486,6 +493,13 @@ def main(argv=None) -> int:
         help="comma list: also run each paper scene at these substeps per frame (the speed/accuracy trade)",
     )
     parser.add_argument(
+        "--rotation-updates",
+        type=comma_list_of_counts,
+        default="",
+        help="comma list: also run every scene with at most these rotation updates per step ([solver] "
+        "rotation_updates; the cost of implicit Euler at the step's end)",
+    )
+    parser.add_argument(
         "--paper-tolerances",
         type=tolerance_list,
         default="",
@@ -526,6 +540,13 @@ def main(argv=None) -> int:
                 work.append(("pile", n, pile(scene_defaults, n, armadillo, 500)))
         frames, cg_cells = args.frames, (60, 60, 52)
 
+    work += [
+        (kind, n, dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, rotation_updates=k)))
+        for kind, n, scene in list(work)
+        for k in args.rotation_updates
+        if k != scene.solver.rotation_updates
+    ]
+
     if args.prepare_only:
         for _, _, scene in work:
             for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in scene.objects}:
@@ -545,7 +566,8 @@ def main(argv=None) -> int:
             f"{kind:28s} N={n:5d} {cg_path:8s} sub={run['substeps']} tets={run['tets']:8d} "
             f"dense tris={run['dense_triangles']:10d} "
             f"{run['ms_per_frame']:9.2f} ms/frame  CG to {run['cg_tolerance']:g}: "
-            f"{run['cg_iterations_per_step']:6.1f} it/step  "
+            f"{run['cg_iterations_per_step']:6.1f} it/step {run['cg_solves_per_step']:4.2f} solves "
+            f"upd={run['rotation_updates']}  "
             f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
             flush=True,
         )

@@ -35,7 +35,8 @@ class RunSummary:
         tet_vertices: Tet vertices over all bodies.
         dense_vertices: Dense vertices over all bodies.
         dense_triangles: Dense triangles over all bodies.
-        cg_iterations_per_step: Mean CG iterations per step.
+        cg_iterations_per_step: Mean CG iterations per step (over all its solves).
+        cg_solves_per_step: Mean CG solves per step.
         cg_residual_max: Largest final relative CG residual.
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
@@ -65,6 +66,7 @@ class RunSummary:
     dense_vertices: int
     dense_triangles: int
     cg_iterations_per_step: float
+    cg_solves_per_step: float
     cg_residual_max: float
     cg_capped_frames: int
     seconds: dict[str, float] = field(default_factory=dict)
@@ -357,7 +359,8 @@ def _summary(sim: Simulation, out: Path, seconds: dict[str, float], check: _Chec
         tet_vertices=model.vertex_count,
         dense_vertices=model.dense_count,
         dense_triangles=sum(len(b.dense_faces) for b in model.bodies),
-        cg_iterations_per_step=totals.cg_iterations / max(totals.cg_solves, 1),
+        cg_iterations_per_step=totals.cg_iterations / max(totals.steps, 1),
+        cg_solves_per_step=totals.cg_solves / max(totals.steps, 1),
         cg_residual_max=totals.cg_residual_max,
         cg_capped_frames=totals.cg_capped_frames,
         seconds=seconds,

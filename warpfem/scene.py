@@ -2,9 +2,8 @@
 
 Every key is documented in ``scenes/README.md``. A problem with a scene file raises
 :class:`warpfem.errors.InputError` with one line naming the file, the key (with its table) and
-what is wrong, e.g. ``scene.toml: object[0] 'bunny': young must be > 0 Pa, got -5.0``.
-
-All quantities are SI: metres, seconds, kilograms, pascals, degrees for rotations.
+what is wrong, e.g. ``scene.toml: object[0] 'bunny': young must be > 0 Pa, got -5.0``. All quantities
+are SI: metres, seconds, kilograms, pascals, degrees for rotations.
 """
 
 from __future__ import annotations
@@ -163,9 +162,7 @@ class SolverConfig:
             choice: predictable frame time, less accuracy).
         cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1).
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
-        rotation_updates: After a step's solve, how many times at most to re-linearise the tets that turned
-            more than ``rotation_tolerance`` within it about their rotation at its end and solve again (>= 0;
-            0: one linear solve per step, which adds energy to a body turning fast).
+        rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
         rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
         quality: A preset of :data:`PRESETS` whose values fill the keys the scene leaves unset, or None.
     """

@@ -45,7 +45,8 @@ class FrameStats:
     """What the solver did over the frames of the last read (one for :meth:`Simulation.step_frame`; zero before).
 
     Attributes:
-        cg_iterations: Mean CG iterations per step.
+        cg_iterations: Mean CG iterations per step (over all its solves).
+        cg_solves: Mean CG solves per step (one, plus one per rotation update or contact pass that changed it).
         cg_residual: Largest final relative CG residual of a step.
         contacts: Mean body-body contacts per step.
         contacts_max: Most contacts in one step.
@@ -53,6 +54,7 @@ class FrameStats:
     """
 
     cg_iterations: float = 0.0
+    cg_solves: float = 0.0
     cg_residual: float = 0.0
     contacts: float = 0.0
     contacts_max: int = 0
@@ -435,7 +437,8 @@ class Simulation:
                 f"{FAST_TURN}): {self._turn_effect(per_step.max())}; raise substeps",
             )
         self.stats = FrameStats(
-            cg_iterations=cg.iterations / max(cg.solves, 1),
+            cg_iterations=cg.iterations / substeps,
+            cg_solves=cg.solves / substeps,
             cg_residual=cg.residual_max,
             contacts=total / substeps,
             contacts_max=most,

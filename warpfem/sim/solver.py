@@ -222,10 +222,8 @@ class Solver:
                 )  # fmt: skip
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
             advance()
-            for _ in range(self.rotation_updates):
-                self.turned.zero_()
-                fem.turn_rotations(model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
-                wp.capture_if(self.turned, on_true=relinearise)
+            if self.rotation_updates:
+                update_rotations(1)
             if self.contact_passes:
                 self.late[0].zero_()
                 self.late[1].zero_()
@@ -247,7 +245,13 @@ class Solver:
                 model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
             )
 
-        def relinearise() -> None:
+        def update_rotations(k: int) -> None:
+            # the k-th look at the tets' rotations; the next look only after a solve that changed them
+            self.turned.zero_()
+            fem.turn_rotations(model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
+            wp.capture_if(self.turned, on_true=lambda: relinearise(k))
+
+        def relinearise(k: int) -> None:
             self.elastic_force.zero_()
             self.elastic_matrix.zero_()
             fem.elastic_forces_and_stiffness(
@@ -259,6 +263,8 @@ class Solver:
             )  # fmt: skip
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
             advance()
+            if k < self.rotation_updates:
+                update_rotations(k + 1)
 
         def solve_again() -> None:
             integrate.refresh_preconditioner(model, self.matrix, self.diag_inv)
