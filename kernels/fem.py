@@ -33,6 +33,22 @@ def rotation_of(F: wp.mat33) -> wp.mat33:
 
 
 @wp.func
+def spun(L: wp.mat33, dt: float, least: float) -> wp.mat33:
+    """The rotation by ``dt`` times the spin (skew part) of the velocity gradient ``L`` (Rodrigues).
+
+    None where that turns less than ``least`` (rad) or where the tet deforms faster than it spins (its
+    strain rate, the symmetric part, is larger): a turn read off a deforming tet is no prediction.
+    """
+    w = 0.5 * wp.vec3(L[2, 1] - L[1, 2], L[0, 2] - L[2, 0], L[1, 0] - L[0, 1])
+    angle = wp.length(w) * dt
+    D = 0.5 * (L + wp.transpose(L))
+    if angle <= least or wp.ddot(D, D) >= 2.0 * wp.dot(w, w):
+        return wp.identity(n=3, dtype=float)
+    k = wp.skew(w / wp.length(w))
+    return wp.identity(n=3, dtype=float) + wp.sin(angle) * k + (1.0 - wp.cos(angle)) * (k * k)
+
+
+@wp.func
 def shape_gradient(dm_inv: wp.mat33, a: int) -> wp.vec3:
     """Gradient of the linear shape function of corner ``a`` (0..3) in rest coordinates (1/m)."""
     if a == 0:
@@ -50,6 +66,7 @@ def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float)
 def elastic_forces_and_stiffness(
     # inputs: state
     x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
     # inputs: model
     tets: wp.array(dtype=wp.vec4i),
     dm_inv: wp.array(dtype=wp.mat33),
@@ -62,6 +79,8 @@ def elastic_forces_and_stiffness(
     # inputs: step
     dt: float,
     given_rotation: int,
+    predict: int,
+    predict_least: float,
     # outputs
     rotation_out: wp.array(dtype=wp.mat33),
     force_out: wp.array(dtype=wp.vec3),
@@ -72,9 +91,12 @@ def elastic_forces_and_stiffness(
 
     The rotation is the polar part of the deformation gradient at ``x``, written to ``rotation_out``; with
     ``given_rotation`` nonzero it is read from there instead (a step linearised about rotations it chose).
-    The force ``-R K (R^T x - X)`` is linear in ``x`` for a fixed ``R``. With a ``grad_out`` (scenes with
-    collisions; empty otherwise), also the distance gradients turned by the tet's rotation, summed at its
-    corners (see ``kernels.distance.add_rotated_gradients``).
+    With ``predict`` nonzero the step is linearised about the rotation at ``x`` turned on for ``dt`` at the
+    tet's spin (the skew part of its velocity gradient at ``v``), where it ends if it keeps spinning, when
+    that turn exceeds ``predict_least`` (rad): a tet spinning steadily then needs no re-linearisation. The
+    force ``-R K (R^T x - X)`` is linear in ``x`` for a fixed ``R``. With a ``grad_out`` (scenes with
+    collisions; empty otherwise), also the distance gradients turned by the tet's rotation at ``x``, summed
+    at its corners (see ``kernels.distance.add_rotated_gradients``).
     """
     e = wp.tid()
     t = tets[e]
@@ -86,10 +108,15 @@ def elastic_forces_and_stiffness(
     if given_rotation != 0:
         R = rotation_out[e]
     else:
-        R = rotation_of(F)
+        R_here = rotation_of(F)
+        R = R_here
+        if predict != 0:
+            v0 = v[t[0]]
+            dv = wp.matrix_from_cols(v[t[1]] - v0, v[t[2]] - v0, v[t[3]] - v0)
+            R = spun(dv * wp.inverse(ds), dt, predict_least) * R_here
         rotation_out[e] = R
-    if grad_out.shape[0] > 0:
-        add_rotated_gradients(t, R, rest_grad, grad_out)
+        if grad_out.shape[0] > 0:
+            add_rotated_gradients(t, R_here, rest_grad, grad_out)
 
     vol = rest_volume[e]
     mu = tet_mu[e]

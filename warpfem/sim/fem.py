@@ -20,21 +20,28 @@ def elastic_forces_and_stiffness(
     matrix_out: wp.array,
     grad_out: wp.array | None = None,
     given_rotation: bool = False,
+    v: wp.array | None = None,
+    predict_least: float = 0.0,
 ) -> None:
     """Add every tet's corotational elastic force (N) and (dt^2 + dt beta) R K R^T to the outputs.
 
     ``force_out`` and ``matrix_out`` are accumulated into (zero them first); ``rotation_out`` receives each
-    tet's rotation at ``x``, or with ``given_rotation`` holds the rotations to linearise about. ``grad_out``
+    tet's rotation at ``x``, or with ``given_rotation`` holds the rotations to linearise about; with
+    velocities ``v`` (m/s) each rotation is predicted on by the tet's spin for ``dt`` where that turns more
+    than ``predict_least`` (rad; see
+    :func:`warpfem.kernels.fem.elastic_forces_and_stiffness`). ``grad_out``
     (zeroed first; None or empty where nothing collides) accumulates the distance
     gradients turned by the tets' rotations, for contact detection. One launch for all bodies.
     """
     if grad_out is None:
         grad_out = wp.zeros(0, dtype=wp.vec3, device=model.device)
+
     wp.launch(
         K.elastic_forces_and_stiffness,
         dim=model.tet_count,
         inputs=[
             x,
+            x if v is None else v,
             model.tets,
             model.dm_inv,
             model.rest_volume,
@@ -45,6 +52,8 @@ def elastic_forces_and_stiffness(
             model.vertex_grad,
             dt,
             int(given_rotation),
+            int(v is not None),
+            predict_least,
         ],
         outputs=[rotation_out, force_out, matrix_out, grad_out],
         device=model.device,

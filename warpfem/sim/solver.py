@@ -181,8 +181,10 @@ class Solver:
                 a.zero_()
             self.grad.zero_()
             fem.elastic_forces_and_stiffness(
-                model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad
-            )
+                model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad,
+                v=state_in.v if self.apart else None,
+                predict_least=self.rotation_tolerance,
+            )  # fmt: skip
 
         def collision() -> None:
             if side is not None:
