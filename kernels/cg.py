@@ -180,6 +180,9 @@ def project_row(
     return wp.vec3(wp.dot(d, b_i - w_i), wp.dot(d, s_i), m * wp.dot(d, d))
 
 
+CAP_SLACK = 1.01
+"""A final residual this much above the tolerance (float32 rounding aside) means CG stopped at its cap."""
+
 SMOOTH = 2.0
 """The largest d.A d / d.M d of a direction the start moves along: a smooth motion (a fall, a push: kinetic
 energy, little strain) has about 1; a direction in the stiff modes (the last step's oscillation or rounding
@@ -403,12 +406,13 @@ def cg_finish(
     gamma: wp.array(dtype=float),
     bz: wp.array(dtype=float),
     done: wp.array(dtype=wp.int32),
+    tolerance: wp.array(dtype=float),
     counts_out: wp.array(dtype=wp.int32),
     residual_max_out: wp.array(dtype=float),
 ):
-    """Single thread: counts the solve and its iterations (counts[0], counts[1]); keeps the largest residual."""
+    """Single thread: counts the solve, its iterations and whether it stopped short; keeps the largest residual."""
     k = done[0]
-    record_solve(k, gamma[k], bz[0], counts_out, residual_max_out)
+    record_solve(k, gamma[k], bz[0], tolerance[0], counts_out, residual_max_out)
 
 
 @wp.func
@@ -416,15 +420,21 @@ def record_solve(
     k: int,
     gamma: float,
     bz: float,
+    tolerance: float,
     counts_out: wp.array(dtype=wp.int32),
     residual_max_out: wp.array(dtype=float),
 ):
-    """Count a solve of k iterations (counts[0], counts[1]) and keep the largest residual sqrt(gamma / bz)."""
+    """Count a solve of k iterations (counts[0], counts[1]); keep the largest residual sqrt(gamma / bz).
+
+    counts[2] counts the solves whose residual ended above ``tolerance`` (0: a fixed count, never short).
+    """
     counts_out[0] = counts_out[0] + 1
     counts_out[1] = counts_out[1] + k
     res = float(0.0)
     if bz > 0.0:
         res = wp.sqrt(wp.max(gamma, 0.0) / bz)
+    if tolerance > 0.0 and res > CAP_SLACK * tolerance:
+        counts_out[2] = counts_out[2] + 1
     residual_max_out[0] = wp.max(residual_max_out[0], res)
 
 
@@ -560,7 +570,7 @@ def cg_solve(
         gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
         k += 1
     if lane == 0:
-        record_solve(k, gamma, bz, counts_out, residual_max_out)
+        record_solve(k, gamma, bz, tolerance[0], counts_out, residual_max_out)
 
 
 @wp.func
@@ -769,4 +779,4 @@ def cg_solve_held(
     if owner:
         x_out[row] = x
     if lane == 0:
-        record_solve(k, gamma, bz, counts_out, residual_max_out)
+        record_solve(k, gamma, bz, tolerance[0], counts_out, residual_max_out)

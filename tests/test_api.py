@@ -198,11 +198,14 @@ def test_cg_stopping_at_its_cap_is_said_once_and_counted(ball_dir, capsys):
 
     summary = json.loads(captured.out)
     assert summary["cg_capped_frames"] == 4 and summary["cg_residual_max"] > 1e-6
+    # every solve of every step stopped short (three iterations reach 1e-6 nowhere)
+    assert summary["cg_short_solves"] == round(summary["cg_solves_per_step"] * 8) >= 8
     doc["solver"] = {"cg_iterations": 200, "cg_tolerance": 1e-6}  # enough iterations: nothing said
     (ball_dir / "capped.toml").write_text(_toml(doc))
     assert main([*args, "--overwrite"]) == 0
     captured = capsys.readouterr()
     assert "stopped at its cap" not in captured.err and json.loads(captured.out)["cg_capped_frames"] == 0
+    assert json.loads(captured.out)["cg_short_solves"] == 0
 
 
 def test_angular_velocity_spins_the_body_about_its_centre_of_mass(ball_dir):

@@ -105,6 +105,7 @@ class RunTotals:
     cg_iterations: int = 0
     cg_residual_max: float = 0.0
     cg_capped_frames: int = 0
+    cg_short_solves: int = 0
     contacts: int = 0
     contacts_max: int = 0
     deepest_contact: float = 0.0
@@ -405,6 +406,7 @@ class Simulation:
         t.cg_solves += cg.solves
         t.cg_iterations += cg.iterations
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)
+        t.cg_short_solves += cg.short
         cap, tolerance = self.solver.cg.limits
         if tolerance > 0 and cg.residual_max > tolerance * CAP_SLACK:
             t.cg_capped_frames += frames

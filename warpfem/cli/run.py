@@ -260,7 +260,8 @@ def _report(
             "CG iterations per step",
             f"{summary.cg_iterations_per_step:.1f} in {summary.cg_solves_per_step:.2f} solves (max residual "
             f"{summary.cg_residual_max:.2g}; at its cap above "
-            f"its tolerance in {summary.cg_capped_frames} of {summary.frames} frames)",
+            f"its tolerance in {summary.cg_short_solves} solves over {summary.cg_capped_frames} of {summary.frames} "
+            "frames)",
         ),
         ("step phases per frame", ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a"),
         ("contacts per step", f"{summary.contacts_per_step:.1f} (most {summary.contacts_max})"),

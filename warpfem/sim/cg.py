@@ -50,7 +50,7 @@ DEFAULT_MODE = "grid"
 latency-bound systems, and with its release/acquire arrival it keeps up on large ones too."""
 
 
-CAP_SLACK = 1.01
+CAP_SLACK = K.CAP_SLACK
 """A final residual this much above the tolerance (float32 rounding aside) means CG stopped at its cap."""
 
 
@@ -62,11 +62,13 @@ class CGStats:
         solves: Number of solves.
         iterations: Total iterations over those solves.
         residual_max: Largest final relative residual sqrt(r.M^-1 r / b.M^-1 b).
+        short: Solves that stopped at their cap above the tolerance.
     """
 
     solves: int
     iterations: int
     residual_max: float
+    short: int = 0
 
 
 class CGSolver:
@@ -191,7 +193,7 @@ class CGSolver:
         self.cond = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.tolerance = wp.zeros(1, dtype=float, device=self.device)
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.counts = wp.zeros(2, dtype=wp.int32, device=self.device)  # solves, iterations
+        self.counts = wp.zeros(3, dtype=wp.int32, device=self.device)  # solves, iterations, stopped short
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
         # the grid solve's side sums (three, and gamma per iteration where held) and barriers with their sums
         # (kernels.grid.grid_total): three to start, then two per iteration (one where held, plus one)
@@ -390,7 +392,7 @@ class CGSolver:
             wp.launch(
                 K.cg_finish,
                 dim=1,
-                inputs=[self.gamma, self.bz, self.done],
+                inputs=[self.gamma, self.bz, self.done, self.tolerance],
                 outputs=[self.counts, self.residual_max],
                 device=dev,
                 record_cmd=True,
@@ -449,8 +451,8 @@ class CGSolver:
             raise RuntimeError(
                 f"CG grid barrier timed out ({self.grid_blocks} blocks not all resident): use mode='launches'"
             )
-        solves, iterations = (int(c) for c in self.counts.numpy())
-        stats = CGStats(solves, iterations, float(self.residual_max.numpy()[0]))
+        solves, iterations, short = (int(c) for c in self.counts.numpy())
+        stats = CGStats(solves, iterations, float(self.residual_max.numpy()[0]), short)
         self.counts.zero_()
         self.residual_max.zero_()
         return stats
