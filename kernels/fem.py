@@ -32,17 +32,23 @@ def rotation_of(F: wp.mat33) -> wp.mat33:
     return R
 
 
+PREDICTED_TURN_MAX = wp.constant(0.1)
+"""The largest turn in one step (rad) a step is linearised ahead to (24 rad/s at 1/240 s)."""
+
+
 @wp.func
 def spun(L: wp.mat33, dt: float, least: float) -> wp.mat33:
     """The rotation by ``dt`` times the spin (skew part) of the velocity gradient ``L`` (Rodrigues).
 
-    None where that turns less than ``least`` (rad) or where the tet deforms faster than it spins (its
-    strain rate, the symmetric part, is larger): a turn read off a deforming tet is no prediction.
+    None where that turns less than ``least`` (rad), more than :data:`PREDICTED_TURN_MAX` (a step that long is
+    no free flight: a body settling in a long step would be turned past where it stops), or where the tet
+    deforms faster than it spins (its strain rate, the symmetric part, is larger): a turn read off a deforming
+    tet is no prediction.
     """
     w = 0.5 * wp.vec3(L[2, 1] - L[1, 2], L[0, 2] - L[2, 0], L[1, 0] - L[0, 1])
     angle = wp.length(w) * dt
     D = 0.5 * (L + wp.transpose(L))
-    if angle <= least or wp.ddot(D, D) >= 2.0 * wp.dot(w, w):
+    if angle <= least or angle > PREDICTED_TURN_MAX or wp.ddot(D, D) >= 2.0 * wp.dot(w, w):
         return wp.identity(n=3, dtype=float)
     k = wp.skew(w / wp.length(w))
     return wp.identity(n=3, dtype=float) + wp.sin(angle) * k + (1.0 - wp.cos(angle)) * (k * k)
