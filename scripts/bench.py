@@ -1,4 +1,4 @@
-"""Benchmark: the paper's scenes, piles of N armadillos, one CG iteration at ~1M tets, memory bandwidth.
+"""Benchmark: the paper's scenes, piles of N armadillos, a mixed pile, one CG iteration at ~1M tets, bandwidth.
 
 Writes one JSON per run under scripts/results/ (device, driver, Warp version, commit, per-phase ms, sizes,
 CG iterations and residual, max penetration) and prints a table. Times are per 1/60 s frame: stepping,
@@ -39,6 +39,9 @@ from warpfem.scene import ObjectConfig  # noqa: E402
 from warpfem.simulation import PhaseTimer  # noqa: E402
 
 PILES = (1, 4, 16, 64, 256, 1024)
+
+MIXED = (("armadillo.off", 500), ("horse.ply", 500), ("spot.obj", 500), ("homer.obj", 500))
+"""The mixed pile's meshes (in ``--assets``) and their coarse face counts: two of each."""
 
 
 def environment(device) -> dict:
@@ -86,6 +89,55 @@ def pile(scene: warpfem.Scene, n: int, mesh: str, faces: int, scale: float = 0.0
                 rotate=(0.0, float(rng.uniform(0, 360)), 0.0),
                 translate=(1.1 * (col - (side - 1) / 2), 0.7 + 1.1 * layer, 1.1 * (row - (side - 1) / 2)),
                 young=1e6,
+                poisson=0.3,
+                density=1000.0,
+                damping_stiffness=0.005,
+            )
+        )
+    return dataclasses.replace(scene, objects=objects)
+
+
+def mixed_pile(
+    scene: warpfem.Scene,
+    meshes: list[tuple[str, int]],
+    copies: int = 2,
+    sizes: tuple[float, float] = (0.8, 1.5),
+    youngs: tuple[float, float] = (3e5, 1e7),
+) -> warpfem.Scene:
+    """``scene`` with ``copies`` of each ``(mesh, faces)``, in a 1.1 m grid, each turned about y, dropped 0.2 m.
+
+    Sizes (bounding-box diagonals, m) and Young's moduli (Pa) are spread evenly (the moduli on a log scale)
+    over the bodies, in orders that do not pair the largest with the stiffest.
+    """
+    from warpfem.build import euler_rotation
+    from warpfem.prep.surface import read_triangles, source_file
+
+    n = copies * len(meshes)
+    rng = np.random.default_rng(n)
+    side = min(4, math.ceil(math.sqrt(n)))
+    size = np.linspace(*sizes, n)
+    young = np.geomspace(*youngs, n)[rng.permutation(n)]
+    bounds = {mesh: read_triangles(source_file(mesh) or mesh)[0] for mesh, _ in meshes}
+    objects = []
+    for i in range(n):
+        mesh, faces = meshes[i % len(meshes)]
+        layer, cell = divmod(i, side * side)
+        row, col = divmod(cell, side)
+        lo, hi = bounds[mesh].min(axis=0), bounds[mesh].max(axis=0)
+        scale = size[i] / float(np.linalg.norm(hi - lo))
+        rotate = (0.0, float(rng.uniform(0, 360)), 0.0)
+        centre = scale * euler_rotation(rotate) @ ((lo + hi) / 2)
+        height = 0.2 + scale * (hi[1] - lo[1]) / 2 + 1.6 * layer
+        target = np.array([1.1 * (col - (side - 1) / 2), height, 1.1 * (row - (side - 1) / 2)])
+        objects.append(
+            ObjectConfig(
+                name=f"body_{i}",
+                mesh=mesh,
+                faces=faces,
+                scale=scale,
+                rotate=rotate,
+                translate=tuple(float(t) for t in target - centre),
+                young=float(young[i]),
                 poisson=0.3,
                 density=1000.0,
                 damping_stiffness=0.005,
@@ -473,7 +525,7 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
-    parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,cg")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,mixed,cg")
     parser.add_argument(
         "--cg-paths",
         default="auto",
@@ -513,13 +565,16 @@ def main(argv=None) -> int:
     cg_paths = [p for p in args.cg_paths.split(",") if p]
     if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
         parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
-    if skip - {"paper", "piles", "cg"}:
-        parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - {'paper', 'piles', 'cg'}))}")
+    parts = {"paper", "piles", "mixed", "cg"}
+    if skip - parts:
+        parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - parts))}")
     scene_defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
 
     if args.quick:
         work = [("pile", n, pile(scene_defaults, n, "builtin:bunny", 300, scale=0.5)) for n in (1, 2)]
+        ball = str(ROOT / "tests" / "data" / "golden" / "ball.obj")
+        work.append(("mixed", 2, mixed_pile(scene_defaults, [("builtin:bunny", 300), (ball, 120)], copies=1)))
         frames, cg_cells = 5, (8, 8, 8)
     else:
         armadillo = str((args.assets / "armadillo.off").resolve())
@@ -538,6 +593,9 @@ def main(argv=None) -> int:
         if "piles" not in skip:
             for n in args.piles:
                 work.append(("pile", n, pile(scene_defaults, n, armadillo, 500)))
+        if "mixed" not in skip:
+            meshes = [(str((args.assets / name).resolve()), faces) for name, faces in MIXED]
+            work.append(("mixed", 2 * len(MIXED), mixed_pile(scene_defaults, meshes)))
         frames, cg_cells = args.frames, (60, 60, 52)
 
     work += [
@@ -556,7 +614,7 @@ def main(argv=None) -> int:
     for (kind, n, scene), cg_path in itertools.product(work, cg_paths):
         t0 = time.perf_counter()
         path = None if cg_path == "auto" else cg_path
-        measured = kind != "pile" or n in args.deviation
+        measured = kind not in ("pile", "mixed") or (kind == "pile" and n in args.deviation)
         run = time_scene(scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
             run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)

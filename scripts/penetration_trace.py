@@ -3,6 +3,9 @@
     .venv/bin/python scripts/penetration_trace.py scenes/paper_a_armadillo_stack.toml --every 3
     .venv/bin/python scripts/penetration_trace.py scenes/paper_c_two_bodies.toml --set ground.stiffness=1e8
     .venv/bin/python scripts/penetration_trace.py scenes/default.toml --contact-passes 0 --frames 60
+    .venv/bin/python scripts/penetration_trace.py --pile 16 --set object.faces=1000
+
+``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
 Runs the scene through the public API and checks the dense meshes alone (``warpfem.io.penetration``: a
 vertex inside another body's dense surface by winding number, the lowest point against the ground and the
@@ -33,24 +36,66 @@ def override(doc: dict, setting: str) -> None:
         doc.setdefault(section, {})[key] = value
 
 
+def replaced(scene, setting: str):
+    """``scene`` (a ``warpfem.Scene``) with ``section.key=value`` set (``object.key`` on every object)."""
+    import dataclasses
+
+    doc = {"object": [{}]}
+    override(doc, setting)
+    section = setting.partition(".")[0]
+    values = doc[section][0] if section == "object" else doc[section]
+    if section == "object":
+        return dataclasses.replace(scene, objects=[dataclasses.replace(o, **values) for o in scene.objects])
+    if section == "scene":
+        return dataclasses.replace(scene, **values)
+    return dataclasses.replace(scene, **{section: dataclasses.replace(getattr(scene, section), **values)})
+
+
+def load(args):
+    """The scene of ``args``: its file with ``--set`` applied, or bench.py's pile of ``--pile`` armadillos."""
+    import warpfem
+
+    if args.pile:
+        sys.path.insert(0, str(ROOT / "scripts"))
+        from bench import pile
+
+        defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
+        scene = pile(defaults, args.pile, str((args.assets / "armadillo.off").resolve()), 500)
+        for setting in args.set:
+            scene = replaced(scene, setting)
+        scene.validate()
+        return scene
+    doc = tomllib.loads(args.scene.read_text())
+    for setting in args.set:
+        override(doc, setting)
+    return warpfem.Scene.from_dict(doc, base_dir=args.scene.parent, name=args.scene.stem)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("scene", type=Path)
+    parser.add_argument("scene", type=Path, nargs="?")
+    parser.add_argument("--pile", type=int, default=0, help="bench.py's pile of this many armadillos instead")
+    parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
     parser.add_argument("--frames", type=int, help="frames to run (default: the scene's)")
     parser.add_argument("--every", type=int, default=1, help="check every Nth frame (and the last)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--contact-passes", type=int, help="the solver's late-contact passes (default: its own)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = parser.parse_args(argv)
+    if (args.scene is None) == (args.pile <= 0):
+        parser.error("give a scene file or --pile N (N > 0), not both")
 
     import warpfem
     from warpfem.io.penetration import frame_penetration
 
-    doc = tomllib.loads(args.scene.read_text())
-    for setting in args.set:
-        override(doc, setting)
-    scene = warpfem.Scene.from_dict(doc, base_dir=args.scene.parent, name=args.scene.stem)
-    sim = warpfem.Simulation(scene, device=args.device)
+    try:
+        scene = load(args)
+    except (warpfem.InputError, TypeError) as err:  # a bad value, or a key the section does not have
+        raise SystemExit(f"penetration_trace: {err}") from None
+    sim = warpfem.Simulation(scene, device=args.device, cache_dir=ROOT / ".warpfem-cache" if args.pile else None)
     if args.contact_passes is not None:
         sim.solver.contact_passes = args.contact_passes
     frames = args.frames or scene.frames

@@ -35,7 +35,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
     env = result["environment"]
     assert env["warp"] and env["commit"] and env["device_alias"] == "cpu"
     runs = result["runs"]
-    assert [r["n"] for r in runs] == [1, 2]
+    assert [(r["kind"], r["n"]) for r in runs] == [("pile", 1), ("pile", 2), ("mixed", 2)]
     assert runs[1]["tets"] == 2 * runs[0]["tets"] and runs[1]["dense_triangles"] == 2 * runs[0]["dense_triangles"]
     for run in runs:
         assert run["ms_per_frame"] > 0 and run["cg_iterations_per_step"] > 0
@@ -44,6 +44,9 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         # the phase split re-ran the timed frames from their start: on the CPU it ends where they ended
         assert run["phase_rerun_gap_m"] == 0.0
     assert "collision" in runs[1]["phase_ms"] and "collision" not in runs[0]["phase_ms"]
+    mixed = runs[2]  # a bunny and a ball: its own dense check over the run and at the end, the ground included
+    assert mixed["bodies"] == 2 and mixed["dense_check"]["frames_checked"] == 6 and "frame_error" not in mixed
+    assert {"relative", "below_relative"} <= set(mixed["dense_check"]["end"]) & set(mixed["dense_check"]["worst"])
     assert all(run["cg_tolerance"] == 1e-4 for run in runs)  # the default scene's
     error = runs[0]["frame_error"]  # one frame against converged CG, from the same state
     assert error["converged_cg_tolerance"] == 1e-6 and 0.0 <= error["rms_m"] <= error["max_m"] < 1e-3
@@ -96,3 +99,27 @@ def test_frame_error_is_the_cg_error_of_one_frame_and_leaves_the_state(tmp_path)
     # against itself the converged run differs by nothing: the figure isolates CG from everything else
     assert errors[bench.CONVERGED_CG] == 0.0
     assert 0.0 < errors[1e-4] < 1e-2 * errors[1e-1]
+
+
+def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_above_the_ground(tmp_path):
+    """Each body of the mixed pile, placed as the scene places it (read back with trimesh), has the size asked
+    for (its own bounding box's diagonal), its lowest point 0.2 m above the ground and a box apart from the
+    others'; the moduli are the log-spaced ones, each once."""
+    import trimesh
+
+    from warpfem.build import euler_rotation
+
+    ball = str(ROOT / "tests" / "data" / "golden" / "ball.obj")
+    box = str(tmp_path / "box.obj")
+    trimesh.creation.box(extents=(2.0, 1.0, 3.0)).export(box)
+    scene = load_scene(ROOT / "scenes" / "default.toml")
+    mixed = bench.mixed_pile(scene, [(ball, 120), (box, 100)], copies=3, sizes=(0.5, 1.0), youngs=(1e5, 1e7))
+    assert [o.mesh for o in mixed.objects] == [ball, box] * 3
+    own = [obj.scale * trimesh.load(obj.mesh, force="mesh").vertices for obj in mixed.objects]
+    placed = [v @ euler_rotation(o.rotate).T + np.asarray(o.translate) for v, o in zip(own, mixed.objects, strict=True)]
+    np.testing.assert_allclose([np.linalg.norm(np.ptp(v, axis=0)) for v in own], np.linspace(0.5, 1.0, 6))
+    np.testing.assert_allclose([p[:, 1].min() for p in placed], 0.2, atol=1e-9)
+    np.testing.assert_allclose(sorted(o.young for o in mixed.objects), np.geomspace(1e5, 1e7, 6))
+    for i, a in enumerate(placed):
+        for b in placed[i + 1 :]:
+            assert np.any(a.min(axis=0) > b.max(axis=0)) or np.any(b.min(axis=0) > a.max(axis=0))

@@ -250,7 +250,12 @@ chosen ones, along its own normal, by more than this fraction of the body's size
 dense surface dips at most this far below what the ground holds (docs/decisions.md)."""
 
 SKIN_ROUNDS = 8
-"""Refinement rounds of the skin samples (each adds the vertices that stick out most, a few per cell)."""
+"""Refinement rounds of the skin and collision samples (each adds the vertices that stick out most, a few per
+cell)."""
+
+COLLISION_TOLERANCE = 0.001
+"""The collision samples are refined until no dense vertex sticks out past its nearest ones, along its own
+normal, by more than this fraction of the body's size (docs/decisions.md)."""
 
 
 @dataclass(frozen=True)
@@ -285,31 +290,42 @@ def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float) -> SurfaceSamples:
-    """Collision samples every ``spacing`` (m) and skin samples every half of it, refined to ``tolerance`` (m).
+    """Collision samples every ``spacing`` (m) and skin samples every half of it, each set refined.
 
-    The skin's denser grid bounds how far a dense vertex lies from a skin point, so a tilted patch between
-    them dips less. A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest
-    chosen ``s``; each round adds, per cell of a quarter of the spacing, the vertex that sticks out most
-    past ``tolerance``.
+    The collision samples are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a tip or an
+    edge between grid points (an ear, a finger, a thin bar's corner) would otherwise sink into another body
+    unseen. The skin, for the static colliders, to ``tolerance`` (m); its denser grid bounds how far a dense
+    vertex lies from a skin point, so a tilted patch between them dips less.
+    """
+    x = np.asarray(positions, np.float64)
+    normal = vertex_normals(x, faces)
+    size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+    collision = refined(x, normal, grid_picks(x, spacing), spacing, COLLISION_TOLERANCE * size)
+    skin = refined(x, normal, np.union1d(collision, grid_picks(x, spacing / 2.0)), spacing, tolerance)
+    return SurfaceSamples(collision, skin)
+
+
+def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: float, tolerance: float) -> np.ndarray:
+    """``chosen`` vertices of ``x`` (with unit normals ``normal``) plus those that stick out past them.
+
+    A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest chosen ``s``; each of
+    :data:`SKIN_ROUNDS` rounds adds, per cell of a quarter of ``spacing``, the vertex that sticks out most past
+    ``tolerance`` (m).
     """
     from scipy.spatial import cKDTree
 
-    x = np.asarray(positions, np.float64)
-    normal = vertex_normals(x, faces)
-    grid = grid_picks(x, spacing)
-    skin = np.union1d(grid, grid_picks(x, spacing / 2.0))
     for _ in range(SKIN_ROUNDS):
-        _, near = cKDTree(x[skin]).query(x, k=min(8, len(skin)))
+        _, near = cKDTree(x[chosen]).query(x, k=min(8, len(chosen)))
         near = near.reshape(len(x), -1)
-        out = np.einsum("vkj,vj->vk", x[:, None, :] - x[skin][near], normal).min(axis=1)
+        out = np.einsum("vkj,vj->vk", x[:, None, :] - x[chosen][near], normal).min(axis=1)
         bad = np.flatnonzero(out > tolerance)
         if len(bad) == 0:
             break
         order = bad[np.argsort(-out[bad])]
         cell = np.floor((x[order] - x.min(axis=0)) / (spacing / 4.0)).astype(np.int64)
         _, first = np.unique(cell, axis=0, return_index=True)
-        skin = np.union1d(skin, order[first])
-    return SurfaceSamples(grid, skin)
+        chosen = np.union1d(chosen, order[first])
+    return chosen
 
 
 def dense_samples(
