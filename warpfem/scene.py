@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
+from warpfem.presets import PRESETS
 
 Vec3 = tuple[float, float, float]
 
@@ -121,43 +122,6 @@ def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ..
     if value not in choices or not isinstance(value, str):
         allowed = " or ".join(f'"{c}"' for c in choices)
         raise err(key, f"must be {allowed}, got {_shown(value)}")
-
-
-PRESETS: dict[str, dict[str, object]] = {
-    "preview": dict(
-        substeps=1,
-        cg_mode="fixed",
-        cg_iterations=10,
-        cg_tolerance=1e-4,
-        faces=250,
-        maxh=0.3,
-        tets_across=0.0,
-        max_tets=50000,
-    ),
-    "default": dict(
-        substeps=2,
-        cg_mode="tolerance",
-        cg_iterations=200,
-        cg_tolerance=1e-3,
-        faces=1000,
-        maxh=0.2,
-        tets_across=4.0,
-        max_tets=6000,
-    ),
-    "high": dict(
-        substeps=8,
-        cg_mode="tolerance",
-        cg_iterations=1000,
-        cg_tolerance=1e-5,
-        faces=2000,
-        maxh=0.15,
-        tets_across=8.0,
-        max_tets=30000,
-    ),
-}
-"""Quality presets a scene names as ``[solver] quality = "<name>"``: defaults for the scene's ``substeps``, the
-solver's ``cg_mode``, ``cg_iterations``, ``cg_tolerance`` and each object's ``faces``, ``maxh``, ``tets_across``
-and ``max_tets``; keys the scene file sets itself win. Each is a measured point (docs/tradeoff.md)."""
 
 
 def _apply_preset(doc: dict[str, Any], origin: str) -> None:
@@ -494,9 +458,8 @@ class ObjectConfig:
         faces: Target triangle count of the QEM-simplified coarse surface (100..20000).
         maxh: Netgen's maximum element size, relative to the coarse surface's bounding box
             diagonal (0 < maxh <= 1).
-        tets_across: Tets across the body's thickness (>= 0): the tet size and the coarse face count are
-            chosen from the thickness of the body's thin parts (within ``max_tets``; ``maxh`` stays the
-            largest size, ``faces`` the fewest faces). 0: sized by ``faces`` and ``maxh`` alone.
+        tets_across: Tets across the body's thin parts (>= 0; ``maxh`` the largest size, ``faces`` the fewest
+            faces): :func:`warpfem.prep.sizing.size_from_thickness`. 0: ``faces`` and ``maxh`` alone.
         max_tets: The tet budget of sizing by thickness (100..1000000).
         young: Young's modulus (Pa, > 0).
         poisson: Poisson's ratio (0 <= nu < 0.5).
