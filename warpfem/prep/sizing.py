@@ -2,13 +2,11 @@
 
 Linear tets are too stiff in bending when a thin part is only one or two tets thick (a 10:1 cantilever
 with two tets across sags half as far as it should). The size is therefore chosen from the body's
-thickness, not its bounding box: the local thickness at surface samples is the diameter of the largest
-ball inside the body touching the surface there (the shrinking-ball medial-axis estimate: each ball starts
-large and shrinks to pass through the nearest surface point it contains), a low percentile of those
-diameters is the body's thickness, and the tets are sized to put ``across`` of them over it. A tet budget
-bounds the result, so a body with a few thin features does not become hundreds of thousands of tets, and
-the coarse surface gets enough faces for triangles of that size (Netgen keeps the surface, so the tets at
-the boundary are as large as its triangles).
+thickness, not its bounding box: the local thickness at a surface vertex is the distance through the body
+along its inward normal (a ray cast), a low percentile of those is the body's thickness, and the tets are
+sized to put ``across`` of them over it. A tet budget bounds the result, so a body with a few thin features
+does not become hundreds of thousands of tets, and the coarse surface gets enough faces for triangles of
+that size (Netgen keeps the surface, so the tets at the boundary are as large as its triangles).
 """
 
 from __future__ import annotations
