@@ -58,7 +58,7 @@ def test_sweep_rows_are_consistent(device, tmp_path):
 
 
 def test_presets_use_scene_keys():
-    keys = {"substeps", "cg_mode", "cg_iterations", "cg_tolerance", "faces", "maxh"}
+    keys = {"substeps", "cg_mode", "cg_iterations", "cg_tolerance", "faces", "maxh", "tets_across", "max_tets"}
     for preset in PRESETS.values():
         assert set(preset) == keys
         assert preset["cg_mode"] in ("fixed", "tolerance")

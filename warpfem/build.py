@@ -56,7 +56,7 @@ def prepare_scene(
     done: dict[tuple[Any, ...], PreparedBody] = {}
     prepared = []
     for obj in scene.objects:
-        key = (obj.mesh, obj.prim, obj.faces, obj.subdivide, obj.maxh)
+        key = (obj.mesh, obj.prim, obj.faces, obj.subdivide, obj.maxh, obj.tets_across, obj.max_tets)
         if key not in done:
             say = None if progress is None else (lambda message, name=obj.name: progress(name, message))
             try:
@@ -68,6 +68,8 @@ def prepare_scene(
                     cache_dir=cache_dir,
                     progress=say,
                     prim=obj.prim,
+                    across=obj.tets_across,
+                    max_tets=obj.max_tets,
                 )
             except InputError as err:
                 raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None

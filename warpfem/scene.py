@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
+from warpfem.presets import PRESETS
 
 Vec3 = tuple[float, float, float]
 
@@ -122,16 +123,6 @@ def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ..
         raise err(key, f"must be {allowed}, got {_shown(value)}")
 
 
-PRESETS: dict[str, dict[str, object]] = {
-    "preview": dict(substeps=1, cg_mode="fixed", cg_iterations=10, cg_tolerance=1e-4, faces=250, maxh=0.3),
-    "default": dict(substeps=2, cg_mode="tolerance", cg_iterations=200, cg_tolerance=1e-3, faces=1000, maxh=0.2),
-    "high": dict(substeps=8, cg_mode="tolerance", cg_iterations=1000, cg_tolerance=1e-5, faces=2000, maxh=0.15),
-}
-"""Quality presets a scene names as ``[solver] quality = "<name>"``: defaults for the scene's ``substeps``, the
-solver's ``cg_mode``, ``cg_iterations``, ``cg_tolerance`` and each object's ``faces`` and ``maxh``; keys the
-scene file sets itself win. Each is a point on the measured Pareto front (docs/tradeoff.md)."""
-
-
 def _apply_preset(doc: dict[str, Any], origin: str) -> None:
     """Fill the keys a ``[solver] quality`` preset sets, where the scene file leaves them unset."""
     solver = doc.get("solver")
@@ -148,8 +139,8 @@ def _apply_preset(doc: dict[str, Any], origin: str) -> None:
         solver.setdefault(key, preset[key])
     for obj in doc.get("object", []) if isinstance(doc.get("object"), list) else []:
         if isinstance(obj, dict):
-            obj.setdefault("faces", preset["faces"])
-            obj.setdefault("maxh", preset["maxh"])
+            for key in ("faces", "maxh", "tets_across", "max_tets"):
+                obj.setdefault(key, preset[key])
 
 
 @dataclass
@@ -472,6 +463,9 @@ class ObjectConfig:
         faces: Target triangle count of the QEM-simplified coarse surface (100..20000).
         maxh: Netgen's maximum element size, relative to the coarse surface's bounding box
             diagonal (0 < maxh <= 1).
+        tets_across: Tets across the body's thin parts (>= 0; ``maxh`` the largest size, ``faces`` the fewest
+            faces): :func:`warpfem.prep.sizing.size_from_thickness`. 0: ``faces`` and ``maxh`` alone.
+        max_tets: The tet budget of sizing by thickness (100..1000000).
         young: Young's modulus (Pa, > 0).
         poisson: Poisson's ratio (0 <= nu < 0.5).
         density: Mass density (kg/m^3, > 0).
@@ -493,6 +487,8 @@ class ObjectConfig:
     angular_velocity: Vec3 = (0.0, 0.0, 0.0)
     faces: int = 1000
     maxh: float = 0.2
+    tets_across: float = 0.0
+    max_tets: int = 50000
     young: float = 1e5
     poisson: float = 0.3
     density: float = 1000.0
@@ -524,6 +520,8 @@ class ObjectConfig:
             _check_vec3(err, key, getattr(self, key))
         _check_int(err, "faces", self.faces, 100, 20000)
         _check_range(err, "maxh", self.maxh, gt=0.0, le=1.0)
+        _check_range(err, "tets_across", self.tets_across, ge=0.0, le=64.0)
+        _check_int(err, "max_tets", self.max_tets, 100, 1000000)
         _check_range(err, "young", self.young, "Pa", gt=0.0)
         _check_range(err, "poisson", self.poisson, ge=0.0, lt=0.5)
         _check_range(err, "density", self.density, "kg/m^3", gt=0.0)

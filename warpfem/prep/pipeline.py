@@ -36,6 +36,7 @@ from warpfem.errors import InputError
 from warpfem.prep import geometry
 from warpfem.prep.embedding import embed
 from warpfem.prep.geometry import LATTICE_POINTS, SurfaceSamples, face_lattice, surface_samples
+from warpfem.prep.sizing import DEFAULT_MAX_TETS, SIZING_FORMAT
 from warpfem.prep.surface import Surface, load_surface, source_file, subdivide_surface
 
 CACHE_FORMAT = 3
@@ -435,13 +436,34 @@ def _tet_mesh(
     return coarse_v, coarse_f, tet_v, tets, quality
 
 
+def _sized(
+    unit: Surface, faces: int, maxh: float, across: float, max_tets: int, say: Callable[[str], None]
+) -> tuple[int, float, dict[str, float | int | str]]:
+    """The face count and maxh (unit diagonal) sized from the body's thickness, and what was chosen, as stats."""
+    from warpfem.prep.sizing import size_from_thickness
+
+    if not across:
+        return faces, maxh, {}
+    say(f"{unit.source}: sizing tets to {across:g} across the body's thickness")
+    sizing = size_from_thickness(unit.vertices, unit.faces, across, max_tets, faces, maxh)
+    stats = {"tets_across": across, "max_tets": max_tets, "sizing_capped": int(sizing.capped)}
+    return sizing.faces, sizing.maxh, stats | {"thickness_relative": sizing.thickness}
+
+
 def _build(
-    dense: Surface, faces: int, maxh: float, timeout_s: float, deadline: float, say: Callable[[str], None]
+    dense: Surface,
+    faces: int,
+    maxh: float,
+    timeout_s: float,
+    deadline: float,
+    say: Callable[[str], None],
+    sizing: tuple[float, int] = (0.0, 0),
 ) -> tuple[dict[str, np.ndarray], dict[str, float | int | str]]:
     """Climb the retry ladder to a valid tet mesh, then embed and compute the distance field and stats.
 
     ``dense`` is in the caller's coordinates; the work is done on a copy scaled to a unit diagonal. No rung
-    starts after ``deadline`` (a :func:`time.perf_counter` value).
+    starts after ``deadline`` (a :func:`time.perf_counter` value). ``sizing`` is (tets across, tet budget)
+    for :func:`warpfem.prep.sizing.size_from_thickness`; 0 tets across: ``faces`` and ``maxh`` as given.
     """
     from warpfem.prep.distance import distance_field, hausdorff
     from warpfem.prep.intersect import intersecting_faces
@@ -458,6 +480,9 @@ def _build(
     # a surface crossing itself or overlapping shells count some volume twice: the outer surface's is used
     clean = dense_pairs == 0 and not dense.overlapping
     volume = signed_volume(unit.vertices, unit.faces)
+    clock = time.perf_counter()
+    faces, maxh, sized = _sized(unit, faces, maxh, *sizing, say)
+    seconds["sizing"] = time.perf_counter() - clock
     attempt = _Attempt(unit, faces, timeout_s, say, volume, clean, {}, seconds, deadline)
     failures = []
     for index, rung in enumerate(LADDER):
@@ -517,7 +542,10 @@ def _build(
         "embedding_coverage": float(np.mean(embed_bary.min(axis=1) >= -INSIDE_EPS)),
         "embedding_max_error": float(np.abs(rebuilt - unit.vertices).max()),
         "max_depth": float(depth.max()) * scale,
+        **sized,
     }
+    if sized:
+        stats["thickness"] = sized["thickness_relative"] * scale
     stats.update({f"seconds_{stage}": value for stage, value in seconds.items()})
     arrays = {
         "coarse_vertices": coarse_v * scale + center,
@@ -554,6 +582,8 @@ def prepare(
     shells: str | int = "merge",
     max_hole: float | None = None,
     prim: str | None = None,
+    across: float = 0.0,
+    max_tets: int = DEFAULT_MAX_TETS,
 ) -> PreparedBody:
     """Preprocess one body, or load it from the cache.
 
@@ -573,6 +603,10 @@ def prepare(
         max_hole: Largest hole closed automatically, relative to the bounding-box diagonal (None: the
             default :data:`warpfem.prep.repair.MAX_HOLE_FRACTION`; 0: none).
         prim: For a USD file, the ``UsdGeom.Mesh`` prim's path (None: the file's only mesh).
+        across: Tets across the body's thickness (:mod:`warpfem.prep.sizing`): Netgen's size and the coarse
+            face count are chosen to put this many over it, within ``max_tets``; ``maxh`` stays the upper
+            bound of the size and ``faces`` the lower bound of the count. 0: ``faces`` and ``maxh`` alone.
+        max_tets: The tet budget of sizing by thickness (about this many tets at most; ignored at 0 across).
 
     Returns:
         The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off),
@@ -584,7 +618,9 @@ def prepare(
         (mesh units), ``hausdorff`` (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to
         the bounding-box diagonal and each one-sided value), ``embedding_coverage`` (fraction of dense
         vertices inside a tet), ``embedding_max_error`` (max reconstruction error / bbox diagonal),
-        ``max_depth`` and ``seconds_<stage>`` for load, validate, outer and remesh (if used), simplify,
+        ``max_depth``, with ``across``: ``thickness`` (mesh units; ``thickness_relative`` to the diagonal),
+        ``tets_across``, ``max_tets`` and ``sizing_capped`` (1 if the budget set the size), and
+        ``seconds_<stage>`` for load, validate, sizing, outer and remesh (if used), simplify,
         tetrahedralize, embed, distance, hausdorff (on a cache hit, those of the run that filled the
         cache, plus ``seconds_cache_read``).
 
@@ -599,9 +635,13 @@ def prepare(
         raise InputError(f"{mesh}: faces must be >= 4, got {faces}")
     if not maxh > 0:
         raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
+    if not (0 <= across < float("inf")) or (across and max_tets < 1):
+        raise InputError(f"{mesh}: across must be >= 0 and finite and max_tets >= 1, got {across} and {max_tets}")
     clock = time.perf_counter()
     say(f"{mesh}: loading")
     options = f"shells={shells!r} max_hole={max_hole!r}" + (f" prim={prim!r}" if prim is not None else "")
+    if across:
+        options += f" sizing=v{SIZING_FORMAT} across={across!r} max_tets={max_tets}"
     index = None
     if cache_dir is not None:
         index = _source_index(cache_dir, mesh, f"faces={faces} subdivide={subdivide} maxh={maxh!r} {options}")
@@ -624,7 +664,7 @@ def prepare(
     dense = subdivide_surface(surface, subdivide)
     seconds_load += time.perf_counter() - clock
     deadline = started + budget_s if budget_s is not None else float("inf")
-    arrays, built = _build(dense, faces, maxh, timeout_s, deadline, say)
+    arrays, built = _build(dense, faces, maxh, timeout_s, deadline, say, (across, max_tets))
     stats: dict[str, float | int | str] = {
         "mesh": str(mesh),
         "repairs": "; ".join(dense.repairs) or "none",

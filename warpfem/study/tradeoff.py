@@ -561,7 +561,8 @@ def plot(path: Path, rows: list[Row], title: str) -> None:
 
 PRESET_SETTINGS: dict[str, Setting] = {
     "preview": Setting("preset preview", cells=1, substeps=1, cg_mode="fixed", cg_iterations=10),
-    "default": Setting("preset default", cells=3, substeps=2, cg_tolerance=1e-3, cg_iterations=200),
-    "high": Setting("preset high", cells=3, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
+    "default": Setting("preset default", cells=4, substeps=2, cg_tolerance=1e-3, cg_iterations=200),
+    "high": Setting("preset high", cells=8, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
 }
-"""The measured-scene counterpart of each preset (the beam's ``cells`` standing in for ``faces``/``maxh``)."""
+"""The measured-scene counterpart of each preset: the beam's ``cells`` across its thickness stand in for the
+preset's ``tets_across`` (preview, which sizes by ``faces``/``maxh``, by one cell)."""
