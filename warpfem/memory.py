@@ -25,17 +25,18 @@ if TYPE_CHECKING:
     from warpfem.prep.pipeline import PreparedBody
     from warpfem.scene import Scene
 
-VERTEX_BYTES = 284
+VERTEX_BYTES = 308
 """Device bytes per tet vertex: rest/initial x and v, 2 states (x, v, dv), mass, damping, pins, depth and gradient,
 CSR row and diagonal slot, force, rhs, CG direction, inverse diagonal block, 5 CG vectors and zero ones,
-collision gradient, body index."""
+collision gradient, body index, and the elastic force and right-hand side kept apart for rotation updates."""
 
 TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
 16 matrix slots, rotation."""
 
-BLOCK_BYTES = 43
-"""Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table."""
+BLOCK_BYTES = 115
+"""Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table, and
+the elastic and other blocks kept apart for rotation updates."""
 
 GATHER_BLOCK_BYTES = 18
 """More bytes per stored block where CG's product gathers (on CUDA up to ``warpfem.sim.cg.GATHER_MAX_ROWS`` rows;
