@@ -69,8 +69,11 @@ def raw_write_seconds(path: Path, frame_bytes: int, frames: int) -> float:
 def run_case(case: str, args: argparse.Namespace) -> dict:
     """Run one case in this process and return its figures."""
     import warpfem
+    import warpfem.io.usd_workers as workers
     from warpfem.io.usd import clips_folder
 
+    if args.writers is not None:  # what UsdWriter asks for by default
+        workers.default_workers = lambda: args.writers
     scene = case_scene(case, args.assets, args.frames)
     folder = Path(args.workdir)
     out = folder / f"{case}.usdc"
@@ -91,6 +94,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / summary.frames,
         "write_over_raw": summary.seconds["write"] / raw,
+        "writers": workers.default_workers(),
         "wall_over_larger_of_simulate_and_write": summary.seconds["wall"]
         / max(summary.seconds["simulate"], summary.seconds["write"]),
         "seconds": {k: summary.seconds[k] for k in ("prepare", "build") if k in summary.seconds},
@@ -113,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
+    parser.add_argument("--writers", type=int, help="writer processes (0: none)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.quick:
@@ -131,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         for case in args.cases.split(","):
             cmd = [sys.executable, __file__, "--one", case, "--device", device.alias, "--frames", str(args.frames)]
             cmd += ["--assets", str(args.assets), "--cache-dir", str(args.cache_dir), "--workdir", folder]
+            cmd += [] if args.writers is None else ["--writers", str(args.writers)]
             done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if done.returncode != 0:
                 results["runs"].append({"case": case, "error": done.stderr.strip().splitlines()[-1:]})
@@ -141,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
             ms = run["ms_per_frame"]
             print(
                 f"{case:8s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
-                f"  raw {run['raw_write_ms_per_frame']:6.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
+                f"  raw {run['raw_write_ms_per_frame']:6.2f}  writers {run['writers']}"
+                f" {ms['write_workers']:7.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
                 f"  peak {run['peak_rss_mb']:7.0f} MB  file {run['file_bytes'] / 2**20:7.0f} MB"
             )
     args.out.mkdir(parents=True, exist_ok=True)
