@@ -2,15 +2,17 @@
 
 Each case runs in a child process through ``warpfem.run`` (the real writer on its background thread, to a
 real file), then writes the same bytes raw to the same folder (the floor any writer pays). Per frame: wall
-(first step to file written), simulate, write and check (on the writer's thread), waiting for the writer,
-and the raw write; the child's peak resident memory; the file's size on disk. One JSON per run under
-scripts/results/.
+(first step to file written), simulate, write and check (on threads beside it), waiting for the writer,
+the raw write, and the time the writer processes spent authoring and exporting (summed over them, in
+parallel with the rest); the child's peak resident memory and the largest of its writer processes'; the
+file's size on disk. One JSON per run under scripts/results/.
 
     python scripts/bench_end_to_end.py --quick                # CPU: the default scene and paper C, 30 frames
     python scripts/bench_end_to_end.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU: all cases
 
-Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), or any shipped scene by name
-(default, shake, slide). Meshes must
+Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), any shipped scene by name
+(default, shake, slide), or the writer alone taking frames of N points as fast as it can (writerN; the
+default scene has 97602). Meshes must
 already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
 """
 
@@ -66,14 +68,56 @@ def raw_write_seconds(path: Path, frame_bytes: int, frames: int) -> float:
     return seconds
 
 
+def writer_case(vertices: int, args: argparse.Namespace) -> dict:
+    """The writer alone: ``args.frames`` + 1 frames of one body of ``vertices`` points, as fast as it takes them.
+
+    Each frame differs from the last (as a simulation's do: usd-core's crate stores a repeated array once).
+    """
+    import numpy as np
+
+    import warpfem.io.usd as usd
+    from warpfem.io.usd import UsdWriter
+
+    rng = np.random.default_rng(0)
+    points = rng.random((vertices, 3), dtype=np.float32)
+    faces = rng.integers(0, vertices, (2 * vertices, 3))
+    out = Path(args.workdir) / f"writer{vertices}.usdc"
+    writer = UsdWriter(out, [("body", faces)], fps=60.0)
+    time.sleep(1.0)  # as in a run, the writer processes start while the simulation is built
+    clock = time.perf_counter()
+    with writer:
+        for frame in range(args.frames + 1):
+            points[frame % vertices] += 1.0
+            writer.add_frame(frame, [points])
+    write = time.perf_counter() - clock
+    raw = raw_write_seconds(out.with_suffix(".raw"), 12 * vertices, args.frames + 1)
+    per = {"wall": 1e3 * write / args.frames, "write": 1e3 * write / args.frames}
+    per.update(simulate=0.0, check=0.0, wait=0.0, write_workers=1e3 * writer.export_seconds / args.frames)
+    return {
+        "case": f"writer{vertices}",
+        "frames": args.frames,
+        "dense_vertices": vertices,
+        "ms_per_frame": per,
+        "raw_write_ms_per_frame": 1e3 * raw / args.frames,
+        "write_over_raw": write / raw,
+        "writers": usd.default_workers(),
+        "file_bytes": out.stat().st_size + sum(p.stat().st_size for p in out.with_suffix(".clips").glob("*")),
+        "clips": writer.chunks > 0,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "writer_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+    }
+
+
 def run_case(case: str, args: argparse.Namespace) -> dict:
     """Run one case in this process and return its figures."""
     import warpfem
-    import warpfem.io.usd_workers as workers
+    import warpfem.io.usd as usd
     from warpfem.io.usd import clips_folder
 
     if args.writers is not None:  # what UsdWriter asks for by default
-        workers.default_workers = lambda: args.writers
+        usd.default_workers = lambda: args.writers
+    if case.startswith("writer") and case[6:].isdigit():
+        return writer_case(int(case[6:]), args)
     scene = case_scene(case, args.assets, args.frames)
     folder = Path(args.workdir)
     out = folder / f"{case}.usdc"
@@ -94,7 +138,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / summary.frames,
         "write_over_raw": summary.seconds["write"] / raw,
-        "writers": workers.default_workers(),
+        "writers": usd.default_workers(),
         "wall_over_larger_of_simulate_and_write": summary.seconds["wall"]
         / max(summary.seconds["simulate"], summary.seconds["write"]),
         "seconds": {k: summary.seconds[k] for k in ("prepare", "build") if k in summary.seconds},
@@ -102,6 +146,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "file_bytes": size,
         "clips": clips.is_dir(),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "writer_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
         "penetration": {"relative": summary.penetration.relative, "below_ground": summary.penetration.below_ground},
         "cg_iterations_per_step": summary.cg_iterations_per_step,
     }
@@ -146,10 +191,11 @@ def main(argv: list[str] | None = None) -> int:
             results["runs"].append(run)
             ms = run["ms_per_frame"]
             print(
-                f"{case:8s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
+                f"{case:11s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
                 f"  raw {run['raw_write_ms_per_frame']:6.2f}  writers {run['writers']}"
                 f" {ms['write_workers']:7.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
-                f"  peak {run['peak_rss_mb']:7.0f} MB  file {run['file_bytes'] / 2**20:7.0f} MB"
+                f"  peak {run['peak_rss_mb']:5.0f} + {run['writers']} x {run['writer_peak_rss_mb']:4.0f} MB"
+                f"  file {run['file_bytes'] / 2**20:7.0f} MB"
             )
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")

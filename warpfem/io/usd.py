@@ -35,8 +35,6 @@ import numpy as np
 from warpfem.io.usd_layers import Prop, StageInfo, add_topology, export, layer
 from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
-__all__ = ["CHUNK_BYTES", "SAVE_EVERY_S", "Prop", "UsdWriter", "clips_folder"]
-
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
 _NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _MARKER = "warpfem.clips"  # the topology layer's comment: marks a clips folder as ours to replace
@@ -44,8 +42,11 @@ _MARKER = "warpfem.clips"  # the topology layer's comment: marks a clips folder 
 SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
 
-CHUNK_BYTES = 256 << 20
-"""Bytes of point samples after which a chunk is cut (one export of about this size)."""
+CHUNK_BYTES = 32 << 20
+"""Bytes of point samples after which a chunk is cut (one export of about this size).
+
+A single file is exported only once its last frame is in, so a run of one chunk waits for its whole export at
+the end; at this size that is about 30 ms, and a longer run's clips are exported while it goes on."""
 
 
 class UsdWriter:
