@@ -8,6 +8,7 @@ is inside another when the other's dense surface winds around it (Warp's fast wi
 
 from __future__ import annotations
 
+import functools
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -105,17 +106,29 @@ def _depth_behind(q: np.ndarray, v: np.ndarray, f: np.ndarray, reach: float) -> 
     a, b, c = (v[f[face, k]] for k in range(3))
     normal = np.cross(b - a, c - a)
     behind = np.einsum("ij,ij->i", q - nearest, normal) < 0
-    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
-    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
-    lone = (counts[inverse.reshape(-1)] == 1).reshape(-1, 3)
-    rim = np.zeros(len(v), bool)
-    for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
-        rim[f[lone[:, k]][:, [i, j]]] = True
+    lone, rim = _open_edges(f.tobytes(), len(v))
     w = igl.barycentric_coordinates(nearest, a, b, c) < 1e-5  # weights of a, b, c near 0: edge a-b has c's
     lone, corner = lone[face], rim[f[face]]
     on_open = (lone & w[:, [2, 0, 1]]).any(axis=1) | (corner & (w[:, [1, 2, 0]] & w[:, [2, 0, 1]])).any(axis=1)
     depth = np.sqrt(squared)
     return np.where(behind & ~on_open & (depth <= reach), depth, 0.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _open_edges(faces: bytes, vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which edges of each face (a-b, b-c, c-a) no other face shares, and which vertices lie on such an edge.
+
+    ``faces``: an (m, 3) int64 array's bytes (the key, so a mesh checked frame after frame is sorted once).
+    """
+    f = np.frombuffer(faces, np.int64).reshape(-1, 3)
+    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    lone = (counts[inverse.reshape(-1)] == 1).reshape(-1, 3)
+    rim = np.zeros(vertices, bool)
+    for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+        rim[f[lone[:, k]][:, [i, j]]] = True
+    lone.flags.writeable = rim.flags.writeable = False  # shared by every later call
+    return lone, rim
 
 
 def posed_obstacle(posed: Any) -> Obstacle:
