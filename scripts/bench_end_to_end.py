@@ -104,7 +104,7 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
         "file_bytes": out.stat().st_size + sum(p.stat().st_size for p in out.with_suffix(".clips").glob("*")),
         "clips": writer.chunks > 0,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "writer_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+        "writer_peak_rss_mb": writer.writer_peak_bytes / 2**20,
     }
 
 
@@ -146,7 +146,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "file_bytes": size,
         "clips": clips.is_dir(),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "writer_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+        "writer_peak_rss_mb": summary.writer_peak_bytes / 2**20,
         "penetration": {"relative": summary.penetration.relative, "below_ground": summary.penetration.below_ground},
         "cg_iterations_per_step": summary.cg_iterations_per_step,
     }

@@ -54,6 +54,8 @@ class RunSummary:
             frame where it is cheap), the last one always.
         penetration_end: The same at the last frame.
         penetration_frames: Frames whose bodies were checked against each other.
+        writer_peak_bytes: The largest peak resident memory of one of the processes that wrote the file (bytes;
+            0 when it was written on the writer's thread).
     """
 
     output: Path
@@ -76,6 +78,7 @@ class RunSummary:
     penetration: Penetration = field(default_factory=Penetration)
     penetration_end: Penetration = field(default_factory=Penetration)
     penetration_frames: int = 0
+    writer_peak_bytes: int = 0
 
     @property
     def ms_per_frame(self) -> float:
@@ -216,7 +219,9 @@ def record(
     seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited
     seconds["wall"] = time.perf_counter() - started
-    return _summary(sim, out, seconds, check)
+    summary = _summary(sim, out, seconds, check)
+    summary.writer_peak_bytes = writer.writer_peak_bytes
+    return summary
 
 
 def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:

@@ -179,6 +179,11 @@ class UsdWriter:
         return len(self._clips)
 
     @property
+    def writer_peak_bytes(self) -> int:
+        """The largest peak resident memory of one writer process so far (bytes; 0 with ``workers=0``)."""
+        return self._pool.peak_bytes
+
+    @property
     def export_seconds(self) -> float:
         """Time spent authoring and exporting the chunks exported so far, summed over the writer processes (s)."""
         return self._pool.seconds

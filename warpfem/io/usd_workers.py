@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import resource
 import socket
 import subprocess
 import sys
@@ -48,6 +49,7 @@ class InlinePool:
 
     Attributes:
         seconds: Time spent authoring and exporting chunks (s).
+        peak_bytes: 0 (no process of its own).
     """
 
     def __init__(self, names: Sequence[str], prop_paths: Sequence[str]) -> None:
@@ -55,6 +57,7 @@ class InlinePool:
         self._chunks: dict[int, Chunk] = {}
         self._done: list[tuple[int, int]] = []
         self.seconds = 0.0
+        self.peak_bytes = 0
 
     def add(self, chunk: int, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
         """Sample ``points`` and ``matrices`` at ``frame`` in chunk number ``chunk``."""
@@ -103,6 +106,7 @@ class ProcessPool:
 
     Attributes:
         seconds: Time the processes spent authoring and exporting chunks, summed over them (s).
+        peak_bytes: The largest peak resident memory of one process, as of its last chunk exported (bytes).
     """
 
     def __init__(self, names: Sequence[str], prop_paths: Sequence[str], workers: int) -> None:
@@ -114,6 +118,7 @@ class ProcessPool:
         self._free: list[int] = []
         self._done: list[tuple[int, int]] = []
         self.seconds = 0.0
+        self.peak_bytes = 0
         self._fd = os.memfd_create("warpfem-frames") if hasattr(os, "memfd_create") else _unlinked_file()
         path = os.pathsep.join(filter(None, [_PACKAGE_ROOT, os.environ.get("PYTHONPATH")]))
         env = {**os.environ, **_ALLOCATOR, "PYTHONPATH": path}
@@ -186,6 +191,7 @@ class ProcessPool:
                 elif message[0] == "done":
                     self._done.append(message[1:3])
                     self.seconds += message[3]
+                    self.peak_bytes = max(self.peak_bytes, 1024 * message[4])
                 else:
                     raise OSError(message[1])
                 if not conn.poll():
@@ -262,7 +268,7 @@ def _serve(conn: Connection, fd: int) -> None:
             return
         busy += time.perf_counter() - clock
         if kind != "frame":
-            conn.send(("done", number, chunk.last, busy))
+            conn.send(("done", number, chunk.last, busy, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
             chunk, busy = None, 0.0
 
 
