@@ -12,7 +12,7 @@ file's size on disk. One JSON per run under scripts/results/.
 
 Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), any shipped scene by name
 (default, shake, slide), or the writer alone taking frames of N points as fast as it can (writerN; the
-default scene has 97602). Meshes must
+default scene has 97602), with the CPU time of the caller and of the writer processes. Meshes must
 already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
 """
 
@@ -84,12 +84,15 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
     out = Path(args.workdir) / f"writer{vertices}.usdc"
     writer = UsdWriter(out, [("body", faces)], fps=60.0)
     time.sleep(1.0)  # as in a run, the writer processes start while the simulation is built
-    clock = time.perf_counter()
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    clock, cpu = time.perf_counter(), time.process_time()
     with writer:
         for frame in range(args.frames + 1):
             points[frame % vertices] += 1.0
             writer.add_frame(frame, [points])
-    write = time.perf_counter() - clock
+    write, cpu = time.perf_counter() - clock, time.process_time() - cpu
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the writer processes, waited for on closing
+    writers_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
     raw = raw_write_seconds(out.with_suffix(".raw"), 12 * vertices, args.frames + 1)
     per = {"wall": 1e3 * write / args.frames, "write": 1e3 * write / args.frames}
     per.update(simulate=0.0, check=0.0, wait=0.0, write_workers=1e3 * writer.export_seconds / args.frames)
@@ -100,6 +103,7 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / args.frames,
         "write_over_raw": write / raw,
+        "cpu_ms_per_frame": {"caller": 1e3 * cpu / args.frames, "writers": 1e3 * writers_cpu / args.frames},
         "writers": usd.default_workers(),
         "file_bytes": out.stat().st_size + sum(p.stat().st_size for p in out.with_suffix(".clips").glob("*")),
         "clips": writer.chunks > 0,
@@ -190,6 +194,11 @@ def main(argv: list[str] | None = None) -> int:
             run = json.loads(done.stdout.strip().splitlines()[-1])
             results["runs"].append(run)
             ms = run["ms_per_frame"]
+            if "cpu_ms_per_frame" in run:
+                print(
+                    f"{case:11s} CPU ms/frame: caller {run['cpu_ms_per_frame']['caller']:.2f}, writer processes "
+                    f"{run['cpu_ms_per_frame']['writers']:.2f}"
+                )
             print(
                 f"{case:11s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
                 f"  raw {run['raw_write_ms_per_frame']:6.2f}  writers {run['writers']}"
