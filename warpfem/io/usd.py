@@ -32,12 +32,11 @@ from types import TracebackType
 
 import numpy as np
 
-from warpfem.io.usd_layers import Prop, StageInfo, add_topology, export, layer
+from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export
 from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
 _NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-_MARKER = "warpfem.clips"  # the topology layer's comment: marks a clips folder as ours to replace
 
 SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
@@ -123,6 +122,8 @@ class UsdWriter:
             raise ValueError(f"save_every must be None or a finite number >= 0, got {save_every!r}")
         if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
             raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
+        import pxr.Sdf  # noqa: F401  (loaded now, before a run steps, not on its writer's thread at the first chunk)
+
         workers = default_workers() if workers is None else workers
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
             raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
@@ -303,12 +304,7 @@ class UsdWriter:
                 raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
             shutil.rmtree(folder)
         folder.mkdir()
-        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
-        topology = layer(names, prop_paths)
-        add_topology(topology, self._bodies, self._props)
-        topology.comment = _MARKER
-        self._export(topology, folder / "topology.usdc")
-        self._export(layer(names, prop_paths), folder / "manifest.usda")
+        self._pool.clip_files(folder, self._bodies, self._props)
 
     def _write_top(self) -> None:
         """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""
@@ -325,19 +321,11 @@ class UsdWriter:
         }
         world.SetInfo("clips", {"default": clips})
         StageInfo(self._up_axis, self._fps).author(top, self._clips_end)
-        self._export(top, self.path, target=True)
-
-    def _export(self, content: object, path: Path, target: bool = False) -> None:
-        """Export the layer ``content`` through a temporary file moved to ``path`` (``target``: the output)."""
-        tmp = self._tmp if target else path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
         try:
-            export(content, tmp)
-            if target:
-                self._place()
-            else:
-                os.replace(tmp, path)
+            export(top, self._tmp)
+            self._place()
         except BaseException:
-            tmp.unlink(missing_ok=True)
+            self._tmp.unlink(missing_ok=True)
             raise
 
     def _place(self) -> None:
@@ -429,7 +417,7 @@ def _is_ours(folder: Path) -> bool:
     if not topology.is_file():
         return False
     layer = Sdf.Layer.OpenAsAnonymous(str(topology))
-    return layer is not None and layer.comment == _MARKER
+    return layer is not None and layer.comment == MARKER
 
 
 def _checked_props(props: Sequence[Prop], body_names: set[str]) -> list[Prop]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,6 +104,27 @@ class Chunk:
         add_topology(self.layer, bodies, props)
         info.author(self.layer, self.last)
         export(self.layer, path)
+
+
+MARKER = "warpfem.clips"
+"""The topology layer's comment: marks a clips folder as one a writer made (and may replace)."""
+
+
+def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+    """Write a clips folder's topology (``topology.usdc``, marked) and manifest, each moved into place complete.
+
+    ``tag`` names the temporary files (``.topology.tmp-<tag>.usdc``) so that whoever started the write can
+    remove them after a failure.
+    """
+    names, prop_paths = [name for name, _ in bodies], [p.path for p in props]
+    topology = layer(names, prop_paths)
+    add_topology(topology, bodies, props)
+    topology.comment = MARKER
+    for content, name in ((topology, "topology.usdc"), (layer(names, prop_paths), "manifest.usda")):
+        path = folder / name
+        tmp = path.with_name(f".{path.stem}.tmp-{tag}{path.suffix}")
+        export(content, tmp)
+        os.replace(tmp, path)
 
 
 def export(layer: object, path: Path) -> None:

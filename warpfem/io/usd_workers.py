@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warpfem.io.usd_layers import Chunk, Prop, StageInfo, export
+from warpfem.io.usd_layers import Chunk, Prop, StageInfo, export, write_clip_files
 
 QUEUE_BYTES = 128 << 20
 """Shared memory for frames on their way to the writer processes (bytes); 2 to 8 frames whatever their size."""
@@ -65,6 +65,12 @@ class InlinePool:
         if chunk not in self._chunks:
             self._chunks[chunk] = Chunk(self._names, self._prop_paths)
         self._chunks[chunk].add(frame, points, matrices)
+        self.seconds += time.perf_counter() - clock
+
+    def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+        """Write the clips folder's topology and manifest (:func:`~warpfem.io.usd_layers.write_clip_files`)."""
+        clock = time.perf_counter()
+        write_clip_files(folder, str(os.getpid()), bodies, props)
         self.seconds += time.perf_counter() - clock
 
     def cut(self, chunk: int, tmp: Path) -> None:
@@ -132,7 +138,7 @@ class ProcessPool:
             self._conns.append(Connection(ours.detach()))
 
     def _setup(self, points: Sequence[np.ndarray]) -> None:
-        """Size the shared memory for frames like ``points`` (2 to 8 of them) and tell the processes."""
+        """Size the shared memory for frames like ``points`` and tell the processes."""
         ranges = np.cumsum([0] + [len(p) for p in points]).tolist()
         self._slot_floats = 3 * ranges[-1]
         slots = min(8, max(2, QUEUE_BYTES // max(4 * self._slot_floats, 1)))
@@ -156,6 +162,10 @@ class ProcessPool:
             view[start : start + p.size] = p.reshape(-1)
             start += p.size
         self._conns[chunk % self._count].send(("frame", chunk, frame, slot, list(matrices)))
+
+    def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+        """Have the clips folder's topology and manifest written, before the first chunk is reported exported."""
+        self._conns[0].send(("clips", 0, str(folder), str(os.getpid()), list(bodies), list(props)))
 
     def cut(self, chunk: int, tmp: Path) -> None:
         """Have chunk ``chunk`` exported to ``tmp`` (it is reported by :meth:`done` once it is there)."""
@@ -259,6 +269,8 @@ def _serve(conn: Connection, fd: int) -> None:
                 chunk = chunk or Chunk(names, prop_paths)
                 chunk.add(frame, [view[a:b] for a, b in zip(ranges, ranges[1:], strict=False)], matrices)
                 conn.send(("free", slot))
+            elif kind == "clips":
+                write_clip_files(Path(message[2]), *message[3:])
             elif kind == "cut":
                 export(chunk.layer, Path(message[2]))
             else:
@@ -267,7 +279,7 @@ def _serve(conn: Connection, fd: int) -> None:
             conn.send(("error", f"USD writer process: {err}"))
             return
         busy += time.perf_counter() - clock
-        if kind != "frame":
+        if kind in ("cut", "single"):
             conn.send(("done", number, chunk.last, busy, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
             chunk, busy = None, 0.0
 
