@@ -400,6 +400,27 @@ def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
     assert writers and not any(map(_alive, writers))
 
 
+@pytest.mark.parametrize("workers", [0, 2], ids=["inline", "2 writer processes"])
+def test_a_failed_export_reaches_the_caller_and_stops_the_writer(tmp_path, workers):
+    """The clips folder replaced by a file under a running writer: the next export fails, the caller gets an
+    OSError naming the chunk file, and no writer process or temporary file is left."""
+    import shutil
+
+    bodies, frames = bodies_and_frames(8)
+    writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0, chunk_bytes=1, save_every=None, workers=workers)
+    started = _children()
+    writer.add_frame(0, frames[0])
+    writer.save()
+    shutil.rmtree(tmp_path / "x.clips")
+    (tmp_path / "x.clips").write_text("not a folder")
+    with pytest.raises(OSError, match=r"x\.00000\d\.tmp-\d+\.usdc: USD export failed"):
+        with writer:
+            for f in range(1, 8):
+                writer.add_frame(f, frames[f])
+    assert not any(map(_alive, started))
+    assert not any(".tmp-" in p.name for p in tmp_path.iterdir())
+
+
 def test_a_clips_folder_is_replaced_only_if_ours(tmp_path):
     from pxr import Usd, UsdGeom
 

@@ -22,11 +22,12 @@ complete file. What survives a stop:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -208,25 +209,35 @@ class UsdWriter:
         Raises:
             ValueError: A frame out of order, a wrong body count or shape, or non-finite points.
             RuntimeError: The writer is closed.
-            OSError: Writing a chunk failed.
+            OSError: Writing a chunk failed (the writer is aborted: the target keeps the chunks placed before).
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         arrays = self._checked(frame, points)
         matrices = _checked_transforms(transforms, len(self._props))
-        self._pool.add(self._cuts, int(frame), arrays, matrices)
-        if self._chunk_first is None:
-            self._chunk_first = int(frame)
-        for i, p in enumerate(arrays):
-            self._vertices[i] = len(p)
-        self._last_frame = int(frame)
-        self._frames_added += 1
-        self._chunk_bytes += sum(p.nbytes for p in arrays)
-        if self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every:
-            self.save()
-        elif self._chunk_bytes >= self._chunk_limit:
-            self._cut_chunk()
-        self._place_exported(block=False)
+        with self._aborting_on_failure():
+            self._pool.add(self._cuts, int(frame), arrays, matrices)
+            if self._chunk_first is None:
+                self._chunk_first = int(frame)
+            for i, p in enumerate(arrays):
+                self._vertices[i] = len(p)
+            self._last_frame = int(frame)
+            self._frames_added += 1
+            self._chunk_bytes += sum(p.nbytes for p in arrays)
+            if self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every:
+                self.save()
+            elif self._chunk_bytes >= self._chunk_limit:
+                self._cut_chunk()
+            self._place_exported(block=False)
+
+    @contextlib.contextmanager
+    def _aborting_on_failure(self) -> Iterator[None]:
+        """A failed write (OSError) aborts the writer: the target keeps the chunks placed before."""
+        try:
+            yield
+        except OSError:
+            self.abort()
+            raise
 
     def _checked(self, frame: int, points: Sequence[np.ndarray]) -> list[np.ndarray]:
         """``points`` as contiguous float32 arrays, after checking the frame number, shapes and values."""
@@ -256,15 +267,16 @@ class UsdWriter:
 
         Raises:
             RuntimeError: The writer is closed.
-            OSError: An export or a move failed (temporary files are removed; the target keeps the chunks
-                written before).
+            OSError: An export or a move failed (the writer is aborted: temporary files are removed, the
+                target keeps the chunks placed before).
             FileExistsError: The first write found a file at the target and ``overwrite`` is False.
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        self._cut_chunk()
-        while self._cut:
-            self._place_exported(block=True)
+        with self._aborting_on_failure():
+            self._cut_chunk()
+            while self._cut:
+                self._place_exported(block=True)
         self._saved_at = time.monotonic()
 
     def _cut_chunk(self) -> None:

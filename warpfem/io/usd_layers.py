@@ -128,9 +128,20 @@ def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndar
 
 
 def export(layer: object, path: Path) -> None:
-    """Export ``layer`` to ``path`` (usd-core picks the format by the extension); OSError if it fails."""
-    if not layer.Export(str(path)):
-        raise OSError(f"{path}: USD export failed")
+    """Export ``layer`` to ``path`` (usd-core picks the format by the extension).
+
+    Raises:
+        OSError: The export failed, with usd-core's last reason in one line.
+    """
+    from pxr import Tf
+
+    try:
+        if layer.Export(str(path)):
+            return
+        reason = "nothing written"
+    except Tf.ErrorException as err:
+        reason = str(err).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
+    raise OSError(f"{path}: USD export failed: {reason}")
 
 
 def vec3f_array(points: np.ndarray) -> object:
