@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 
 import numpy as np
 import pytest
@@ -38,7 +39,8 @@ def _heap_in_use():
 @pytest.mark.skipif(_heap_in_use() is None, reason="needs glibc's mallinfo2 to count the heap")
 def test_a_mesh_obstacle_is_counted_at_least_as_warp_allocates_it():
     """Warp's CPU arrays live on the C heap: building the colliders of a 327,680-triangle mesh obstacle keeps
-    what the estimate counts for it, less the build's temporaries (it is an upper bound, within 1.6x)."""
+    at most what the estimate counts for it, and at least 1/1.75 of it (the estimate also holds the tree build's
+    temporaries and the node counts of a CUDA build: 60 of its 176 bytes per triangle)."""
     import warp as wp
 
     from warpfem.sim.integrate import MeshCollider, StaticColliders
@@ -48,8 +50,14 @@ def test_a_mesh_obstacle_is_counted_at_least_as_warp_allocates_it():
     vertices, faces = np.asarray(ball.vertices), np.asarray(ball.faces)
     obstacle = MeshCollider(vertices, faces, closed=True)
     wp.init()
-    before = in_use()
-    colliders = StaticColliders([obstacle], "cpu")
-    kept = in_use() - before
+    StaticColliders([MeshCollider(np.eye(3), np.array([[0, 1, 2]]))], "cpu")  # Warp's first use allocates too
+    gc.collect()  # nothing of earlier tests freed while counting
+    gc.disable()
+    try:
+        before = in_use()
+        colliders = StaticColliders([obstacle], "cpu")
+        kept = in_use() - before
+    finally:
+        gc.enable()
     need = memory.estimate([], [], [], False, obstacle_meshes=[(len(vertices), len(faces))]).parts["obstacles"]
-    assert colliders.meshes and kept <= need <= 1.6 * kept, (kept, need)
+    assert colliders.meshes and kept <= need <= 1.75 * kept, (kept, need)
