@@ -461,3 +461,19 @@ def test_prop_transforms_are_checked_per_frame(tmp_path):
         writer.add_frame(0, [np.eye(3)], [np.full((4, 4), np.nan)])
     writer.abort()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_no_writer_process_where_python_cannot_be_started_again(monkeypatch, tmp_path):
+    """Inside an application embedding Python, ``sys.executable`` is the application: the writer stays inline."""
+    import sys
+
+    from warpfem.io import usd_workers
+
+    monkeypatch.setattr(sys, "executable", "/opt/app/bin/app")
+    assert usd_workers.default_workers() == 0
+    bodies, frames = bodies_and_frames(2)
+    before = _children()
+    with UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0) as writer:
+        assert _children() == before
+        writer.add_frame(0, frames[0])
+    assert (tmp_path / "x.usdc").is_file()

@@ -37,8 +37,12 @@ MAX_WORKERS = 4
 
 
 def default_workers() -> int:
-    """Writer processes for this machine: a quarter of the usable cores, 1 to 4; 0 (inline) where not POSIX."""
-    if os.name != "posix":
+    """Writer processes for this machine: a quarter of the usable cores, 1 to 4.
+
+    0 (inline) where not POSIX, or where ``sys.executable`` is not a Python interpreter to start again (an
+    application embedding Python).
+    """
+    if os.name != "posix" or not Path(sys.executable or "-").name.lower().startswith("python"):
         return 0
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     return min(MAX_WORKERS, max(1, cores // 4))
