@@ -313,7 +313,7 @@ from warpfem.io.usd import UsdWriter
 n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
 faces = np.arange(3 * n).reshape(n, 3) % n
-with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n) as writer:
+with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n, workers=2) as writer:
     for f in range(10**9):
         writer.add_frame(f, [base * np.float32(1 + f)])
 """

@@ -40,8 +40,8 @@ class RunSummary:
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
             write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
-            for the writer), and wall (from the first step to the file written); write_workers: time the writer
-            processes spent authoring and exporting chunks, summed over them (beside the run, in parallel).
+            for the writer), and wall (from the first step to the file written); write_workers: time spent authoring and
+            exporting chunks, summed over the writer processes (beside the run; on the writer's thread with none).
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
             whose later frames replay a captured graph).

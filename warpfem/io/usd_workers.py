@@ -37,15 +37,16 @@ MAX_WORKERS = 4
 
 
 def default_workers() -> int:
-    """Writer processes for this machine: a quarter of the usable cores, 1 to 4.
+    """Writer processes for this machine: a quarter of the usable cores, at most 4.
 
-    0 (inline) where not POSIX, or where ``sys.executable`` is not a Python interpreter to start again (an
-    application embedding Python).
+    0 (inline) with fewer than 4 cores (no core to spare: on 2 a process wrote no faster in a whole run, for
+    more CPU and memory), where not POSIX, or where ``sys.executable`` is not a Python interpreter to start
+    again (an application embedding Python).
     """
     if os.name != "posix" or not Path(sys.executable or "-").name.lower().startswith("python"):
         return 0
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return min(MAX_WORKERS, max(1, cores // 4))
+    return min(MAX_WORKERS, cores // 4)
 
 
 class InlinePool:
