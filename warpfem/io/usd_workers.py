@@ -15,6 +15,7 @@ holds; placing them is the caller's job, in order.
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import resource
@@ -137,8 +138,10 @@ class ProcessPool:
             ours, theirs = socket.socketpair()
             command = [sys.executable, "-m", "warpfem.io.usd_workers", str(theirs.fileno()), str(self._fd)]
             with theirs:
-                fds, quiet = (theirs.fileno(), self._fd), subprocess.DEVNULL
-                proc = subprocess.Popen(command, pass_fds=fds, env=env, stdin=quiet, start_new_session=True)
+                fds, quiet = (theirs.fileno(), self._fd), subprocess.DEVNULL  # stdout may carry the caller's JSON
+                proc = subprocess.Popen(
+                    command, pass_fds=fds, env=env, stdin=quiet, stdout=quiet, start_new_session=True
+                )
             self._procs.append(proc)
             self._conns.append(Connection(ours.detach()))
 
@@ -233,7 +236,9 @@ class ProcessPool:
         """Forget the processes and unmap the shared memory."""
         self._conns, self._procs = [], []
         if self._ring is not None:
-            self._ring.close()
+            with contextlib.suppress(BufferError):  # a view still held (an interrupted copy's frame): unmapped later
+                self._ring.close()
+            self._ring = None
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
