@@ -477,3 +477,19 @@ def test_no_writer_process_where_python_cannot_be_started_again(monkeypatch, tmp
         assert _children() == before
         writer.add_frame(0, frames[0])
     assert (tmp_path / "x.usdc").is_file()
+
+
+@pytest.mark.parametrize("n", [1, 5, 63, 64, 65, 1000, 97_602])
+def test_extent_bounds_agree_with_numpy(n):
+    """The extent's corners, reduced in blocks, equal NumPy's plain min and max over the points, also for a
+    strided view and with a NaN (which shows in the corners)."""
+    from warpfem.io.penetration import bounds
+
+    p = np.random.default_rng(n).normal(size=(n, 3)).astype(np.float32)
+    for q in (p, np.asfortranarray(p), p[::-1]):
+        lo, hi = bounds(q)
+        np.testing.assert_array_equal(lo, q.min(axis=0))
+        np.testing.assert_array_equal(hi, q.max(axis=0))
+    p[n // 2, 1] = np.nan
+    lo, hi = bounds(p)
+    assert np.isnan(lo[1]) and np.isnan(hi[1]) and np.isfinite(lo[[0, 2]]).all()
