@@ -5,8 +5,8 @@ workspace and collider) and :class:`warpfem.simulation.Simulation` allocate, fro
 sizes: per tet vertex (rest and initial state, two states, masses, forces, preconditioner, CG vectors),
 per tet (indices, inverse rest matrix, rotation, matrix slots), per matrix block (a 3x3 float block of the
 stored upper triangle and its column; blocks are counted exactly from the tets' edges), per dense vertex
-(embedding and mapped position), and for collisions per collision point, per contact slot and per tet (its
-inverse edge matrix and tree nodes).
+(embedding and mapped position), for collisions per collision point, per contact slot and per tet (its
+inverse edge matrix and tree nodes), and per vertex and triangle of each mesh obstacle (its ``wp.Mesh``).
 """
 
 from __future__ import annotations
@@ -66,6 +66,14 @@ TET_FACE_BYTES = 12
 CONTACT_BYTES = 140
 """Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block, the pair's vertices and weights."""
 
+MESH_VERTEX_BYTES = 12
+"""Device bytes per vertex of a mesh obstacle: its float32 position."""
+
+MESH_FACE_BYTES = 176
+"""Device bytes per triangle of a mesh obstacle at most: its indices and open-edge flags, and Warp's ``wp.Mesh``
+around it: the triangle's bounds (24), its tree (two nodes of 32, their parents and counts, an index: 84) and
+the temporaries of the tree's build (52)."""
+
 CONTACTS_PER_POINT = 2.0
 """Contact slots per collision point (the collider's default capacity)."""
 
@@ -116,6 +124,7 @@ def estimate(
     collision_points: Sequence[int],
     collision: bool,
     tet_face_refs: Sequence[int] = (),
+    obstacle_meshes: Sequence[tuple[int, int]] = (),
 ) -> Estimate:
     """Estimate the device memory of a scene from its preprocessed bodies.
 
@@ -127,6 +136,7 @@ def estimate(
             several bodies or one colliding with itself.
         tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
             (:func:`warpfem.prep.geometry.tet_surface_faces`).
+        obstacle_meshes: ``(vertices, triangles)`` of each mesh obstacle.
 
     Returns:
         The estimate by part.
@@ -148,6 +158,8 @@ def estimate(
         contacts = max(64, int(CONTACTS_PER_POINT * points))
         per_tet = COLLIDER_TET_BYTES + TREE_TET_BYTES
         parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + per_tet * q
+    if obstacle_meshes:
+        parts["obstacles"] = sum(MESH_VERTEX_BYTES * nv + MESH_FACE_BYTES * nf for nv, nf in obstacle_meshes)
     return Estimate(parts)
 
 
@@ -156,7 +168,17 @@ def scene_estimate(scene: Scene, prepared: Sequence[PreparedBody], geometry: Seq
     points = [len(g.point_tet) for g in geometry]
     collider = scene.collision.enabled and (len(prepared) > 1 or any(obj.self_collision for obj in scene.objects))
     refs = [len(g.tet_faces) for g in geometry]
-    return estimate([p.tets for p in prepared], [len(p.dense_vertices) for p in prepared], points, collider, refs)
+    meshes = [_mesh_size(scene, i) for i, o in enumerate(scene.obstacles) if o.kind == "mesh"]
+    dense = [len(p.dense_vertices) for p in prepared]
+    return estimate([p.tets for p in prepared], dense, points, collider, refs, meshes)
+
+
+def _mesh_size(scene: Scene, index: int) -> tuple[int, int]:
+    """Vertices and triangles of mesh obstacle ``index`` of ``scene`` (its file read, as the solver will)."""
+    from warpfem.build import obstacle_of
+
+    mesh = obstacle_of(scene, index)
+    return len(mesh.vertices), len(mesh.faces)
 
 
 def free_bytes(device: str) -> tuple[int, int]:

@@ -42,7 +42,8 @@ class RunSummary:
         cg_short_solves: Solves (of all frames' steps) that stopped at the cap above the tolerance.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
             write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
-            for the writer), and wall (from the first step to the file written).
+            for the writer), and wall (from the first step to the file written); write_workers: time spent authoring and
+            exporting chunks, summed over the writer processes (beside the run; on the writer's thread with none).
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
             whose later frames replay a captured graph).
@@ -55,6 +56,8 @@ class RunSummary:
             frame where it is cheap), the last one always.
         penetration_end: The same at the last frame.
         penetration_frames: Frames whose bodies were checked against each other.
+        writer_peak_bytes: The largest peak resident memory of one of the processes that wrote the file (bytes;
+            0 when it was written on the writer's thread).
     """
 
     output: Path
@@ -79,6 +82,7 @@ class RunSummary:
     penetration: Penetration = field(default_factory=Penetration)
     penetration_end: Penetration = field(default_factory=Penetration)
     penetration_frames: int = 0
+    writer_peak_bytes: int = 0
 
     @property
     def ms_per_frame(self) -> float:
@@ -215,10 +219,13 @@ def record(
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
+    seconds["write_workers"] = writer.export_seconds
     seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited
     seconds["wall"] = time.perf_counter() - started
-    return _summary(sim, out, seconds, check)
+    summary = _summary(sim, out, seconds, check)
+    summary.writer_peak_bytes = writer.writer_peak_bytes
+    return summary
 
 
 def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:

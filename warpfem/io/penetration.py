@@ -8,6 +8,7 @@ is inside another when the other's dense surface winds around it (Warp's fast wi
 
 from __future__ import annotations
 
+import functools
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,12 +42,23 @@ class Penetration:
         return Penetration(body.depth, body.relative, body.inside, ground.below_ground, ground.below_relative)
 
 
-def bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (3,) lower and upper corners of (n, 3) points.
+_BLOCK = 64
 
-    Reduced column by column: NumPy reduces axis 0 of an (n, 3) array far more slowly (docs/decisions.md).
+
+def bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (3,) lower and upper corners of (n >= 1, 3) points.
+
+    Blocks of 64 points are reduced as rows of 192 values, whose columns NumPy reduces at full speed: it
+    reduces axis 0 of an (n, 3) array far more slowly, and column by column it reads the array six times
+    (docs/decisions.md).
     """
-    return np.array([p[:, k].min() for k in range(3)]), np.array([p[:, k].max() for k in range(3)])
+    rows = len(p) - len(p) % _BLOCK
+    lows, highs = [p[rows:]], [p[rows:]]
+    if rows:
+        block = p[:rows].reshape(-1, 3 * _BLOCK)
+        lows.append(block.min(axis=0).reshape(-1, 3))
+        highs.append(block.max(axis=0).reshape(-1, 3))
+    return np.concatenate(lows).min(axis=0), np.concatenate(highs).max(axis=0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,17 +117,29 @@ def _depth_behind(q: np.ndarray, v: np.ndarray, f: np.ndarray, reach: float) -> 
     a, b, c = (v[f[face, k]] for k in range(3))
     normal = np.cross(b - a, c - a)
     behind = np.einsum("ij,ij->i", q - nearest, normal) < 0
-    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
-    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
-    lone = (counts[inverse.reshape(-1)] == 1).reshape(-1, 3)
-    rim = np.zeros(len(v), bool)
-    for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
-        rim[f[lone[:, k]][:, [i, j]]] = True
+    lone, rim = _open_edges(f.tobytes(), len(v))
     w = igl.barycentric_coordinates(nearest, a, b, c) < 1e-5  # weights of a, b, c near 0: edge a-b has c's
     lone, corner = lone[face], rim[f[face]]
     on_open = (lone & w[:, [2, 0, 1]]).any(axis=1) | (corner & (w[:, [1, 2, 0]] & w[:, [2, 0, 1]])).any(axis=1)
     depth = np.sqrt(squared)
     return np.where(behind & ~on_open & (depth <= reach), depth, 0.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _open_edges(faces: bytes, vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which edges of each face (a-b, b-c, c-a) no other face shares, and which vertices lie on such an edge.
+
+    ``faces``: an (m, 3) int64 array's bytes (the key, so a mesh checked frame after frame is sorted once).
+    """
+    f = np.frombuffer(faces, np.int64).reshape(-1, 3)
+    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    lone = (counts[inverse.reshape(-1)] == 1).reshape(-1, 3)
+    rim = np.zeros(vertices, bool)
+    for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+        rim[f[lone[:, k]][:, [i, j]]] = True
+    lone.flags.writeable = rim.flags.writeable = False  # shared by every later call
+    return lone, rim
 
 
 def posed_obstacle(posed: Any) -> Obstacle:

@@ -1,50 +1,52 @@
 """Animated USD output: one time-sampled ``UsdGeom.Mesh`` per body under ``/World``, streamed in chunks.
 
-Frames are gathered in an in-memory layer (built with the Sdf layer API inside ``Sdf.ChangeBlock``, about
-twice as fast as the Usd API with many prims). A chunk is cut when it holds :data:`CHUNK_BYTES` of samples
-or ``save_every`` seconds after the last cut, whichever comes first, and is never rewritten:
+A chunk is cut when it holds :data:`CHUNK_BYTES` of samples or ``save_every`` seconds after the last cut,
+whichever comes first, and is never rewritten:
 
 - a run whose frames all fit in its first chunk writes one self-contained file at the target;
 - a longer run streams USD value clips: ``<stem>.clips/`` beside the target holds the topology (written
   once), a manifest and one ``.usdc`` per chunk; the target is a small top-level layer that sublayers the
-  topology and lists the clips, replaced atomically after each chunk. Memory stays at one chunk whatever
+  topology and lists the clips, replaced atomically after each chunk. Memory stays at a few chunks whatever
   the frame count, and each chunk costs one export of its own bytes.
 
-Every file is written to a temporary name and moved into place with ``os.replace``, so each path only ever
-holds a complete file. What survives a stop:
+Chunks are authored and exported by a few writer processes (:mod:`warpfem.io.usd_workers`), several at
+once, while the caller goes on; the caller places each one, in order, once it is exported. Every file is
+written to a temporary name and moved into place with ``os.replace``, so each path only ever holds a
+complete file. What survives a stop:
 
 - an exception (NaN, a failing kernel), ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM mapped to it by the
   CLI): every frame added, written on leaving the ``with`` block;
-- the process killed outright (SIGKILL, power loss): every finished chunk, i.e. every frame up to at
-  most ``save_every`` seconds of run time back (plus the chunk in progress), readable through the target.
+- the process killed outright (SIGKILL, power loss): every chunk placed, i.e. every frame up to at most
+  ``save_every`` seconds of run time back (plus the chunks being exported), readable through the target.
 """
 
 from __future__ import annotations
 
-import ctypes
-import functools
+import contextlib
 import os
 import re
 import shutil
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
 import numpy as np
 
-from warpfem.io.penetration import bounds
+from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export
+from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
 _NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-_MARKER = "warpfem.clips"  # the topology layer's comment: marks a clips folder as ours to replace
 
 SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
 
-CHUNK_BYTES = 256 << 20
-"""Bytes of point samples after which a chunk is cut (one export of about this size)."""
+CHUNK_BYTES = 32 << 20
+"""Bytes of point samples after which a chunk is cut (one export of about this size).
+
+A single file is exported only once its last frame is in, so a run of one chunk waits for its whole export at
+the end; at this size that is about 30 ms, and a longer run's clips are exported while it goes on."""
 
 
 class UsdWriter:
@@ -78,8 +80,9 @@ class UsdWriter:
         save_every: float | None = SAVE_EVERY_S,
         chunk_bytes: int = CHUNK_BYTES,
         props: Sequence[Prop] = (),
+        workers: int | None = None,
     ):
-        """Check the arguments and author the topology in an in-memory layer.
+        """Check the arguments and start the writer processes (nothing is written before the first frame).
 
         Args:
             path: The output file; its extension picks the format: ``.usdc`` or ``.usd``
@@ -95,14 +98,15 @@ class UsdWriter:
             chunk_bytes: Bytes of point samples per chunk (>= 1).
             props: Rigid shapes moving with the bodies (obstacles, handles): each a :class:`Prop`, written at
                 ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
+            workers: Writer processes that author and export chunks, several at once (0: on the calling
+                thread); None: :func:`~warpfem.io.usd_workers.default_workers`.
 
         Raises:
-            ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes`` or prop.
+            ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes``, prop or
+                worker count.
             FileNotFoundError: The output folder does not exist.
             FileExistsError: ``path`` or its clips folder exists and ``overwrite`` is False.
         """
-        from pxr import Sdf
-
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in _FORMATS:
@@ -119,6 +123,11 @@ class UsdWriter:
             raise ValueError(f"save_every must be None or a finite number >= 0, got {save_every!r}")
         if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
             raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
+        import pxr.Sdf  # noqa: F401  (loaded now, before a run steps, not on its writer's thread at the first chunk)
+
+        workers = default_workers() if workers is None else workers
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+            raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
         self.clips_dir = clips_folder(self.path)
         if not overwrite and (self.path.exists() or self.clips_dir.exists()):
             raise FileExistsError(f"{self.path}: the file exists (overwriting was not asked for)")
@@ -136,16 +145,18 @@ class UsdWriter:
         self._chunk_limit = chunk_bytes
         self._saved_at = time.monotonic()
         self._placed = False
-        self._clips: list[tuple[int, str]] = []  # (first frame, path relative to the target's folder)
-        self._chunk: Sdf.Layer | None = None
-        self._chunk_first = 0
+        self._clips: list[tuple[int, str]] = []  # placed: (first frame, path relative to the target's folder)
+        self._clips_end = 0  # the last frame of the last chunk placed
+        self._cut: dict[int, tuple[int, Path]] = {}  # exporting: number -> (first frame, temporary file)
+        self._exported: dict[int, int] = {}  # exported, waiting for the chunks before them: number -> last frame
+        self._cuts = 0  # chunks cut so far: the open chunk's number
+        self._chunk_first: int | None = None  # the open chunk's first frame; None: no chunk open
         self._chunk_bytes = 0
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
-        self._transform_paths = [Sdf.Path(f"/World/{p.path}.xformOp:transform") for p in self._props]
-        self._points_paths = [Sdf.Path(f"/World/{name}.points") for name, _ in self._bodies]
-        self._extent_paths = [Sdf.Path(f"/World/{name}.extent") for name, _ in self._bodies]
+        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
+        self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths)
 
     def _check_body(self, name: str, faces: np.ndarray) -> None:
         """Check one body's name and faces and keep them."""
@@ -166,8 +177,18 @@ class UsdWriter:
 
     @property
     def chunks(self) -> int:
-        """Chunks written as clips so far (0 for a run written as one file)."""
+        """Chunks on disk as clips so far (0 for a run written as one file)."""
         return len(self._clips)
+
+    @property
+    def writer_peak_bytes(self) -> int:
+        """The largest peak resident memory of one writer process so far (bytes; 0 with ``workers=0``)."""
+        return self._pool.peak_bytes
+
+    @property
+    def export_seconds(self) -> float:
+        """Time spent authoring and exporting the chunks exported so far, summed over the writer processes (s)."""
+        return self._pool.seconds
 
     @property
     def frames_added(self) -> int:
@@ -188,38 +209,35 @@ class UsdWriter:
         Raises:
             ValueError: A frame out of order, a wrong body count or shape, or non-finite points.
             RuntimeError: The writer is closed.
-            OSError: Writing a chunk failed.
+            OSError: Writing a chunk failed (the writer is aborted: the target keeps the chunks placed before).
         """
-        from pxr import Gf, Sdf, Vt
-
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         arrays = self._checked(frame, points)
         matrices = _checked_transforms(transforms, len(self._props))
-        if self._chunk is None:
-            self._chunk = _layer(self._bodies, self._props, topology=False)
-            self._chunk_first = int(frame)
-        code = float(frame)
+        with self._aborting_on_failure():
+            self._pool.add(self._cuts, int(frame), arrays, matrices)
+            if self._chunk_first is None:
+                self._chunk_first = int(frame)
+            for i, p in enumerate(arrays):
+                self._vertices[i] = len(p)
+            self._last_frame = int(frame)
+            self._frames_added += 1
+            self._chunk_bytes += sum(p.nbytes for p in arrays)
+            if self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every:
+                self.save()
+            elif self._chunk_bytes >= self._chunk_limit:
+                self._cut_chunk()
+            self._place_exported(block=False)
+
+    @contextlib.contextmanager
+    def _aborting_on_failure(self) -> Iterator[None]:
+        """A failed write (OSError) aborts the writer: the target keeps the chunks placed before."""
         try:
-            with Sdf.ChangeBlock():
-                for i, p in enumerate(arrays):
-                    extent = _extent(p)
-                    self._chunk.SetTimeSample(self._points_paths[i], code, _vec3f_array(p))
-                    self._chunk.SetTimeSample(self._extent_paths[i], code, Vt.Vec3fArray.FromNumpy(extent))
-                for path, m in zip(self._transform_paths, matrices, strict=True):
-                    self._chunk.SetTimeSample(path, code, Gf.Matrix4d(m.T.tolist()))
-        except BaseException:  # e.g. Ctrl-C half way: nothing may keep a sample of an unfinished frame
-            for path in (*self._points_paths, *self._extent_paths, *self._transform_paths):
-                self._chunk.EraseTimeSample(path, code)
+            yield
+        except OSError:
+            self.abort()
             raise
-        for i, p in enumerate(arrays):
-            self._vertices[i] = len(p)
-        self._last_frame = int(frame)
-        self._frames_added += 1
-        self._chunk_bytes += sum(p.nbytes for p in arrays)
-        due = self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every
-        if self._chunk_bytes >= self._chunk_limit or due:
-            self.save()
 
     def _checked(self, frame: int, points: Sequence[np.ndarray]) -> list[np.ndarray]:
         """``points`` as contiguous float32 arrays, after checking the frame number, shapes and values."""
@@ -245,26 +263,50 @@ class UsdWriter:
         return arrays
 
     def save(self) -> None:
-        """Write the frames added since the last chunk as a chunk now, and go on (nothing if there are none).
+        """Cut the frames added since the last chunk as a chunk, and wait until every chunk is on disk.
 
         Raises:
             RuntimeError: The writer is closed.
-            OSError: An export or a move failed (temporary files are removed; the target keeps the chunks
-                written before).
+            OSError: An export or a move failed (the writer is aborted: temporary files are removed, the
+                target keeps the chunks placed before).
             FileExistsError: The first write found a file at the target and ``overwrite`` is False.
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        if self._chunk is None:
-            return
-        if not self._clips:
-            self._start_clips()
-        name = f"{self.path.stem}.{self._chunk_first:06d}.usdc"
-        self._export(self._chunk, self.clips_dir / name)
-        self._clips.append((self._chunk_first, f"./{self.clips_dir.name}/{name}"))
-        self._chunk, self._chunk_bytes = None, 0
-        self._write_top()
+        with self._aborting_on_failure():
+            self._cut_chunk()
+            while self._cut:
+                self._place_exported(block=True)
         self._saved_at = time.monotonic()
+
+    def _cut_chunk(self) -> None:
+        """Hand the open chunk (if any) to be exported as the next clip; it is placed once exported."""
+        if self._chunk_first is None:
+            return
+        if not self._clips and not self._cut:
+            self._start_clips()
+        name = self.clips_dir / f"{self.path.stem}.{self._chunk_first:06d}.usdc"
+        tmp = name.with_name(f".{name.stem}.tmp-{os.getpid()}{name.suffix}")
+        self._pool.cut(self._cuts, tmp)
+        self._cut[self._cuts] = (self._chunk_first, tmp)
+        self._cuts += 1
+        self._chunk_first, self._chunk_bytes = None, 0
+        self._saved_at = time.monotonic()
+
+    def _place_exported(self, block: bool) -> None:
+        """Move the exported chunks into place, in order, and list them in the top-level file.
+
+        ``block``: wait for at least one message from the writer processes first.
+        """
+        self._exported.update(self._pool.done(block and bool(self._cut)))
+        while (number := len(self._clips)) in self._exported:
+            first, tmp = self._cut.pop(number)
+            last = self._exported.pop(number)
+            name = tmp.name.replace(f".tmp-{os.getpid()}", "")[1:]
+            os.replace(tmp, self.clips_dir / name)
+            self._clips.append((first, f"./{self.clips_dir.name}/{name}"))
+            self._clips_end = last
+            self._write_top()  # after each chunk: the file lists every chunk in place but the last at most
 
     def _start_clips(self) -> None:
         """Make the clips folder with the topology and the manifest (replacing a folder of ours with ``overwrite``)."""
@@ -274,10 +316,7 @@ class UsdWriter:
                 raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
             shutil.rmtree(folder)
         folder.mkdir()
-        topology = _layer(self._bodies, self._props, topology=True)
-        topology.comment = _MARKER
-        self._export(topology, folder / "topology.usdc")
-        self._export(_layer(self._bodies, self._props, topology=False), folder / "manifest.usda")
+        self._pool.clip_files(folder, self._bodies, self._props)
 
     def _write_top(self) -> None:
         """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""
@@ -293,33 +332,12 @@ class UsdWriter:
             "manifestAssetPath": Sdf.AssetPath(f"./{self.clips_dir.name}/manifest.usda"),
         }
         world.SetInfo("clips", {"default": clips})
-        self._stage_metadata(top)
-        self._export(top, self.path, target=True)
-
-    def _stage_metadata(self, layer: object) -> None:
-        """Author the stage metadata on ``layer``, its end at the last frame added."""
-        from pxr import UsdGeom
-
-        layer.defaultPrim = "World"
-        layer.pseudoRoot.SetInfo(UsdGeom.Tokens.upAxis, self._up_axis)
-        layer.pseudoRoot.SetInfo(UsdGeom.Tokens.metersPerUnit, 1.0)
-        layer.timeCodesPerSecond = self._fps
-        layer.framesPerSecond = self._fps
-        layer.startTimeCode = 0.0
-        layer.endTimeCode = float(self._last_frame)
-
-    def _export(self, layer: object, path: Path, target: bool = False) -> None:
-        """Export ``layer`` to ``path`` through a temporary file moved into place (``target``: the output)."""
-        tmp = self._tmp if target else path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+        StageInfo(self._up_axis, self._fps).author(top, self._clips_end)
         try:
-            if not layer.Export(str(tmp)):
-                raise OSError(f"{path}: USD export to {tmp} failed")
-            if target:
-                self._place()
-            else:
-                os.replace(tmp, path)
+            export(top, self._tmp)
+            self._place()
         except BaseException:
-            tmp.unlink(missing_ok=True)
+            self._tmp.unlink(missing_ok=True)
             raise
 
     def _place(self) -> None:
@@ -351,30 +369,30 @@ class UsdWriter:
             self.abort()
             raise RuntimeError(f"{self.path}: no frame was added; nothing written")
         try:
-            if self._clips:
+            if self._clips or self._cut:
                 self.save()
             else:
                 self._write_single()
+            self._pool.stop()
         except BaseException:
             self.abort()
             raise
         self._closed = True
-        self._chunk = None
         return self.path
 
     def _write_single(self) -> None:
         """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there."""
-        layer = self._chunk
-        _add_topology(layer, self._bodies, self._props)
-        self._stage_metadata(layer)
-        self._export(layer, self.path, target=True)
+        self._pool.single(0, self._tmp, self._bodies, self._props, StageInfo(self._up_axis, self._fps))
+        while not self._pool.done(block=True):
+            pass
+        self._place()
         if self._overwrite and self.clips_dir.is_dir() and _is_ours(self.clips_dir):
             shutil.rmtree(self.clips_dir)
 
     def abort(self) -> None:
-        """Drop what is in memory and remove temporary files; the target keeps the chunks written before."""
+        """Drop what is in memory and remove temporary files; the target keeps the chunks placed before."""
         self._closed = True
-        self._chunk = None
+        self._pool.kill()
         self._tmp.unlink(missing_ok=True)
         if self.clips_dir.is_dir():
             for leftover in self.clips_dir.glob(f".*.tmp-{os.getpid()}.*"):
@@ -397,41 +415,6 @@ class UsdWriter:
             self.abort()
 
 
-def _vec3f_array(points: np.ndarray) -> object:
-    """A ``Vt.Vec3fArray`` of contiguous (n, 3) float32 ``points``.
-
-    Filled by one copy into a fresh array's storage, which its (read-only) buffer exposes: ``FromNumpy``
-    converts element by element, much slower (docs/decisions.md). Where the buffer is not the storage
-    (checked once per process), ``FromNumpy``.
-    """
-    from pxr import Vt
-
-    if not _buffer_is_storage():
-        return Vt.Vec3fArray.FromNumpy(points)
-    array = Vt.Vec3fArray(len(points))
-    ctypes.memmove(np.asarray(array).ctypes.data, points.ctypes.data, points.nbytes)
-    return array
-
-
-@functools.cache
-def _buffer_is_storage() -> bool:
-    """Whether writing through a fresh ``Vt.Vec3fArray``'s buffer changes its elements (read back one by one)."""
-    from pxr import Vt
-
-    probe = np.arange(12, dtype=np.float32).reshape(4, 3)
-    array = Vt.Vec3fArray(4)
-    view = np.asarray(array)
-    if view.shape != (4, 3) or view.dtype != np.float32 or not view.flags.c_contiguous:
-        return False
-    ctypes.memmove(view.ctypes.data, probe.ctypes.data, probe.nbytes)
-    return all(tuple(array[i]) == tuple(probe[i]) for i in range(4))
-
-
-def _extent(points: np.ndarray) -> np.ndarray:
-    """The (2, 3) float32 bounding box of (n, 3) points (:func:`~warpfem.io.penetration.bounds`)."""
-    return np.array(bounds(points), np.float32)
-
-
 def clips_folder(path: str | Path) -> Path:
     """The folder beside ``path`` where a long run's chunks go: ``<stem>.clips``."""
     path = Path(path)
@@ -446,24 +429,7 @@ def _is_ours(folder: Path) -> bool:
     if not topology.is_file():
         return False
     layer = Sdf.Layer.OpenAsAnonymous(str(topology))
-    return layer is not None and layer.comment == _MARKER
-
-
-@dataclass(frozen=True)
-class Prop:
-    """A rigid shape written beside the bodies: ``/World/<path>``, a mesh whose transform is sampled per frame.
-
-    Attributes:
-        path: Its prim path under ``/World`` (names joined by ``/``, e.g. ``"obstacles/ramp"``).
-        vertices: (n, 3) vertices in its own frame (m).
-        faces: (m, 3) triangles, wound outward.
-        guide: Whether it is a guide (``purpose = "guide"``: shown in viewers, not rendered), as handles are.
-    """
-
-    path: str
-    vertices: np.ndarray
-    faces: np.ndarray
-    guide: bool = False
+    return layer is not None and layer.comment == MARKER
 
 
 def _checked_props(props: Sequence[Prop], body_names: set[str]) -> list[Prop]:
@@ -495,69 +461,3 @@ def _checked_transforms(transforms: Sequence[np.ndarray], count: int) -> list[np
     if any(m.shape != (4, 4) or not np.isfinite(m).all() for m in matrices):
         raise ValueError("prop transforms must be finite 4x4 matrices")
     return matrices
-
-
-def _layer(bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], topology: bool) -> object:
-    """An anonymous layer with ``/World``, a mesh per body and a prim per prop.
-
-    With ``topology`` the prims are defined meshes with their faces; without, ``over`` specs that declare only
-    what is animated: a body's ``points`` and ``extent``, a prop's transform (a chunk, or the clips' manifest).
-    """
-    from pxr import Sdf
-
-    layer = Sdf.Layer.CreateAnonymous("warpfem.usdc")
-    with Sdf.ChangeBlock():
-        world = Sdf.PrimSpec(layer, "World", Sdf.SpecifierOver)
-        for name, _ in bodies:
-            mesh = Sdf.PrimSpec(world, name, Sdf.SpecifierOver)
-            Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
-            Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
-        for prop in props:
-            parent = world
-            for part in prop.path.split("/"):
-                parent = parent.nameChildren.get(part) or Sdf.PrimSpec(parent, part, Sdf.SpecifierOver)
-            Sdf.AttributeSpec(parent, "xformOp:transform", Sdf.ValueTypeNames.Matrix4d)
-    if topology:
-        _add_topology(layer, bodies, props)
-    return layer
-
-
-def _add_topology(layer: object, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-    """Turn ``layer``'s ``over`` specs into defined meshes with their topology (a prop's mesh in its own frame)."""
-    from pxr import Sdf, Vt
-
-    with Sdf.ChangeBlock():
-        world = layer.GetPrimAtPath("/World")
-        world.specifier, world.typeName = Sdf.SpecifierDef, "Xform"
-        for name, faces in bodies:
-            _define_mesh(layer.GetPrimAtPath(f"/World/{name}"), faces)
-        for prop in props:
-            parts = prop.path.split("/")
-            for depth in range(1, len(parts)):
-                scope = layer.GetPrimAtPath("/World/" + "/".join(parts[:depth]))
-                scope.specifier, scope.typeName = Sdf.SpecifierDef, "Scope"
-            mesh = layer.GetPrimAtPath(f"/World/{prop.path}")
-            _define_mesh(mesh, prop.faces)
-            points = Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
-            points.default = Vt.Vec3fArray.FromNumpy(prop.vertices.astype(np.float32))
-            extent = Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
-            extent.default = Vt.Vec3fArray.FromNumpy(_extent(prop.vertices.astype(np.float32)))
-            order = Sdf.AttributeSpec(mesh, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
-            order.default = Vt.TokenArray(["xformOp:transform"])
-            if prop.guide:
-                purpose = Sdf.AttributeSpec(mesh, "purpose", Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
-                purpose.default = "guide"
-
-
-def _define_mesh(mesh: object, faces: np.ndarray) -> None:
-    """Make the ``over`` spec ``mesh`` a defined ``Mesh`` with the topology of ``faces``."""
-    from pxr import Sdf, Vt
-
-    mesh.specifier, mesh.typeName = Sdf.SpecifierDef, "Mesh"
-    counts = Sdf.AttributeSpec(mesh, "faceVertexCounts", Sdf.ValueTypeNames.IntArray)
-    counts.default = Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32))
-    indices = Sdf.AttributeSpec(mesh, "faceVertexIndices", Sdf.ValueTypeNames.IntArray)
-    indices.default = Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel())
-    for attr, value in (("subdivisionScheme", "none"), ("orientation", "rightHanded")):
-        spec = Sdf.AttributeSpec(mesh, attr, Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
-        spec.default = value

@@ -1,0 +1,242 @@
+"""The USD layers :class:`~warpfem.io.usd.UsdWriter` writes: a chunk of time samples, the topology, the metadata.
+
+Everything here builds Sdf layers in memory with the Sdf API (inside ``Sdf.ChangeBlock``, about twice as fast
+as the Usd API with many prims) and needs only usd-core and NumPy, so a writer process can import it alone.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from warpfem.io.penetration import bounds
+
+
+@dataclass(frozen=True)
+class Prop:
+    """A rigid shape written beside the bodies: ``/World/<path>``, a mesh whose transform is sampled per frame.
+
+    Attributes:
+        path: Its prim path under ``/World`` (names joined by ``/``, e.g. ``"obstacles/ramp"``).
+        vertices: (n, 3) vertices in its own frame (m).
+        faces: (m, 3) triangles, wound outward.
+        guide: Whether it is a guide (``purpose = "guide"``: shown in viewers, not rendered), as handles are.
+    """
+
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    guide: bool = False
+
+
+@dataclass(frozen=True)
+class StageInfo:
+    """The stage metadata every file carries: its up axis and frames per second."""
+
+    up_axis: str
+    fps: float
+
+    def author(self, target: object, end: int) -> None:
+        """Author it on ``target``: ``upAxis``, ``metersPerUnit = 1``, time codes from 0 to ``end`` at ``fps``."""
+        from pxr import UsdGeom
+
+        target.defaultPrim = "World"
+        target.pseudoRoot.SetInfo(UsdGeom.Tokens.upAxis, self.up_axis)
+        target.pseudoRoot.SetInfo(UsdGeom.Tokens.metersPerUnit, 1.0)
+        target.timeCodesPerSecond = self.fps
+        target.framesPerSecond = self.fps
+        target.startTimeCode = 0.0
+        target.endTimeCode = float(end)
+
+
+class Chunk:
+    """One chunk's time samples in an in-memory layer: each body's points and extent, each prop's transform.
+
+    Args:
+        names: The bodies' prim names under ``/World``.
+        prop_paths: The props' prim paths under ``/World``.
+
+    Attributes:
+        last: The last frame sampled (-1: none yet).
+    """
+
+    def __init__(self, names: Sequence[str], prop_paths: Sequence[str]) -> None:
+        from pxr import Sdf
+
+        self.layer = layer(names, prop_paths)
+        self._points = [Sdf.Path(f"/World/{name}.points") for name in names]
+        self._extents = [Sdf.Path(f"/World/{name}.extent") for name in names]
+        self._transforms = [Sdf.Path(f"/World/{path}.xformOp:transform") for path in prop_paths]
+        self.last = -1
+
+    def add(self, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
+        """Sample contiguous float32 (n_i, 3) ``points`` and 4x4 column-vector ``matrices`` at ``frame``.
+
+        Either every sample of the frame is authored or none (an exception half way, Ctrl-C included,
+        erases what was set).
+        """
+        from pxr import Gf, Sdf, Vt
+
+        code = float(frame)
+        try:
+            with Sdf.ChangeBlock():
+                for i, p in enumerate(points):
+                    self.layer.SetTimeSample(self._points[i], code, vec3f_array(p))
+                    self.layer.SetTimeSample(self._extents[i], code, Vt.Vec3fArray.FromNumpy(extent(p)))
+                for path, m in zip(self._transforms, matrices, strict=True):
+                    self.layer.SetTimeSample(path, code, Gf.Matrix4d(m.T.tolist()))
+        except BaseException:
+            for path in (*self._points, *self._extents, *self._transforms):
+                self.layer.EraseTimeSample(path, code)
+            raise
+        self.last = frame
+
+    def export_single(
+        self, path: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo
+    ) -> None:
+        """Export the chunk as a self-contained file: the topology and the metadata added to it."""
+        add_topology(self.layer, bodies, props)
+        info.author(self.layer, self.last)
+        export(self.layer, path)
+
+
+MARKER = "warpfem.clips"
+"""The topology layer's comment: marks a clips folder as one a writer made (and may replace)."""
+
+
+def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+    """Write a clips folder's topology (``topology.usdc``, marked) and manifest, each moved into place complete.
+
+    ``tag`` names the temporary files (``.topology.tmp-<tag>.usdc``) so that whoever started the write can
+    remove them after a failure.
+    """
+    names, prop_paths = [name for name, _ in bodies], [p.path for p in props]
+    topology = layer(names, prop_paths)
+    add_topology(topology, bodies, props)
+    topology.comment = MARKER
+    for content, name in ((topology, "topology.usdc"), (layer(names, prop_paths), "manifest.usda")):
+        path = folder / name
+        tmp = path.with_name(f".{path.stem}.tmp-{tag}{path.suffix}")
+        export(content, tmp)
+        os.replace(tmp, path)
+
+
+def export(layer: object, path: Path) -> None:
+    """Export ``layer`` to ``path`` (usd-core picks the format by the extension).
+
+    Raises:
+        OSError: The export failed, with usd-core's last reason in one line.
+    """
+    from pxr import Tf
+
+    try:
+        if layer.Export(str(path)):
+            return
+        reason = "nothing written"
+    except Tf.ErrorException as err:
+        reason = str(err).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
+    raise OSError(f"{path}: USD export failed: {reason}")
+
+
+def vec3f_array(points: np.ndarray) -> object:
+    """A ``Vt.Vec3fArray`` of contiguous (n, 3) float32 ``points``.
+
+    Filled by one copy into a fresh array's storage, which its (read-only) buffer exposes: ``FromNumpy``
+    converts element by element, much slower (docs/decisions.md). Where the buffer is not the storage
+    (checked once per process), ``FromNumpy``.
+    """
+    from pxr import Vt
+
+    if not _buffer_is_storage():
+        return Vt.Vec3fArray.FromNumpy(points)
+    array = Vt.Vec3fArray(len(points))
+    ctypes.memmove(np.asarray(array).ctypes.data, points.ctypes.data, points.nbytes)
+    return array
+
+
+@functools.cache
+def _buffer_is_storage() -> bool:
+    """Whether writing through a fresh ``Vt.Vec3fArray``'s buffer changes its elements (read back one by one)."""
+    from pxr import Vt
+
+    probe = np.arange(12, dtype=np.float32).reshape(4, 3)
+    array = Vt.Vec3fArray(4)
+    view = np.asarray(array)
+    if view.shape != (4, 3) or view.dtype != np.float32 or not view.flags.c_contiguous:
+        return False
+    ctypes.memmove(view.ctypes.data, probe.ctypes.data, probe.nbytes)
+    return all(tuple(array[i]) == tuple(probe[i]) for i in range(4))
+
+
+def extent(points: np.ndarray) -> np.ndarray:
+    """The (2, 3) float32 bounding box of (n, 3) points (:func:`~warpfem.io.penetration.bounds`)."""
+    return np.array(bounds(points), np.float32)
+
+
+def layer(names: Sequence[str], prop_paths: Sequence[str]) -> object:
+    """An anonymous layer of ``over`` specs declaring what is animated (a chunk, or the clips' manifest).
+
+    ``/World``, a body's ``points`` and ``extent`` per name, a prop's transform per prop path.
+    """
+    from pxr import Sdf
+
+    result = Sdf.Layer.CreateAnonymous("warpfem.usdc")
+    with Sdf.ChangeBlock():
+        world = Sdf.PrimSpec(result, "World", Sdf.SpecifierOver)
+        for name in names:
+            mesh = Sdf.PrimSpec(world, name, Sdf.SpecifierOver)
+            Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
+            Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
+        for path in prop_paths:
+            parent = world
+            for part in path.split("/"):
+                parent = parent.nameChildren.get(part) or Sdf.PrimSpec(parent, part, Sdf.SpecifierOver)
+            Sdf.AttributeSpec(parent, "xformOp:transform", Sdf.ValueTypeNames.Matrix4d)
+    return result
+
+
+def add_topology(target: object, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+    """Turn ``target``'s ``over`` specs into defined meshes with their topology (a prop's mesh in its own frame)."""
+    from pxr import Sdf, Vt
+
+    with Sdf.ChangeBlock():
+        world = target.GetPrimAtPath("/World")
+        world.specifier, world.typeName = Sdf.SpecifierDef, "Xform"
+        for name, faces in bodies:
+            _define_mesh(target.GetPrimAtPath(f"/World/{name}"), faces)
+        for prop in props:
+            parts = prop.path.split("/")
+            for depth in range(1, len(parts)):
+                scope = target.GetPrimAtPath("/World/" + "/".join(parts[:depth]))
+                scope.specifier, scope.typeName = Sdf.SpecifierDef, "Scope"
+            mesh = target.GetPrimAtPath(f"/World/{prop.path}")
+            _define_mesh(mesh, prop.faces)
+            points = Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
+            points.default = Vt.Vec3fArray.FromNumpy(prop.vertices.astype(np.float32))
+            box = Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
+            box.default = Vt.Vec3fArray.FromNumpy(extent(prop.vertices.astype(np.float32)))
+            order = Sdf.AttributeSpec(mesh, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
+            order.default = Vt.TokenArray(["xformOp:transform"])
+            if prop.guide:
+                purpose = Sdf.AttributeSpec(mesh, "purpose", Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
+                purpose.default = "guide"
+
+
+def _define_mesh(mesh: object, faces: np.ndarray) -> None:
+    """Make the ``over`` spec ``mesh`` a defined ``Mesh`` with the topology of ``faces``."""
+    from pxr import Sdf, Vt
+
+    mesh.specifier, mesh.typeName = Sdf.SpecifierDef, "Mesh"
+    counts = Sdf.AttributeSpec(mesh, "faceVertexCounts", Sdf.ValueTypeNames.IntArray)
+    counts.default = Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32))
+    indices = Sdf.AttributeSpec(mesh, "faceVertexIndices", Sdf.ValueTypeNames.IntArray)
+    indices.default = Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel())
+    for attr, value in (("subdivisionScheme", "none"), ("orientation", "rightHanded")):
+        spec = Sdf.AttributeSpec(mesh, attr, Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
+        spec.default = value
