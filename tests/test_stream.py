@@ -108,7 +108,7 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
     import warpfem.io.usd
     from warpfem.runner import record
 
-    monkeypatch.setattr(warpfem.io.usd, "default_workers", lambda: writers)
+    monkeypatch.setattr(warpfem.io.usd, "default_workers", lambda *_: writers)
 
     root = Path(__file__).resolve().parents[1]
     scene = warpfem.load_scene(root / "tests" / "data" / "golden" / "two_balls.toml").with_frames(12)

@@ -493,3 +493,15 @@ def test_extent_bounds_agree_with_numpy(n):
     p[n // 2, 1] = np.nan
     lo, hi = bounds(p)
     assert np.isnan(lo[1]) and np.isnan(hi[1]) and np.isfinite(lo[[0, 2]]).all()
+
+
+def test_writer_processes_only_for_large_frames(monkeypatch):
+    """On 16 cores, 4 processes for a 20 MB frame; a 1 MB frame (the default scene's) is written inline."""
+    import os
+
+    from warpfem.io import usd_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _pid: set(range(16)), raising=False)
+    assert usd_workers.default_workers(20 * 2**20) == 4
+    assert usd_workers.default_workers(2**20) == 0
+    assert usd_workers.default_workers() == 4

@@ -99,7 +99,7 @@ class UsdWriter:
             props: Rigid shapes moving with the bodies (obstacles, handles): each a :class:`Prop`, written at
                 ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
             workers: Writer processes that author and export chunks, several at once (0: on the calling
-                thread); None: :func:`~warpfem.io.usd_workers.default_workers`.
+                thread); None: :func:`~warpfem.io.usd_workers.default_workers` for the bodies' frame size.
 
         Raises:
             ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes``, prop or
@@ -125,8 +125,7 @@ class UsdWriter:
             raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
         import pxr.Sdf  # noqa: F401  (loaded now, before a run steps, not on its writer's thread at the first chunk)
 
-        workers = default_workers() if workers is None else workers
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
             raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
         self.clips_dir = clips_folder(self.path)
         if not overwrite and (self.path.exists() or self.clips_dir.exists()):
@@ -155,6 +154,10 @@ class UsdWriter:
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
+        if workers is None:  # the frame's point bytes: every vertex is a face's corner
+            workers = default_workers(sum(12 * (int(f.max()) + 1) for _, f in self._bodies if len(f)))
+        self.workers = workers
+        """Writer processes (0: chunks written on the calling thread)."""
         names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
         self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths)
 
