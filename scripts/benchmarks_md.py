@@ -231,22 +231,34 @@ def end_to_end_lines(found: tuple[Path, dict] | None) -> list[str]:
         "the interpreter lock); write and check, each on a thread of its own beside it; raw, writing the same "
         "bytes with plain writes to the same disk; peak resident memory of the whole process; the file with its clips.",
         "",
-        "| case | bodies | dense vertices | wall ms | simulate | write | check | raw write "
-        "| wall / max(simulate, write) | write / raw | peak memory | file |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.",
+        "",
+        "| case | bodies | dense vertices | writer processes | wall ms | simulate | write | check | raw write "
+        "| wall / max(simulate, write) | write / raw | peak memory (caller + each process) | file |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in data["runs"]:
         if "error" in r:
-            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 10)
+            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 11)
             continue
-        ms = r["ms_per_frame"]
-        lines.append(
-            f"| {r['case']} | {r['bodies']} | {r['dense_vertices']:,} | {ms['wall']:.2f} | {ms['simulate']:.2f} | "
-            f"{ms['write']:.2f} | {ms['check']:.2f} | {r['raw_write_ms_per_frame']:.2f} | "
-            f"{r['wall_over_larger_of_simulate_and_write']:.2f} | {r['write_over_raw']:.1f} | "
-            f"{r['peak_rss_mb'] / 1024:.2f} GB | {r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''} |"
-        )
+        lines.append(end_to_end_row(r))
     return lines
+
+
+def end_to_end_row(r: dict) -> str:
+    """One case of the end-to-end table; a writer-only case has no simulation, check or bodies."""
+    ms = r["ms_per_frame"]
+    if "bodies" in r:
+        wall, simulate, write, check = (f"{ms[k]:.2f}" for k in ("wall", "simulate", "write", "check"))
+        bodies, ratio = str(r["bodies"]), f"{r['wall_over_larger_of_simulate_and_write']:.2f}"
+    else:
+        wall = write = f"{ms['wall']:.2f}"
+        simulate = check = bodies = ratio = "-"
+    peak = f"{r['peak_rss_mb'] / 1024:.2f} + {r.get('writer_peak_rss_mb', 0) / 1024:.2f} GB"
+    file = f"{r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''}"
+    cells = [r["case"], bodies, f"{r['dense_vertices']:,}", str(r.get("writers", 0)), wall, simulate, write, check]
+    cells += [f"{r['raw_write_ms_per_frame']:.2f}", ratio, f"{r['write_over_raw']:.1f}", peak, file]
+    return "| " + " | ".join(cells) + " |"
 
 
 if __name__ == "__main__":
