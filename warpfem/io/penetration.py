@@ -227,8 +227,8 @@ class PenetrationCheck:
         boxes = [bounds(p) if len(p) else None for p in points]
         sizes = [float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0 for b in boxes]
         worst = Penetration()
-        for p, size in zip(points, sizes, strict=True):
-            below = _below(p, ground, obstacles) if len(p) else 0.0
+        for p, box, size in zip(points, boxes, sizes, strict=True):
+            below = _below(p, ground, obstacles, box) if len(p) else 0.0
             if below > 0 and below / max(size, 1e-30) > worst.below_relative:
                 worst = Penetration(below_ground=below, below_relative=below / max(size, 1e-30))
         if not bodies or sum(len(f) > 0 for f in self.faces) < 2:
@@ -355,19 +355,28 @@ _CHECKS: weakref.WeakKeyDictionary[Any, PenetrationCheck] = weakref.WeakKeyDicti
 
 
 def _below(
-    p: np.ndarray, ground: tuple[float, tuple[float, float, float]] | None, obstacles: Sequence[Obstacle]
+    p: np.ndarray,
+    ground: tuple[float, tuple[float, float, float]] | None,
+    obstacles: Sequence[Obstacle],
+    box: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> float:
-    """Deepest of the points below the ground or inside an obstacle (m; 0 if none)."""
+    """Deepest of the points below the ground or inside an obstacle (m; 0 if none).
+
+    ``box``: the points' bounds (:func:`bounds`), where known: an axis-aligned ground reads its lowest point
+    off them instead of reading the points again.
+    """
     deepest = 0.0
     if ground is not None:
         height, up = ground
         up = np.asarray(up, np.float64) / np.linalg.norm(up)
         axis = np.flatnonzero(up)
-        if len(axis) == 1:  # an axis-aligned ground reads one column
-            heights = p[:, axis[0]].astype(np.float64) * up[axis[0]]
+        if len(axis) == 1:  # an axis-aligned ground reads the bounds
+            a, u = int(axis[0]), float(up[axis[0]])
+            low, high = bounds(p) if box is None else box
+            lowest = u * float(low[a]) if u > 0 else u * float(high[a])
         else:
-            heights = np.asarray(p, np.float64) @ up
-        deepest = float(height - heights.min())
+            lowest = float((np.asarray(p, np.float64) @ up).min())
+        deepest = height - lowest
     if obstacles:
         p = np.asarray(p, np.float64)
     for obstacle in obstacles:
