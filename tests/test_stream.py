@@ -55,6 +55,29 @@ def test_every_frame_reaches_every_consumer_in_order_with_its_points(device):
     assert stream.seconds["a"] >= 20 * 0.002 and stream.seconds["b"] >= 20 * 0.002
 
 
+def test_a_skippable_consumer_behind_takes_the_newest_frame_and_always_the_last(device):
+    """A slow skippable consumer skips frames (counted) without holding up the stream; the other takes all;
+    every frame a consumer takes carries its own points; the last frame reaches both."""
+    sim = _FakeSim(device)
+    taken: dict[str, list[int]] = {"all": [], "some": []}
+
+    def take(name, delay):
+        def consume(frame, points):
+            time.sleep(delay)
+            assert all((p == frame).all() for p in points)
+            taken[name].append(frame)
+
+        return consume
+
+    with FrameStream(sim, [("all", take("all", 0.0)), ("some", take("some", 0.01))], skippable=("some",)) as stream:
+        for frame in range(60):
+            stream.submit(frame)
+            time.sleep(0.001)
+    assert taken["all"] == list(range(60))
+    assert taken["some"] == sorted(taken["some"]) and taken["some"][-1] == 59
+    assert stream.skipped["some"] == 60 - len(taken["some"]) > 0 and stream.skipped["all"] == 0
+
+
 def test_consumers_run_alongside_each_other(device):
     """Two consumers of 20 ms a frame over 10 frames take about 0.2 s together, not 0.4 s one after the other."""
     sim = _FakeSim(device)

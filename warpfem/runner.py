@@ -56,6 +56,8 @@ class RunSummary:
             frame where it is cheap), the last one always.
         penetration_end: The same at the last frame.
         penetration_frames: Frames whose bodies were checked against each other.
+        ground_frames: Frames checked against the ground and obstacles (every written frame, but for those the
+            check's thread skipped to keep up with the run; the last always).
         writer_peak_bytes: The largest peak resident memory of one of the processes that wrote the file (bytes;
             0 when it was written on the writer's thread).
     """
@@ -82,6 +84,7 @@ class RunSummary:
     penetration: Penetration = field(default_factory=Penetration)
     penetration_end: Penetration = field(default_factory=Penetration)
     penetration_frames: int = 0
+    ground_frames: int = 0
     writer_peak_bytes: int = 0
 
     @property
@@ -215,7 +218,7 @@ def record(
     seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
     started = check.started = time.perf_counter()
     with writer:
-        with FrameStream(sim, [("write", write), ("check", check.ground)]) as stream:
+        with FrameStream(sim, [("write", write), ("check", check.ground)], skippable=("check",)) as stream:
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
@@ -277,7 +280,8 @@ def _stream_frames(
 class _Check:
     """The independent penetration check along a run.
 
-    The ground, spheres and boxes on every written frame, on a thread of its own (NumPy only), and there too
+    The ground, spheres and boxes on every written frame it keeps up with (it skips to the newest when frames
+    wait for it, the last always), on a thread of its own (NumPy only), and there too
     mesh obstacles on the last frame and on frames spaced so that they take about a tenth of the run's time.
     Bodies inside each other the same way, on the simulation's device, from the stepping thread between
     frames. Only the stepping thread touches the device: Warp's reads of CUDA arrays swap the device's
@@ -298,7 +302,7 @@ class _Check:
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
         self.ground_worst = self.ground_end = self.body_worst = self.body_end = Penetration()
-        self.frames_checked = 0
+        self.frames_checked = self.ground_frames = 0
         self.next = self.next_mesh = 1
         self.seconds = 0.0
         self.started = time.perf_counter()  # set again by the run as it starts stepping
@@ -320,6 +324,7 @@ class _Check:
         if meshes and due and frame > 0:
             self.next_mesh = self._next(frame, time.perf_counter() - clock)
         self.ground_worst = self.ground_worst.worst(result)
+        self.ground_frames += 1
         if last:
             self.ground_end = result
 
@@ -381,4 +386,5 @@ def _summary(sim: Simulation, out: Path, seconds: dict[str, float], check: _Chec
         penetration=check.worst,
         penetration_end=check.end,
         penetration_frames=check.frames_checked,
+        ground_frames=check.ground_frames,
     )

@@ -229,7 +229,7 @@ def _penetration_text(summary: Any) -> str:
     return (
         f"bodies {body(worst)} over {summary.penetration_frames} frames checked, {body(end)} at the end; "
         f"below the ground or in obstacles {1e3 * worst.below_ground:.2f} mm ({100 * worst.below_relative:.2f} %) "
-        f"over the run, {1e3 * end.below_ground:.2f} mm at the end"
+        f"over {summary.ground_frames} frames checked, {1e3 * end.below_ground:.2f} mm at the end"
     )
 
 

@@ -34,6 +34,8 @@ class FrameStream:
         sim: A :class:`~warpfem.simulation.Simulation` (anything with ``map_dense()``, ``model`` and ``device``).
         consumers: ``(name, consumer)`` pairs, each called for every frame in order on its thread
             (``warpfem-<name>``); their wall time is summed per name in :attr:`seconds`.
+        skippable: Names of consumers that, when frames wait for them, take the newest and skip the others
+            (the last frame always), so that they never hold the simulation up; :attr:`skipped` counts them.
 
     Use as a context manager: leaving the block waits until every submitted frame is consumed, then raises
     the first consumer error if there was one (a consumer error also stops further submits). The threads
@@ -41,12 +43,14 @@ class FrameStream:
 
     Attributes:
         seconds: Wall time per consumer name (s), spent on its thread.
+        skipped: Frames each consumer skipped (only a ``skippable`` one skips).
         waited: Wall time the caller spent waiting for a free buffer (s).
     """
 
-    def __init__(self, sim: Any, consumers: Sequence[tuple[str, Consumer]]) -> None:
+    def __init__(self, sim: Any, consumers: Sequence[tuple[str, Consumer]], skippable: Sequence[str] = ()) -> None:
         model = sim.model
         self._sim, self._consumers = sim, list(consumers)
+        self._skippable = set(skippable)
         self._cuda = sim.device.is_cuda
         self._ranges = [(b.dense_start, b.dense_start + b.dense_count) for b in model.bodies]
         frame_bytes = max(12 * model.dense_count, 1)
@@ -63,6 +67,7 @@ class FrameStream:
         for i in range(count):
             self._free.put(i)
         self.seconds = {name: 0.0 for name, _ in self._consumers}
+        self.skipped = {name: 0 for name, _ in self._consumers}
         self.waited = 0.0
         self._error: BaseException | None = None
         self._threads = [
@@ -111,7 +116,10 @@ class FrameStream:
     def _run(self, index: int) -> None:
         """Consumer ``index``'s thread: its frames in order until the end mark; after any error, only drain."""
         name, consume = self._consumers[index]
-        while (item := self._work[index].get()) is not None:
+        work, done = self._work[index], False
+        while not done and (item := work.get()) is not None:
+            if name in self._skippable:
+                item, done = self._newest(name, item, work)
             frame, slot = item
             try:
                 if self._error is None:
@@ -126,6 +134,22 @@ class FrameStream:
                     self._error = self._error or err
             finally:
                 self._release(slot)
+
+    def _newest(self, name: str, item: tuple[int, int], work: queue.Queue) -> tuple[tuple[int, int], bool]:
+        """The newest frame queued for consumer ``name`` from ``item`` on, and whether the end mark followed it.
+
+        The frames passed over are released and counted as skipped.
+        """
+        while True:
+            try:
+                following = work.get_nowait()
+            except queue.Empty:
+                return item, False
+            if following is None:
+                return item, True
+            self._release(item[1])
+            self.skipped[name] += 1
+            item = following
 
     def _release(self, slot: int) -> None:
         """One consumer is done with buffer ``slot``: free it when it was the last."""
