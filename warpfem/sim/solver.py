@@ -170,7 +170,6 @@ class Solver:
         """
         model = self.model
         side = self._side if overlap else None  # None without collisions, or off CUDA
-        static = self.colliders.kind.shape[0] > 0
 
         def elastic() -> None:
             if side is not None:
@@ -196,86 +195,97 @@ class Solver:
         def solve() -> None:
             if self.drive is not None:
                 self.drive.pose(state_in.x, dt)
-            if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
-                integrate.body_momentum(model, state_in, self.momentum)
-            integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base)
-            apart = self.apart
-            integrate.build_system(
-                model,
-                state_in,
-                self.force,
-                self.gravity,
-                self.colliders,
-                dt,
-                self.matrix_base,
-                self.rhs,
-                self.diag_inv,
-                state_out.v,
-                self.direction,
-                self.momentum,
-                self.held_v,
-                self.elastic_force if apart else None,
-                self.rhs_base if apart else None,
-            )
-            if apart:
-                integrate.add_elastic(
-                    model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
-                    self.rhs, self.diag_inv,
-                )  # fmt: skip
+            self._assemble(state_in, state_out, dt)
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
-            advance()
+            self._advance(state_in, state_out, dt)
             if self.rotation_updates:
-                update_rotations(1)
-            if self.contact_passes:
-                self.late[0].zero_()
-                self.late[1].zero_()
-            for k in range(self.contact_passes):
-                self.late_count.zero_()
-                if static:
-                    integrate.late_contacts(
-                        model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late,
-                        self.late_count, self.matrix, self.rhs,
-                    )  # fmt: skip
-                if self.collider is not None and k < LATE_BODY_PASSES:
-                    self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, self.late_count)
-                wp.capture_if(self.late_count, on_true=solve_again)
+                self._update_rotations(state_in, state_out, dt, 1)
+            self._late_passes(state_in, state_out, dt)
             if self.drive is not None:
                 self.drive.tick()
-
-        def advance() -> None:
-            integrate.advance_positions(
-                model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
-            )
-
-        def update_rotations(k: int) -> None:
-            # the k-th look at the tets' rotations; the next look only after a solve that changed them
-            self.turned.zero_()
-            fem.turn_rotations(model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
-            wp.capture_if(self.turned, on_true=lambda: relinearise(k))
-
-        def relinearise(k: int) -> None:
-            self.elastic_force.zero_()
-            self.elastic_matrix.zero_()
-            fem.elastic_forces_and_stiffness(
-                model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, given_rotation=True
-            )
-            integrate.add_elastic(
-                model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
-                self.rhs, self.diag_inv,
-            )  # fmt: skip
-            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
-            advance()
-            if k < self.rotation_updates:
-                update_rotations(k + 1)
-
-        def solve_again() -> None:
-            integrate.refresh_preconditioner(model, self.matrix, self.diag_inv)
-            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
-            advance()
 
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
         return [("elastic", elastic), ("collision", collision), ("solve", solve)]
+
+    def _assemble(self, state_in: State, state_out: State, dt: float) -> None:
+        """Static contacts and the implicit Euler system on top of the elastic and contact terms."""
+        model = self.model
+        if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
+            integrate.body_momentum(model, state_in, self.momentum)
+        integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base)
+        apart = self.apart
+        integrate.build_system(
+            model,
+            state_in,
+            self.force,
+            self.gravity,
+            self.colliders,
+            dt,
+            self.matrix_base,
+            self.rhs,
+            self.diag_inv,
+            state_out.v,
+            self.direction,
+            self.momentum,
+            self.held_v,
+            self.elastic_force if apart else None,
+            self.rhs_base if apart else None,
+        )
+        if apart:
+            self._add_elastic(dt)
+
+    def _add_elastic(self, dt: float) -> None:
+        integrate.add_elastic(
+            self.model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
+            self.rhs, self.diag_inv,
+        )  # fmt: skip
+
+    def _advance(self, state_in: State, state_out: State, dt: float) -> None:
+        integrate.advance_positions(
+            self.model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
+        )
+
+    def _update_rotations(self, state_in: State, state_out: State, dt: float, k: int) -> None:
+        """The k-th look at the tets' rotations; a solve, and the next look, only where some turned."""
+        self.turned.zero_()
+        fem.turn_rotations(self.model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
+        wp.capture_if(self.turned, on_true=lambda: self._relinearise(state_in, state_out, dt, k))
+
+    def _relinearise(self, state_in: State, state_out: State, dt: float, k: int) -> None:
+        """The system again about the rotations ``rotation`` holds, solved from the last answer."""
+        self.elastic_force.zero_()
+        self.elastic_matrix.zero_()
+        fem.elastic_forces_and_stiffness(
+            self.model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, given_rotation=True
+        )
+        self._add_elastic(dt)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+        self._advance(state_in, state_out, dt)
+        if k < self.rotation_updates:
+            self._update_rotations(state_in, state_out, dt, k + 1)
+
+    def _late_passes(self, state_in: State, state_out: State, dt: float) -> None:
+        """The contact passes: contacts the answer makes that the step did not count, and a solve where any."""
+        if not self.contact_passes:
+            return
+        self.late[0].zero_()
+        self.late[1].zero_()
+        for k in range(self.contact_passes):
+            self.late_count.zero_()
+            if self.colliders.kind.shape[0]:
+                integrate.late_contacts(
+                    self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late,
+                    self.late_count, self.matrix, self.rhs,
+                )  # fmt: skip
+            if self.collider is not None and k < LATE_BODY_PASSES:
+                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, self.late_count)
+            wp.capture_if(self.late_count, on_true=lambda: self._solve_again(state_in, state_out, dt))
+
+    def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
+        integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+        self._advance(state_in, state_out, dt)
 
     @property
     def overlapped(self) -> bool:
