@@ -37,6 +37,22 @@ PREDICTED_TURN_MAX = wp.constant(0.1)
 
 
 @wp.func
+def axial(M: wp.mat33) -> wp.vec3:
+    """The axial vector of the skew part of ``M``: ``w`` with ``(M - M^T) / 2 = [w]x``."""
+    return 0.5 * wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
+
+
+@wp.func
+def turn_angle(R: wp.mat33, R_before: wp.mat33) -> float:
+    """The angle (rad) of the rotation taking ``R_before`` to ``R``.
+
+    atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32.
+    """
+    turn = R * wp.transpose(R_before)
+    return wp.atan2(wp.length(axial(turn)), 0.5 * (wp.trace(turn) - 1.0))
+
+
+@wp.func
 def spun(L: wp.mat33, dt: float, least: float) -> wp.mat33:
     """The rotation by ``dt`` times the spin (skew part) of the velocity gradient ``L`` (Rodrigues).
 
@@ -45,7 +61,7 @@ def spun(L: wp.mat33, dt: float, least: float) -> wp.mat33:
     deforms faster than it spins (its strain rate, the symmetric part, is larger): a turn read off a deforming
     tet is no prediction.
     """
-    w = 0.5 * wp.vec3(L[2, 1] - L[1, 2], L[0, 2] - L[2, 0], L[1, 0] - L[0, 1])
+    w = axial(L)
     angle = wp.length(w) * dt
     D = 0.5 * (L + wp.transpose(L))
     if angle <= least or angle > PREDICTED_TURN_MAX or wp.ddot(D, D) >= 2.0 * wp.dot(w, w):
@@ -153,10 +169,7 @@ def rotation_change(
 ):
     """Per body, the sum of the angles (rad) its tets turned between two rotation snapshots (atomic add)."""
     e = wp.tid()
-    turn = rotation[e] * wp.transpose(rotation_before[e])
-    # atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32
-    axis = 0.5 * wp.vec3(turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1])
-    wp.atomic_add(angle_sum_out, tet_body[e], wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)))
+    wp.atomic_add(angle_sum_out, tet_body[e], turn_angle(rotation[e], rotation_before[e]))
 
 
 @wp.kernel
@@ -184,9 +197,6 @@ def turn_rotations(
     t = tets[e]
     x0 = x[t[0]]
     R = rotation_of(wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0) * dm_inv[e])
-    turn = R * wp.transpose(rotation[e])
-    # atan2(|axis sin|, cos): accurate for small angles, where acos of the trace is not in float32
-    axis = 0.5 * wp.vec3(turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1])
-    if wp.atan2(wp.length(axis), 0.5 * (wp.trace(turn) - 1.0)) > tolerance:
+    if turn_angle(R, rotation[e]) > tolerance:
         rotation[e] = R
         changed_out[0] = 1

@@ -154,8 +154,8 @@ class UsdWriter:
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
-        if workers is None:  # the frame's point bytes: every vertex is a face's corner
-            workers = default_workers(sum(12 * (int(f.max()) + 1) for _, f in self._bodies if len(f)))
+        if workers is None:  # the frame's point bytes
+            workers = default_workers(12 * sum(self._min_vertices))
         self.workers = workers
         """Writer processes (0: chunks written on the calling thread)."""
         names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]

@@ -235,8 +235,8 @@ def build_system(
     direction_out: wp.array,
     momentum: wp.array,
     held_v: wp.array,
-    elastic_force: wp.array | None = None,
-    rhs_base_out: wp.array | None = None,
+    elastic_force: wp.array,
+    rhs_base_out: wp.array,
 ) -> None:
     """Complete the backward-Euler system for the new velocity (see :mod:`warpfem.kernels.integrate`).
 
@@ -244,11 +244,10 @@ def build_system(
     its diagonal. ``v_guess_out`` receives the CG start (the current velocity) and ``direction_out`` the direction
     CG moves it along first: ``state.dv``, the velocity change of the step that produced the state (zero on
     pinned vertices and where not finite). A held vertex starts, and stays, at its ``held_v`` (m/s; a handle's
-    velocity this step), or at rest where ``held_v`` is empty. With ``elastic_force`` (N), the elastic force kept
-    apart from ``force``: the right-hand side without it goes to ``rhs_base_out`` (see :func:`add_elastic`).
+    velocity this step), or at rest where ``held_v`` is empty. With ``elastic_force`` not empty (N), the elastic
+    force kept apart from ``force``: the right-hand side without it goes to ``rhs_base_out`` (see
+    :func:`add_elastic`); both empty where the elastic force is in ``force``.
     """
-    empty = wp.zeros(0, dtype=wp.vec3, device=model.device)
-    base = empty if rhs_base_out is None else rhs_base_out
     wp.launch(
         K.build_system,
         dim=model.vertex_count,
@@ -261,7 +260,7 @@ def build_system(
             model.diag_slot,
             model.vertex_depth,
             force,
-            empty if elastic_force is None else elastic_force,
+            elastic_force,
             gravity,
             colliders.arrays,
             held_v,
@@ -271,7 +270,7 @@ def build_system(
             model.body_mass,
             dt,
         ],
-        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out, base],
+        outputs=[matrix_out, rhs_out, diag_inv_out, v_guess_out, direction_out, rhs_base_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )

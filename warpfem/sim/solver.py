@@ -124,6 +124,7 @@ class Solver:
         self.elastic_matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.matrix_base = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.rhs_base = wp.zeros(n if apart else 0, dtype=wp.vec3, device=dev)
+        self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
         self._zeroed = [self.force, self.matrix_base, *((self.elastic_force, self.elastic_matrix) if apart else ())]
         """What a step zeroes before it accumulates into (the matrix itself is the base when nothing is apart)."""
         self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -229,8 +230,8 @@ class Solver:
             self.direction,
             self.momentum,
             self.held_v,
-            self.elastic_force if apart else None,
-            self.rhs_base if apart else None,
+            self.elastic_force if apart else self._no_vec3,
+            self.rhs_base,
         )
         if apart:
             self._add_elastic(dt)
@@ -257,8 +258,9 @@ class Solver:
         self.elastic_force.zero_()
         self.elastic_matrix.zero_()
         fem.elastic_forces_and_stiffness(
-            self.model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, given_rotation=True
-        )
+            self.model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self._no_vec3,
+            given_rotation=True,
+        )  # fmt: skip
         self._add_elastic(dt)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._advance(state_in, state_out, dt)
