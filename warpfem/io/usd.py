@@ -46,7 +46,8 @@ CHUNK_BYTES = 32 << 20
 """Bytes of point samples after which a chunk is cut (one export of about this size).
 
 A single file is exported only once its last frame is in, so a run of one chunk waits for its whole export at
-the end; at this size that is about 30 ms, and a longer run's clips are exported while it goes on."""
+the end, which a small chunk keeps short; a longer run's clips are exported while it goes on (the switch point's
+measurement: docs/decisions.md)."""
 
 
 class UsdWriter:

@@ -38,9 +38,8 @@ MAX_WORKERS = 4
 
 
 PROCESS_FRAME_BYTES = 8 * 2**20
-"""Frames of fewer point bytes are written inline: processes pay only where one thread cannot keep up. On an
-H100 machine (16 cores), 4 processes wrote the default scene (1.2 MB a frame) at 11.1 ms a frame against 4.6
-inline, and the 64-armadillo pile (19 MB a frame) at 27 against 37 ms (docs/decisions.md)."""
+"""Frames of fewer point bytes are written inline: processes pay only where one thread cannot keep up with
+the run, and starting them costs more than they save on small frames (the measurement: docs/decisions.md)."""
 
 
 def default_workers(frame_bytes: int | None = None) -> int:
