@@ -229,7 +229,8 @@ def build_system(
     """Adds mass, damping and static-collider terms to the diagonal block, builds the right-hand side and M^-1.
 
     The elastic force is ``force`` plus ``elastic_force`` where that is not empty; then ``rhs_base_out``
-    receives the right-hand side without it (what a step re-linearised about other rotations keeps).
+    receives the right-hand side without it (what a step re-linearised about other rotations keeps), and the
+    free rows' inverse diagonal blocks are left to be taken once the elastic blocks are added.
 
     Each static collider acts on the vertex as :func:`static_contact` says: its force on the right-hand side,
     its matrix term in the diagonal block; not on a vertex outside the visible surface (a corner of the cage
@@ -269,7 +270,8 @@ def build_system(
         v_guess_out[i] = vi
         d = dv[i]
         direction_out[i] = wp.where(wp.isfinite(d), d, wp.vec3())  # a blown-up step must not poison the next
-        diag_inv_out[i] = wp.inverse(block)
+        if rhs_base_out.shape[0] == 0:  # else the block lacks the elastic part: inverted once that is added
+            diag_inv_out[i] = wp.inverse(block)
 
 
 @wp.func
