@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -385,7 +386,14 @@ def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
     assert child.stdout.readline() == "writing\n", child.stderr.read()
     writers = _children(child.pid)
     os.killpg(child.pid, signal.SIGINT)
-    out, err = child.communicate(timeout=60)
+    try:
+        out, err = child.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        for pid in [child.pid, *writers]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        child.communicate()
+        raise
     assert child.returncode == 0, err
     added = int(out.split()[-1])
     base = np.random.default_rng(2).normal(size=(1000, 3)).astype(np.float32)
@@ -400,6 +408,71 @@ def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
     assert writers and not any(map(_alive, writers))
 
 
+_INTERRUPTED_INSIDE = """
+import signal
+import sys
+import numpy as np
+from warpfem.io.usd import UsdWriter
+n = 1000
+base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
+faces = np.arange(3 * n).reshape(n, 3) % n
+w = UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n, workers=2)
+method = getattr(w._pool, sys.argv[2])
+calls = []
+
+def interrupted(*args, **kwargs):
+    out = method(*args, **kwargs)
+    if out != []:  # a chunk sent, or chunks reported exported
+        calls.append(1)
+    if len(calls) == 3:
+        signal.raise_signal(signal.SIGINT)
+    return out
+
+setattr(w._pool, sys.argv[2], interrupted)
+try:
+    with w:
+        for f in range(200):
+            w.add_frame(f, [base * np.float32(1 + f)])
+except KeyboardInterrupt:
+    print(w.frames_added, flush=True)
+"""
+
+
+@pytest.mark.parametrize("where", ["done", "cut"])
+def test_ctrl_c_inside_the_writer_keeps_every_frame_added(tmp_path, where):
+    """Ctrl-C landing just after the writer read its processes' messages, or just after it sent a chunk
+    for export (where a stop used to lose a message and wait forever, or export a chunk twice): the run
+    stops at once and the file holds every frame added."""
+    import signal
+    import subprocess
+    import sys
+
+    from pxr import Usd, UsdGeom
+
+    path = tmp_path / "stopped.usdc"
+    child = subprocess.Popen(
+        [sys.executable, "-c", _INTERRUPTED_INSIDE, str(path), where],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        out, err = child.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.communicate()
+        raise
+    assert child.returncode == 0, err
+    added = int(out.split()[-1])
+    assert 0 < added < 200
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/m")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [float(f) for f in range(added)]
+    base = np.random.default_rng(2).normal(size=(1000, 3)).astype(np.float32)
+    np.testing.assert_array_equal(np.array(attr.Get(added - 1)), base * np.float32(added))
+
+
 @pytest.mark.parametrize("workers", [0, 2], ids=["inline", "2 writer processes"])
 def test_a_failed_export_reaches_the_caller_and_stops_the_writer(tmp_path, workers):
     """The clips folder replaced by a file under a running writer: the next export fails, the caller gets an
@@ -407,8 +480,9 @@ def test_a_failed_export_reaches_the_caller_and_stops_the_writer(tmp_path, worke
     import shutil
 
     bodies, frames = bodies_and_frames(8)
+    before = set(_children())
     writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0, chunk_bytes=1, save_every=None, workers=workers)
-    started = _children()
+    started = set(_children()) - before
     writer.add_frame(0, frames[0])
     writer.save()
     shutil.rmtree(tmp_path / "x.clips")

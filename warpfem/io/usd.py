@@ -26,6 +26,8 @@ import contextlib
 import os
 import re
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -219,7 +221,7 @@ class UsdWriter:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         arrays = self._checked(frame, points)
         matrices = _checked_transforms(transforms, len(self._props))
-        with self._aborting_on_failure():
+        with _held_signals(), self._aborting_on_failure():
             self._pool.add(self._cuts, int(frame), arrays, matrices)
             if self._chunk_first is None:
                 self._chunk_first = int(frame)
@@ -277,7 +279,7 @@ class UsdWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        with self._aborting_on_failure():
+        with _held_signals(), self._aborting_on_failure():
             self._cut_chunk()
             while self._cut:
                 self._place_exported(block=True)
@@ -373,11 +375,12 @@ class UsdWriter:
             self.abort()
             raise RuntimeError(f"{self.path}: no frame was added; nothing written")
         try:
-            if self._clips or self._cut:
-                self.save()
-            else:
-                self._write_single()
-            self._pool.stop()
+            with _held_signals():
+                if self._clips or self._cut:
+                    self.save()
+                else:
+                    self._write_single()
+                self._pool.stop()
         except BaseException:
             self.abort()
             raise
@@ -417,6 +420,45 @@ class UsdWriter:
             self.close()
         else:
             self.abort()
+
+
+@contextlib.contextmanager
+def _held_signals() -> Iterator[None]:
+    """Hold a SIGINT or SIGTERM until the block ends, then deliver it as the handler in place would.
+
+    The writer's bookkeeping and its messages to the writer processes are then never cut halfway by a
+    ``KeyboardInterrupt`` (a chunk listed but not sent, a message half read), which left a close waiting
+    forever. A second signal inside the block goes to that handler at once, so a writer that cannot finish
+    can still be stopped. Outside the main thread (where no signal handler runs) the block runs unchanged.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def hold(signum: int, frame: object) -> None:
+        if held:
+            _deliver(signum, previous[signum], frame)
+        held.append(signum)
+
+    for s in previous:
+        signal.signal(s, hold)
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+        if held:
+            _deliver(held[0], previous[held[0]], None)
+
+
+def _deliver(signum: int, handler: object, frame: object) -> None:
+    """Act on signal ``signum`` as ``handler`` (a function, ``SIG_DFL`` or ``SIG_IGN``) would."""
+    if callable(handler):
+        handler(signum, frame)
+    elif handler in (signal.SIG_DFL, None):
+        signal.raise_signal(signum)  # the handler is back in place: the default action (SIGTERM ends the process)
 
 
 def clips_folder(path: str | Path) -> Path:
