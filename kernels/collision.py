@@ -1,19 +1,20 @@
 """Body-body and self collisions: collision points against tets, penalty response from the distance field.
 
-Depth and direction: in a tet touching the body's surface (a corner on it), the point's distance below the
-plane of the surface face it came in through (of the faces around the tet's corners, the one it was outside
-of a step ago, relative to the tet; else the nearest), corrected by how far that face lies outside the
-visible surface, along that face's current outward normal: flat on faces, so a body resting on a face is
-pushed straight out, not sideways by the averaged normals at edges; in a tet deep inside, the paper's
-interpolated distance field and rotated gradients. The distance field is the depth below the visible
-(dense) surface, so contacts start where the visible surfaces meet, not at the coarse cage around them.
+Depth and direction: in a tet touching the body's surface (a corner on it), the point's depth below the
+body's dense surface at rest, where its weights in the tet put it, and the way out to the nearest point
+of that surface, carried to the tet's current shape (:func:`kernels.distance.visible_depth`); where no
+dense surface is in reach, the point's distance below the plane of the surface face it came in through
+(of the faces around the tet's corners, the one it was outside of a step ago, relative to the tet; else
+the nearest), corrected by how far that face lies outside the visible surface, along that face's current
+outward normal. In a tet deep inside, the paper's interpolated distance field and rotated gradients.
+Both are depths below the visible (dense) surface, so contacts start where the visible surfaces meet, not
+at the coarse cage around them.
 
 Collision points are samples of each body's dense surface (embedded in a tet with barycentric weights,
 like every dense vertex), or, for a bare tet mesh, its surface vertices plus optional samples on its
 surface triangles, so thin parts whose vertices never enter another body are still caught. A point ``p``
 inside tet ``t`` of another body (or of its own body, outside ``t``'s one-ring) gets the penalty force
-``f = a d g`` with depth ``d`` and direction ``g`` interpolated from ``t``'s vertex depths and rotated gradients
-(Kondo & Kanai, after Fisher & Lin); the
+``f = a d g`` with depth ``d`` and direction ``g`` as above (Kondo & Kanai, after Fisher & Lin); the
 reaction ``-f`` goes to ``t``'s corners by the barycentric weights, so momentum is conserved. Implicitly,
 the contact is a spring along ``g`` between the point and its image in ``t``: row ``J`` of the constraint
 ``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product
@@ -22,7 +23,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 
 import warp as wp
 
-from .distance import add_rotated_gradients, interpolate_directions
+from .distance import VisibleSurface, add_rotated_gradients, interpolate_directions, visible_depth
 from .embedding import interpolate
 from .grid import warp_max_at
 from .integrate import FRICTION_SPEED_EPS
@@ -293,6 +294,7 @@ def record_contact(
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
     face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
     point_velocity: wp.array(dtype=wp.vec3),
     point_anchor: wp.array(dtype=wp.vec3i),
     row_start: wp.array(dtype=wp.int32),
@@ -345,6 +347,7 @@ def record_contact(
         if entered == 1.0e30:
             d = d_near
             g = g_near
+        d, g = visible_depth(surface, x, e, t, w, d, g)
     else:
         # deep inside: the paper's interpolated distance field and rotated gradients
         d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
@@ -422,6 +425,7 @@ def walk_tree(
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
     face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
     point_velocity: wp.array(dtype=wp.vec3),
     point_anchor: wp.array(dtype=wp.vec3i),
     row_start: wp.array(dtype=wp.int32),
@@ -492,6 +496,7 @@ def walk_tree(
                         tet_faces,
                         tet_face_ids,
                         face_depth,
+                        surface,
                         point_velocity,
                         point_anchor,
                         row_start,
@@ -534,6 +539,7 @@ def detect_contacts(
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
     face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
     points: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
     point_body: wp.array(dtype=wp.int32),
@@ -584,10 +590,9 @@ def detect_contacts(
             continue
         walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-            tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity, point_anchor,
-                    row_start, cols,
-            depth, grad, capacity, count_out, contact_point_out, contact_tet_out, contact_bary_out,
-            contact_normal_out, contact_depth_out, stats_out, late,
+            tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
+            point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out, contact_tet_out,
+            contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
         )  # fmt: skip
 
 
@@ -611,6 +616,7 @@ def detect_contacts_direct(
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
     face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
     points: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
     point_body: wp.array(dtype=wp.int32),
@@ -654,10 +660,10 @@ def detect_contacts_direct(
             if candidate % lanes == lane and (self_ok or not same):
                 walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, point_velocity,
-                    point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out,
-                    contact_tet_out, contact_bary_out,
-                    contact_normal_out, contact_depth_out, stats_out, late,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    point_velocity, point_anchor, row_start, cols, depth, grad, capacity, count_out,
+                    contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
+                    stats_out, late,
                 )  # fmt: skip
 
 

@@ -93,3 +93,54 @@ def interpolate_directions(grad: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.v
         + w[2] * direction_at(grad, tet[2])
         + w[3] * direction_at(grad, tet[3])
     )
+
+
+@wp.struct
+class VisibleSurface:
+    """Each body's dense surface at rest, for the exact depth of a point found inside one of its tets.
+
+    A point at barycentric weights ``w`` in tet ``t`` lies at ``sum_k w_k X[t_k]`` in the body's rest shape;
+    its depth there below the dense rest surface (a ``wp.Mesh``) is its depth below the visible surface,
+    the small strain of the tet aside. Bodies that are copies of one another (the same prepared mesh, moved,
+    turned and scaled) share one mesh: ``to_mesh`` and ``mesh_origin`` take a rest position to the mesh's
+    frame, ``mesh_scale`` takes a length there back to metres.
+    """
+
+    rest_x: wp.array(dtype=wp.vec3)
+    dm_inv: wp.array(dtype=wp.mat33)  # per tet, its rest shape matrix inverted
+    tet_body: wp.array(dtype=wp.int32)
+    mesh: wp.array(dtype=wp.uint64)  # per body; 0: no dense surface (the tets' surface is the visible one)
+    to_mesh: wp.array(dtype=wp.mat33)  # per body
+    mesh_origin: wp.array(dtype=wp.vec3)  # per body
+    mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
+    reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
+
+
+@wp.func
+def visible_depth(s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.vec4i, w: wp.vec4, d: float, g: wp.vec3):
+    """Depth (m, negative outside) below its body's dense surface of the point at weights ``w`` in tet ``e``,
+    and the direction out of it there: the way to the nearest surface point at rest, carried to the tet's
+    current shape at positions ``x`` as a normal is (by the inverse transpose of its deformation gradient).
+
+    ``d``, ``g`` are returned where the body has no dense surface or none lies within its reach of the point.
+    """
+    b = s.tet_body[e]
+    mesh = s.mesh[b]
+    if mesh == wp.uint64(0):
+        return d, g
+    r = w[0] * s.rest_x[t[0]] + w[1] * s.rest_x[t[1]] + w[2] * s.rest_x[t[2]] + w[3] * s.rest_x[t[3]]
+    q = s.to_mesh[b] * r + s.mesh_origin[b]
+    hit = wp.mesh_query_point_sign_normal(mesh, q, s.reach[b])
+    if not hit.result:
+        return d, g
+    offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
+    dist = wp.length(offset)
+    out = wp.mesh_eval_face_normal(mesh, hit.face)
+    if dist > 1.0e-6 * s.reach[b]:
+        out = -hit.sign * offset / dist
+    o = x[t[0]]
+    shape = wp.matrix_from_cols(x[t[1]] - o, x[t[2]] - o, x[t[3]] - o) * s.dm_inv[e]
+    if wp.determinant(shape) <= 0.0:
+        return -hit.sign * dist * s.mesh_scale[b], g
+    n = wp.transpose(wp.inverse(shape)) * (wp.transpose(s.to_mesh[b]) * out)
+    return -hit.sign * dist * s.mesh_scale[b], wp.normalize(n)

@@ -20,6 +20,7 @@ import warp as wp
 
 from warpfem.kernels import collision as K
 from warpfem.sim.contacts import Coupling
+from warpfem.sim.surface import visible_surface
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,8 @@ class Collider:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
+        self.visible, self._dense_meshes = visible_surface(model)
+        """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self.lanes = DETECT_LANES if dev.is_cuda else 1
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
@@ -309,6 +312,7 @@ class Collider:
                 m.tet_faces,
                 m.tet_face_ids,
                 m.face_depth,
+                self.visible,
                 points,
                 point_velocity,
                 point_body,
