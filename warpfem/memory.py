@@ -67,12 +67,12 @@ CONTACT_BYTES = 140
 """Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block, the pair's vertices and weights."""
 
 MESH_VERTEX_BYTES = 12
-"""Device bytes per vertex of a mesh obstacle: its float32 position."""
+"""Device bytes per vertex of a mesh obstacle or a dense surface the collider queries: its float32 position."""
 
 MESH_FACE_BYTES = 176
-"""Device bytes per triangle of a mesh obstacle at most: its indices and open-edge flags, and Warp's ``wp.Mesh``
-around it: the triangle's bounds (24), its tree (two nodes of 32, their parents and counts, an index: 84) and
-the temporaries of the tree's build (52)."""
+"""Device bytes per triangle of a mesh obstacle or queried dense surface at most: its indices and open-edge
+flags, and Warp's ``wp.Mesh`` around it: the triangle's bounds (24), its tree (two nodes of 32, their
+parents and counts, an index: 84) and the temporaries of the tree's build (52)."""
 
 CONTACTS_PER_POINT = 2.0
 """Contact slots per collision point (the collider's default capacity)."""
@@ -125,6 +125,7 @@ def estimate(
     collision: bool,
     tet_face_refs: Sequence[int] = (),
     obstacle_meshes: Sequence[tuple[int, int]] = (),
+    dense_meshes: Sequence[tuple[int, int]] = (),
 ) -> Estimate:
     """Estimate the device memory of a scene from its preprocessed bodies.
 
@@ -137,6 +138,8 @@ def estimate(
         tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
             (:func:`warpfem.prep.geometry.tet_surface_faces`).
         obstacle_meshes: ``(vertices, triangles)`` of each mesh obstacle.
+        dense_meshes: ``(vertices, triangles)`` of each distinct dense surface (copies of one prepared body
+            share one), which the collider keeps as a ``wp.Mesh`` for the depth of contacts.
 
     Returns:
         The estimate by part.
@@ -158,6 +161,7 @@ def estimate(
         contacts = max(64, int(CONTACTS_PER_POINT * points))
         per_tet = COLLIDER_TET_BYTES + TREE_TET_BYTES
         parts["collision"] += COLLIDER_POINT_BYTES * points + CONTACT_BYTES * contacts + per_tet * q
+        parts["collision"] += sum(MESH_VERTEX_BYTES * nv + MESH_FACE_BYTES * nf for nv, nf in dense_meshes)
     if obstacle_meshes:
         parts["obstacles"] = sum(MESH_VERTEX_BYTES * nv + MESH_FACE_BYTES * nf for nv, nf in obstacle_meshes)
     return Estimate(parts)
@@ -170,7 +174,8 @@ def scene_estimate(scene: Scene, prepared: Sequence[PreparedBody], geometry: Seq
     refs = [len(g.tet_faces) for g in geometry]
     meshes = [_mesh_size(scene, i) for i, o in enumerate(scene.obstacles) if o.kind == "mesh"]
     dense = [len(p.dense_vertices) for p in prepared]
-    return estimate([p.tets for p in prepared], dense, points, collider, refs, meshes)
+    shapes = {id(p): (len(p.dense_vertices), len(p.dense_faces)) for p in prepared}
+    return estimate([p.tets for p in prepared], dense, points, collider, refs, meshes, list(shapes.values()))
 
 
 def _mesh_size(scene: Scene, index: int) -> tuple[int, int]:
