@@ -118,11 +118,12 @@ class VisibleSurface:
 
 @wp.func
 def visible_depth(s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.vec4i, w: wp.vec4, d: float, g: wp.vec3):
-    """Depth (m, negative outside) below its body's dense surface of the point at weights ``w`` in tet ``e``,
-    and the direction out of it there: the way to the nearest surface point at rest, carried to the tet's
-    current shape at positions ``x`` as a normal is (by the inverse transpose of its deformation gradient).
+    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``.
 
-    ``d``, ``g`` are returned where the body has no dense surface or none lies within its reach of the point.
+    The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
+    carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
+    deformation gradient). ``d``, ``g`` are returned where the body has no dense surface or none lies within
+    its reach of the point.
     """
     b = s.tet_body[e]
     mesh = s.mesh[b]
