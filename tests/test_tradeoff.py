@@ -30,6 +30,8 @@ def test_bad_setting_is_input_error():
         Setting(cg_mode="adaptive")
     with pytest.raises(InputError, match="cells"):
         Setting(cells=0)
+    with pytest.raises(InputError, match="rotation_updates"):
+        Setting(rotation_updates=-1)
 
 
 SCENE = BeamScene(beam=Cantilever(young=1e7), seconds=0.25, dense_cells=2)
@@ -40,6 +42,7 @@ def test_sweep_rows_are_consistent(device, tmp_path):
     runs = [
         run_setting(SCENE, Setting("a", cells=1, substeps=1, cg_mode="fixed", cg_iterations=5), device),
         run_setting(SCENE, Setting("b", cells=2, substeps=4, cg_tolerance=1e-6, cg_iterations=2000), device),
+        run_setting(SCENE, Setting("c", cells=1, substeps=1, cg_tolerance=1e-6, rotation_updates=0), device),
     ]
     assert runs[0].tets == 60 and runs[1].tets == 480
     assert runs[0].cg_iterations_per_step == 5
@@ -51,7 +54,9 @@ def test_sweep_rows_are_consistent(device, tmp_path):
     write_csv(tmp_path / "t.csv", rows)
     with open(tmp_path / "t.csv") as f:
         table = list(csv.DictReader(f))
-    assert [r["knob"] for r in table] == ["a", "b"]
+    assert [r["knob"] for r in table] == ["a", "b", "c"]
+    assert [r["rotation_updates"] for r in table] == ["default", "default", "0"]
+    assert runs[2].setting.label == "cells 1, 1 substeps, CG tol 1e-06, 0 rotation updates"
     assert float(table[1]["trajectory_error_m"]) == pytest.approx(rows[1].trajectory_error, rel=1e-3, abs=1e-9)
     plot(tmp_path / "t.png", rows, "test")
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

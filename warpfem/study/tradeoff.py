@@ -49,6 +49,8 @@ class Setting:
         cg_mode: ``"fixed"``: always ``cg_iterations`` iterations; ``"tolerance"``: iterate to ``cg_tolerance``.
         cg_iterations: The fixed count, or the cap in tolerance mode.
         cg_tolerance: Relative residual to stop at (tolerance mode only).
+        rotation_updates: Solves of a step re-linearised about the rotations its last solve reached
+            (``[solver] rotation_updates``; 0: one linear solve per step; None: the solver's default).
     """
 
     knob: str = "baseline"
@@ -57,10 +59,13 @@ class Setting:
     cg_mode: str = "tolerance"
     cg_iterations: int = 200
     cg_tolerance: float = 1e-4
+    rotation_updates: int | None = None
 
     def __post_init__(self) -> None:
         if self.cells < 1 or self.substeps < 1 or self.cg_iterations < 1:
             raise InputError(f"cells, substeps and cg_iterations must be >= 1, got {self}")
+        if self.rotation_updates is not None and self.rotation_updates < 0:
+            raise InputError(f"rotation_updates must be >= 0, got {self.rotation_updates}")
         if self.cg_mode not in ("fixed", "tolerance"):
             raise InputError(f"cg_mode must be 'fixed' or 'tolerance', got {self.cg_mode!r}")
         if self.cg_mode == "tolerance" and not 0.0 < self.cg_tolerance < 1.0:
@@ -75,7 +80,8 @@ class Setting:
     def label(self) -> str:
         """A short description, e.g. ``cells 2, 4 substeps, CG tol 1e-04``."""
         cg = f"CG {self.cg_iterations} it" if self.cg_mode == "fixed" else f"CG tol {self.cg_tolerance:.0e}"
-        return f"cells {self.cells}, {self.substeps} substeps, {cg}"
+        updates = "" if self.rotation_updates is None else f", {self.rotation_updates} rotation updates"
+        return f"cells {self.cells}, {self.substeps} substeps, {cg}{updates}"
 
 
 @dataclass(frozen=True)
@@ -176,6 +182,7 @@ def run_setting(scene: BeamScene, setting: Setting, device: str | None = None) -
         ground=None,
         cg_iterations=setting.cg_iterations,
         cg_tolerance=setting.cg_tolerance if setting.cg_mode == "tolerance" else 0.0,
+        **({} if setting.rotation_updates is None else {"rotation_updates": setting.rotation_updates}),
     )
     sim = Simulation.from_model(model, solver, setting.substeps, FPS)
     points = np.empty((scene.frames, len(dense), 3), dtype=np.float32)
@@ -251,13 +258,16 @@ def quick_settings() -> tuple[list[Setting], Setting]:
     settings += [Setting("cg_tolerance", cg_tolerance=t, cg_iterations=1000) for t in (1e-1, 1e-2, 1e-3, 1e-5)]
     settings += [Setting("cells", cells=c) for c in (1, 3)]
     settings += [Setting("substeps", substeps=s) for s in (1, 2, 8)]
+    settings += [Setting("rotation_updates", rotation_updates=r) for r in (0, 1)]
     settings += [
         Setting("combined", cells=1, substeps=1, cg_mode="fixed", cg_iterations=10),
         Setting("combined", cells=1, substeps=2, cg_tolerance=1e-2),
         Setting("combined", cells=3, substeps=2, cg_tolerance=1e-3),
         Setting("combined", cells=3, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
     ]
-    reference = Setting("reference", cells=4, substeps=16, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=5000)
+    reference = Setting(
+        "reference", cells=4, substeps=16, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=5000, rotation_updates=8
+    )
     return settings, reference
 
 
@@ -268,11 +278,14 @@ def full_settings() -> tuple[list[Setting], Setting]:
     settings += [
         Setting("cg_tolerance", cg_tolerance=t, cg_iterations=2000) for t in (1e-1, 3e-2, 1e-2, 1e-3, 1e-5, 1e-6)
     ]
+    settings += [Setting("rotation_updates", substeps=n, rotation_updates=r) for n in (1, 4) for r in (0, 1, 4)]
     for cells in (1, 2, 3, 4, 6):
         for substeps in (1, 2, 4, 8, 16):
             for tol in (1e-2, 1e-4):
                 settings.append(Setting("cells x substeps", cells=cells, substeps=substeps, cg_tolerance=tol))
-    reference = Setting("reference", cells=8, substeps=32, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=10000)
+    reference = Setting(
+        "reference", cells=8, substeps=32, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=10000, rotation_updates=8
+    )
     return settings, reference
 
 
@@ -478,6 +491,7 @@ CSV_FIELDS = (
     "cg_mode",
     "cg_iterations",
     "cg_tolerance",
+    "rotation_updates",
     "ms_per_frame",
     "cg_iterations_per_step",
     "trajectory_error_m",
@@ -505,6 +519,7 @@ def write_csv(path: Path, rows: list[Row]) -> None:
                     s.cg_mode,
                     s.cg_iterations,
                     f"{s.cg_tolerance:.0e}" if s.cg_mode == "tolerance" else "",
+                    "default" if s.rotation_updates is None else s.rotation_updates,
                     f"{r.run.ms_per_frame:.4g}",
                     f"{r.run.cg_iterations_per_step:.4g}",
                     f"{r.trajectory_error:.4g}",
