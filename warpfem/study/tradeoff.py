@@ -80,7 +80,8 @@ class Setting:
     def label(self) -> str:
         """A short description, e.g. ``cells 2, 4 substeps, CG tol 1e-04``."""
         cg = f"CG {self.cg_iterations} it" if self.cg_mode == "fixed" else f"CG tol {self.cg_tolerance:.0e}"
-        updates = "" if self.rotation_updates is None else f", {self.rotation_updates} rotation updates"
+        n = self.rotation_updates
+        updates = "" if n is None else f", {n} rotation update{'' if n == 1 else 's'}"
         return f"cells {self.cells}, {self.substeps} substeps, {cg}{updates}"
 
 
