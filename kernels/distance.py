@@ -2,6 +2,8 @@
 
 import warp as wp
 
+from .embedding import deformation_gradient, interpolate
+
 
 @wp.kernel
 def surface_distance(
@@ -129,8 +131,7 @@ def visible_depth(s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.v
     mesh = s.mesh[b]
     if mesh == wp.uint64(0):
         return d, g
-    r = w[0] * s.rest_x[t[0]] + w[1] * s.rest_x[t[1]] + w[2] * s.rest_x[t[2]] + w[3] * s.rest_x[t[3]]
-    q = s.to_mesh[b] * r + s.mesh_origin[b]
+    q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
     hit = wp.mesh_query_point_sign_normal(mesh, q, s.reach[b])
     if not hit.result:
         return d, g
@@ -139,9 +140,8 @@ def visible_depth(s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.v
     out = wp.mesh_eval_face_normal(mesh, hit.face)
     if dist > 1.0e-6 * s.reach[b]:
         out = -hit.sign * offset / dist
-    o = x[t[0]]
-    shape = wp.matrix_from_cols(x[t[1]] - o, x[t[2]] - o, x[t[3]] - o) * s.dm_inv[e]
+    depth = -hit.sign * dist * s.mesh_scale[b]
+    shape = deformation_gradient(x, t, s.dm_inv[e])
     if wp.determinant(shape) <= 0.0:
-        return -hit.sign * dist * s.mesh_scale[b], g
-    n = wp.transpose(wp.inverse(shape)) * (wp.transpose(s.to_mesh[b]) * out)
-    return -hit.sign * dist * s.mesh_scale[b], wp.normalize(n)
+        return depth, g
+    return depth, wp.normalize(wp.transpose(wp.inverse(shape)) * (wp.transpose(s.to_mesh[b]) * out))

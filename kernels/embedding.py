@@ -8,6 +8,13 @@ import warp as wp
 
 
 @wp.func
+def deformation_gradient(x: wp.array(dtype=wp.vec3), t: wp.vec4i, dm_inv: wp.mat33) -> wp.mat33:
+    """``F = Ds Dm^-1`` of the tet with corners ``t`` at positions ``x`` (``dm_inv``: its rest ``Dm^-1``)."""
+    o = x[t[0]]
+    return wp.matrix_from_cols(x[t[1]] - o, x[t[2]] - o, x[t[3]] - o) * dm_inv
+
+
+@wp.func
 def min_barycentric(dm_inv: wp.mat33, origin: wp.vec3, p: wp.vec3) -> float:
     """Smallest barycentric coordinate of ``p`` in the tet with corner ``origin`` and inverse edge matrix."""
     w = dm_inv * (p - origin)

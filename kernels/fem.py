@@ -11,6 +11,7 @@ which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block c
 import warp as wp
 
 from .distance import add_rotated_gradients
+from .embedding import deformation_gradient
 
 
 @wp.func
@@ -194,9 +195,7 @@ def turn_rotations(
     tol = cg_tolerance[0]
     if tol > 0.0 and cg_residual[0] > cg_slack * tol:
         return
-    t = tets[e]
-    x0 = x[t[0]]
-    R = rotation_of(wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0) * dm_inv[e])
+    R = rotation_of(deformation_gradient(x, tets[e], dm_inv[e]))
     if turn_angle(R, rotation[e]) > tolerance:
         rotation[e] = R
         changed_out[0] = 1
