@@ -308,7 +308,6 @@ def record_contact(
     contact_bary_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
-    contact_pending_out: wp.array(dtype=wp.int32),
     stats_out: wp.array(dtype=float),
     late: int,
 ) -> bool:
@@ -323,7 +322,6 @@ def record_contact(
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
             return False
-    pending = int(0)
     d = float(0.0)
     g = wp.vec3()
     f0 = tet_face_start[e]
@@ -349,93 +347,26 @@ def record_contact(
         if entered == 1.0e30:
             d = d_near
             g = g_near
-        pending = int(surface.mesh[surface.tet_body[e]] != wp.uint64(0))
+        d, g = visible_depth(surface, x, e, t, w, d, g)
     else:
         # deep inside: the paper's interpolated distance field and rotated gradients
         d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
         g = interpolate_directions(grad, t, w)
-    if pending == 0:
-        if d <= 0.0 or wp.length(g) == 0.0:
-            return False
-        d = settle_depth(d, g, p, t, w, v, point_velocity, dt, late, stats_out)
+    if d <= 0.0 or wp.length(g) == 0.0:
+        return False
+    g = wp.normalize(g)
+    if late != 0:
+        d = d + dt * wp.dot(g, point_velocity[p] - interpolate(v, t, w))
+    else:
+        wp.atomic_max(stats_out, 0, d)
     slot = wp.atomic_add(count_out, 0, 1)
     if slot < capacity:
         contact_point_out[slot] = p
         contact_tet_out[slot] = e
         contact_bary_out[slot] = w
-        contact_normal_out[slot] = wp.normalize(g)
+        contact_normal_out[slot] = g
         contact_depth_out[slot] = d
-        contact_pending_out[slot] = pending
     return True
-
-
-@wp.func
-def settle_depth(
-    d: float,
-    g: wp.vec3,
-    p: int,
-    t: wp.vec4i,
-    w: wp.vec4,
-    v: wp.array(dtype=wp.vec3),
-    point_velocity: wp.array(dtype=wp.vec3),
-    dt: float,
-    late: int,
-    stats_out: wp.array(dtype=float),
-) -> float:
-    """The depth a contact of depth ``d`` along ``g`` records (see :func:`record_contact`).
-
-    A late contact's at the step's start; otherwise ``d`` itself, the largest kept in ``stats_out[0]``.
-    """
-    gn = wp.normalize(g)
-    if late != 0:
-        return d + dt * wp.dot(gn, point_velocity[p] - interpolate(v, t, w))
-    wp.atomic_max(stats_out, 0, d)
-    return d
-
-
-@wp.kernel
-def visible_contacts(
-    first: wp.array(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
-    surface: VisibleSurface,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    point_velocity: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
-    dt: float,
-    late: int,
-    contact_pending: wp.array(dtype=wp.int32),
-    contact_tet: wp.array(dtype=wp.int32),
-    contact_bary: wp.array(dtype=wp.vec4),
-    # outputs
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
-    tally_out: wp.array(dtype=wp.int32),
-):
-    """The depth below the dense surface of each contact detection left pending (from ``first[0]`` on).
-
-    Detection records a point in a tet near the surface of a body with a dense mesh as pending, with the
-    face lattice's depth and direction; here :func:`kernels.distance.visible_depth` answers instead (the
-    lattice's where no dense surface is in reach), and a contact the dense surface leaves outside is dropped:
-    its point set to -1 and ``tally_out[0]`` (the contacts counted, or a late pass's count) one less. A kernel
-    of its own, so the mesh query's traversal stack does not weigh on every detection thread.
-    """
-    i = wp.tid() + first[0]
-    if i >= wp.min(count[0], contact_point_out.shape[0]) or contact_pending[i] == 0:
-        return
-    e = contact_tet[i]
-    t = tets[e]
-    w = contact_bary[i]
-    d, g = visible_depth(surface, x, e, t, w, contact_depth_out[i], contact_normal_out[i])
-    if d <= 0.0 or wp.length(g) == 0.0:
-        contact_point_out[i] = -1
-        wp.atomic_sub(tally_out, 0, 1)
-        return
-    p = contact_point_out[i]
-    contact_normal_out[i] = wp.normalize(g)
-    contact_depth_out[i] = settle_depth(d, g, p, t, w, v, point_velocity, dt, late, stats_out)
 
 
 @wp.func
@@ -508,7 +439,6 @@ def walk_tree(
     contact_bary_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
-    contact_pending_out: wp.array(dtype=wp.int32),
     stats_out: wp.array(dtype=float),
     late: int,
 ):
@@ -518,8 +448,7 @@ def walk_tree(
     that holds the point are tested together (one round trip to memory instead of one per node), the bits of
     those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
     levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
-    hold the point in leaf order; the first that gives a positive depth (or leaves it to the dense surface,
-    see :func:`visible_contacts`) answers.
+    hold the point in leaf order; the first that gives a positive depth answers.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -581,7 +510,6 @@ def walk_tree(
                         contact_bary_out,
                         contact_normal_out,
                         contact_depth_out,
-                        contact_pending_out,
                         stats_out,
                         late,
                     )
@@ -632,7 +560,6 @@ def detect_contacts(
     contact_bary_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
-    contact_pending_out: wp.array(dtype=wp.int32),
     stats_out: wp.array(dtype=float),
 ):
     """Per collision point and body whose box holds it: that body's tet tree, at most one contact.
@@ -665,7 +592,7 @@ def detect_contacts(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
             point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out, contact_tet_out,
-            contact_bary_out, contact_normal_out, contact_depth_out, contact_pending_out, stats_out, late,
+            contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
         )  # fmt: skip
 
 
@@ -710,7 +637,6 @@ def detect_contacts_direct(
     contact_bary_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
-    contact_pending_out: wp.array(dtype=wp.int32),
     stats_out: wp.array(dtype=float),
 ):
     """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
@@ -737,7 +663,7 @@ def detect_contacts_direct(
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad, capacity, count_out,
                     contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
-                    contact_pending_out, stats_out, late,
+                    stats_out, late,
                 )  # fmt: skip
 
 
@@ -807,9 +733,6 @@ def contact_forces(
     if i >= last:
         return
     p = contact_point[i]
-    if p < 0:  # dropped by visible_contacts: nothing in the product
-        contact_matrix_out[i] = wp.mat33()
-        return
     point_contact_out[p] = 1
     a = point_stiffness[p]
     g = contact_normal[i]

@@ -78,8 +78,6 @@ class Collider:
         self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
         self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
-        self.contact_pending = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
-        """Which contacts wait for their depth below the dense surface (``K.visible_contacts``)."""
         self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
         self.coupling = Coupling(
             self.count,
@@ -160,8 +158,8 @@ class Collider:
         """
         self.point_contact.zero_()
         self.first.zero_()
-        self._detect(x, v, dt)
-        self._answer(x, v, dt, force_out, matrix_out)
+        self._detect_points(x, v, dt)
+        self._answer(v, dt, force_out, matrix_out)
 
     def respond_late(
         self, x: wp.array, v: wp.array, dt: float, rhs_out: wp.array, matrix_out: wp.array, count_out: wp.array
@@ -176,48 +174,32 @@ class Collider:
         wp.launch(
             K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
         )
-        self._detect(x, v, dt, late=True)
-        self._answer(x, v, dt, rhs_out, matrix_out, count_out)
+        self._detect_points(x, v, dt, late=True)
+        self._answer(v, dt, rhs_out, matrix_out, count_out)
+
+    def _detect_points(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
+        """:meth:`_detect` for the model's collision points, as :meth:`prepare` placed them."""
+        m = self.model
+        self._detect(
+            x,
+            v,
+            dt,
+            self.points,
+            self.point_velocity,
+            m.point_body,
+            m.point_anchor,
+            m.body_self,
+            self.capacity,
+            self.depth_max,
+            late=late,
+        )
 
     def _answer(
-        self,
-        x: wp.array,
-        v: wp.array,
-        dt: float,
-        force_out: wp.array,
-        matrix_out: wp.array,
-        late_count_out: wp.array | None = None,
+        self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
     ) -> None:
         """The penalty forces and blocks of the contacts from ``first`` on (late: onto the right-hand side)."""
         m = self.model
         dev = m.device
-        late = int(late_count_out is not None)
-        wp.launch(
-            K.visible_contacts,
-            dim=self.capacity,
-            inputs=[
-                self.first,
-                self.count,
-                self.visible,
-                x,
-                v,
-                self.point_velocity,
-                m.tets,
-                dt,
-                late,
-                self.contact_pending,
-                self.contact_tet,
-                self.contact_bary,
-            ],
-            outputs=[
-                self.contact_point,
-                self.contact_normal,
-                self.contact_depth,
-                self.depth_max,
-                self.contacts_total if late_count_out is None else late_count_out,
-            ],
-            device=dev,
-        )
         wp.launch(
             K.contact_forces,
             dim=self.capacity,
@@ -237,7 +219,7 @@ class Collider:
                 m.diag_slot,
                 dt,
                 self.first,
-                late,
+                int(late_count_out is not None),
             ],
             outputs=[
                 self.coupling.verts_a,
@@ -279,7 +261,7 @@ class Collider:
     def rotate_gradients(self, rotation: wp.array) -> None:
         """grad = sum over incident tets of R_t g0, per tet vertex (detection normalises it where it reads it).
 
-        The step gets this from the elastic launch; this is for callers outside a step.
+        The step gets this from the elastic launch; this is for :meth:`deepest` and callers outside a step.
         """
         m = self.model
         self.grad.zero_()
@@ -291,8 +273,20 @@ class Collider:
             device=m.device,
         )
 
-    def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
-        """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
+    def _detect(
+        self,
+        x,
+        v,
+        dt,
+        points,
+        point_velocity,
+        point_body,
+        point_anchor,
+        body_self,
+        capacity: int,
+        depth_max_out,
+        late: bool = False,
+    ) -> None:
         m = self.model
         if not late:
             self.count.zero_()
@@ -300,7 +294,7 @@ class Collider:
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
             K.detect_contacts_direct if self.direct else K.detect_contacts,
-            dim=self.points.shape[0] * lanes,
+            dim=points.shape[0] * lanes,
             inputs=[
                 *bodies,
                 self.node_start,
@@ -319,16 +313,16 @@ class Collider:
                 m.tet_face_ids,
                 m.face_depth,
                 self.visible,
-                self.points,
-                self.point_velocity,
-                m.point_body,
-                m.point_anchor,
-                m.body_self,
+                points,
+                point_velocity,
+                point_body,
+                point_anchor,
+                body_self,
                 m.row_start,
                 m.cols,
                 m.vertex_depth,
                 self.grad,
-                self.capacity,
+                capacity,
                 lanes,
                 self.point_contact,
                 int(late),
@@ -340,11 +334,35 @@ class Collider:
                 self.contact_bary,
                 self.contact_normal,
                 self.contact_depth,
-                self.contact_pending,
-                self.depth_max,
+                depth_max_out,
             ],
             device=m.device,
         )
+
+    def deepest(self, x: wp.array, rotation: wp.array, points: np.ndarray, point_body: np.ndarray) -> float:
+        """Depth (m) of the deepest of ``points`` inside another body's tets at positions ``x`` (0 if none).
+
+        A measure for summaries and tests, with the contacts' own depth rule (allocates: not for the step).
+        """
+        m = self.model
+        dev = m.device
+        self.rotate_gradients(rotation)
+        self._bound(x)
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
+        deepest = wp.zeros(1, dtype=float, device=dev)
+        self._detect(
+            x,
+            wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
+            0.0,
+            pts,
+            wp.zeros(len(points), dtype=wp.vec3, device=dev),
+            wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
+            wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
+            wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
+            0,
+            deepest,
+        )
+        return float(deepest.numpy()[0])
 
     def read_stats(self) -> tuple[int, int, float, bool]:
         """Contact statistics since the last call (one host synchronisation).
