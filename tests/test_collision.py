@@ -237,14 +237,15 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
 def test_overlapped_captured_step_matches_a_serial_direct_one(device):
     """On CUDA the collision stage's preparation runs on a side stream beside the elastic launch, forked and
     joined inside the captured graph: from the same state, a replayed step prepares bit for bit what the
-    phases run one after another prepare, finds the same contacts and lands where that step lands."""
+    phases run one after another prepare, finds the same contacts and lands where that step lands. No late
+    passes: they prepare again at a solve's answer, which float atomics make differ in the last bits."""
     if not wp.get_device(device).is_cuda:
         pytest.skip("streams and graph capture need a CUDA device")
     b = ModelBuilder()
     add_body(b, "a", *_box((0, 0, 0), (0.2, 0.2, 0.2), (3, 3, 3)), 1e5, 0.3, 1000.0, damping_stiffness=0.01)
     add_body(b, "b", *_box((0.02, 0.21, 0.03), (0.15, 0.15, 0.15), (3, 3, 3)), 1e5, 0.3, 1000.0, velocity=(0, -2, 0))
     model = b.finalize(device)
-    solver = Solver(model, ground=Ground(), cg_iterations=100, cg_tolerance=1e-6)
+    solver = Solver(model, ground=Ground(), cg_iterations=100, cg_tolerance=1e-6, contact_passes=0)
     c = solver.collider
     dt = 1 / 240
     start = _run(solver, model, 8, dt)  # b has landed on a: contacts in every step from here
