@@ -32,11 +32,13 @@ def locate_points(
     tolerance: float,
     max_dist: float,
     tet_out: wp.array(dtype=wp.int32),
+    face_out: wp.array(dtype=wp.int32),
 ):
-    """Find each point's tet (-1 if none).
+    """Find each point's tet (-1 if none) and, for a point outside the tets, the nearest boundary face.
 
     The tet is the candidate (from the BVH of tet boxes) whose smallest barycentric coordinate is
-    largest, if that is >= -tolerance; otherwise the tet owning the nearest boundary face.
+    largest, if that is >= -tolerance (``face_out`` -1); otherwise the tet owning the nearest boundary
+    face (``face_out`` that face).
     """
     i = wp.tid()
     p = points[i]
@@ -49,12 +51,14 @@ def locate_points(
         if score > best_score:
             best_score = score
             best = t
+    face_out[i] = -1
     if best >= 0 and best_score >= -tolerance:
         tet_out[i] = best
     else:
         hit = wp.mesh_query_point_no_sign(boundary_mesh, p, max_dist)
         if hit.result:
             tet_out[i] = face_tet[hit.face]
+            face_out[i] = hit.face
         else:
             tet_out[i] = -1
 

@@ -1,8 +1,8 @@
 """Embedding of the dense surface in the coarse tet mesh (Kondo & Kanai, step 3).
 
 Preprocessing (:func:`embed`) assigns every dense vertex to the tet containing it, or, for a vertex
-outside every tet, to the tet owning the nearest boundary face, and stores its barycentric coordinates
-in that tet (extrapolating, i.e. some negative, for outside vertices). Every output frame,
+outside every tet, to the tet around the nearest boundary face that extrapolates least, and stores its
+barycentric coordinates in that tet (extrapolating, i.e. some negative, for outside vertices). Every output frame,
 :func:`map_dense` rebuilds the dense vertices as those barycentric combinations of the current tet
 vertex positions.
 """
@@ -84,7 +84,8 @@ def embed(
     """Assign each point to a tet and compute its barycentric coordinates there (on the CPU device).
 
     A point inside the tet mesh (up to ``INSIDE_TOLERANCE`` in barycentric units) goes to the tet that
-    contains it; any other point to the tet owning the boundary face nearest to it. Candidate tets come
+    contains it; any other point to the tet, of those touching a corner of the boundary face nearest to
+    it, in which its weights' absolute values sum least (:func:`least_extrapolating`). Candidate tets come
     from a Warp BVH over the tets' boxes; the nearest face from a ``wp.Mesh`` query; the final
     coordinates are recomputed in float64.
 
@@ -115,6 +116,7 @@ def embed(
         bvh = wp.Bvh(lowers, uppers)
         mesh = wp.Mesh(points=wp.array(x, dtype=wp.vec3), indices=wp.array(boundary_faces.reshape(-1), dtype=wp.int32))
         tet_out = wp.empty(len(points), dtype=wp.int32)
+        face_out = wp.empty(len(points), dtype=wp.int32)
         wp.launch(
             K.locate_points,
             dim=len(points),
@@ -128,9 +130,44 @@ def embed(
                 INSIDE_TOLERANCE,
                 1e30,
             ],
-            outputs=[tet_out],
+            outputs=[tet_out, face_out],
         )
-        tet_index = tet_out.numpy()
+        tet_index, face = tet_out.numpy(), face_out.numpy()
     if np.any(tet_index < 0):
         raise ValueError(f"{int(np.sum(tet_index < 0))} points could not be assigned to a tet")
+    outside = np.flatnonzero(face >= 0)
+    tet_index[outside] = least_extrapolating(points[outside], x, tets, boundary_faces[face[outside]])
     return tet_index, barycentric(points, x, tets, tet_index)
+
+
+EMBED_CHUNK = 4096
+"""Outside points whose candidate tets are weighed at once (bounds the temporary arrays)."""
+
+
+def least_extrapolating(points: np.ndarray, x: np.ndarray, tets: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Per point outside the tets, the tet in which its weights' absolute values sum least.
+
+    The candidates are the tets touching a corner of the point's nearest boundary face (``faces``, one
+    per point). That sum bounds how much the point's mapped position magnifies its tet corners' motion (1 inside a
+    tet): the tet owning the nearest face may be a sliver, whose weights for a point a little way off run
+    to tens, so a small deformation of it throws the point far.
+    """
+    order = np.argsort(tets.reshape(-1), kind="stable")
+    start = np.searchsorted(tets.reshape(-1)[order], np.arange(len(x) + 1))
+    owner = order // 4  # owner[start[v]:start[v + 1]]: the tets around vertex v
+    count = start[faces + 1] - start[faces]  # (n, 3)
+    width = int(count.sum(axis=1).max(initial=1))
+    inverse, origin = edge_matrix_inverses(x, tets), x[tets[:, 0]]
+    best = np.empty(len(points), dtype=np.int32)
+    for lo in range(0, len(points), EMBED_CHUNK):
+        hi = min(lo + EMBED_CHUNK, len(points))
+        candidates = np.full((hi - lo, width), -1, dtype=np.int64)
+        for i in range(lo, hi):
+            around = np.concatenate([owner[start[v] : start[v + 1]] for v in faces[i]])
+            candidates[i - lo, : len(around)] = around
+        valid = candidates >= 0
+        c = np.where(valid, candidates, 0)
+        local = np.einsum("nkij,nkj->nki", inverse[c], points[lo:hi, None, :] - origin[c])
+        spread = np.abs(local).sum(axis=2) + np.abs(1.0 - local.sum(axis=2))
+        best[lo:hi] = c[np.arange(hi - lo), np.where(valid, spread, np.inf).argmin(axis=1)]
+    return best
