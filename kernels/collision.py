@@ -280,16 +280,16 @@ def leaf_holds(
 
 
 @wp.func
-def record_contact(
+def depth_in_tet(
     p: int,
     q: wp.vec3,
     e: int,
+    t: wp.vec4i,
     w: wp.vec4,
     same: bool,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
-    tets: wp.array(dtype=wp.vec4i),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
@@ -301,29 +301,19 @@ def record_contact(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    capacity: int,
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
-    late: int,
-) -> bool:
-    """Point p (at q, weights w in tet e, which holds it): if it has a positive depth, records the contact.
+):
+    """Depth and direction of point p (at q, weights w in tet e, which holds it), and what they are.
 
-    Returns whether it did. A point of the tet's own body (``same``) in the one-ring of its anchors is
-    refused. A ``late`` contact is found at the positions a solve predicts (``x``, ``v`` its answer): it
-    records the depth at the step's start that the linearised contact implies, ``d + dt g . u`` (negative
-    where the point was still outside), and leaves the depth statistics alone.
+    Returns ``(status, d, g)``: status 0 when the point is refused (a point of the tet's own body,
+    ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
+    of a body with a dense mesh: then :func:`kernels.distance.visible_depth` answers, with ``d``, ``g`` where
+    it finds no surface in reach. The caller asks it after the tree walk, so the walk's registers are free.
     """
-    t = tets[e]
-    if same:
-        if near_tet(row_start, cols, point_anchor[p], t):
-            return False
     d = float(0.0)
     g = wp.vec3()
+    if same:
+        if near_tet(row_start, cols, point_anchor[p], t):
+            return 0, d, g
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
@@ -347,16 +337,48 @@ def record_contact(
         if entered == 1.0e30:
             d = d_near
             g = g_near
-        d, g = visible_depth(surface, x, e, t, w, d, g)
-    else:
-        # deep inside: the paper's interpolated distance field and rotated gradients
-        d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-        g = interpolate_directions(grad, t, w)
+        if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
+            return 2, d, g
+        return 1, d, g
+    # deep inside: the paper's interpolated distance field and rotated gradients
+    d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
+    g = interpolate_directions(grad, t, w)
+    return 1, d, g
+
+
+@wp.func
+def store_contact(
+    p: int,
+    e: int,
+    t: wp.vec4i,
+    w: wp.vec4,
+    d: float,
+    g: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    point_velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    capacity: int,
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+    late: int,
+) -> bool:
+    """Records point p's contact with tet e (weights w) if its depth ``d`` is positive; returns whether it did.
+
+    A ``late`` contact is found at the positions a solve predicts (``v`` its answer): it records the depth
+    at the step's start that the linearised contact implies, ``d + dt g . u`` (negative where the point was
+    still outside), and leaves the depth statistics alone.
+    """
     if d <= 0.0 or wp.length(g) == 0.0:
         return False
-    g = wp.normalize(g)
+    n = wp.normalize(g)
+    kept = d
     if late != 0:
-        d = d + dt * wp.dot(g, point_velocity[p] - interpolate(v, t, w))
+        kept = d + dt * wp.dot(n, point_velocity[p] - interpolate(v, t, w))
     else:
         wp.atomic_max(stats_out, 0, d)
     slot = wp.atomic_add(count_out, 0, 1)
@@ -364,9 +386,45 @@ def record_contact(
         contact_point_out[slot] = p
         contact_tet_out[slot] = e
         contact_bary_out[slot] = w
-        contact_normal_out[slot] = g
-        contact_depth_out[slot] = d
+        contact_normal_out[slot] = n
+        contact_depth_out[slot] = kept
     return True
+
+
+@wp.func
+def answer_pending(
+    p: int,
+    e: int,
+    w: wp.vec4,
+    d: float,
+    g: wp.vec3,
+    surface: VisibleSurface,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    point_velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    capacity: int,
+    count_out: wp.array(dtype=wp.int32),
+    contact_point_out: wp.array(dtype=wp.int32),
+    contact_tet_out: wp.array(dtype=wp.int32),
+    contact_bary_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
+    late: int,
+):
+    """Records point p's contact with tet e, near a dense surface, if it lies below that surface.
+
+    The depth and direction are :func:`kernels.distance.visible_depth`'s (the lattice's ``d``, ``g`` where
+    no surface is in reach).
+    """
+    t = tets[e]
+    dv, gv = visible_depth(surface, x, e, t, w, d, g)
+    store_contact(
+        p, e, t, w, dv, gv, v, point_velocity, dt, capacity, count_out, contact_point_out, contact_tet_out,
+        contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+    )  # fmt: skip
 
 
 @wp.func
@@ -448,7 +506,9 @@ def walk_tree(
     that holds the point are tested together (one round trip to memory instead of one per node), the bits of
     those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
     levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
-    hold the point in leaf order; the first that gives a positive depth answers.
+    hold the point in leaf order; the first that gives a positive depth answers. Returns the tet (-1 if none)
+    that leaves the answer to the body's dense surface (:func:`depth_in_tet`), the point's weights in it and
+    the lattice's depth and direction there, for :func:`answer_pending`.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -462,6 +522,10 @@ def walk_tree(
     mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
     stack = wp.int64(0)
     found = bool(False)
+    pending = int(-1)
+    pending_w = wp.vec4()
+    pending_d = float(0.0)
+    pending_g = wp.vec3()
     while not found and (mask != 0 or level > top):
         if mask == 0:
             # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
@@ -482,42 +546,29 @@ def walk_tree(
                     k = lowest_bit(inside)
                     inside = inside & (inside - 1)
                     e = leaf[k]
-                    found = record_contact(
-                        p,
-                        q,
-                        e,
-                        tet_weights(q, tet_inverse[e], tet_origin[e]),
-                        same,
-                        x,
-                        v,
-                        dt,
-                        tets,
-                        tet_face_start,
-                        tet_faces,
-                        tet_face_ids,
-                        face_depth,
-                        surface,
-                        point_velocity,
-                        point_anchor,
-                        row_start,
-                        cols,
-                        depth,
-                        grad,
-                        capacity,
-                        count_out,
-                        contact_point_out,
-                        contact_tet_out,
-                        contact_bary_out,
-                        contact_normal_out,
-                        contact_depth_out,
-                        stats_out,
-                        late,
-                    )
+                    t = tets[e]
+                    w = tet_weights(q, tet_inverse[e], tet_origin[e])
+                    status, d, g = depth_in_tet(
+                        p, q, e, t, w, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth,
+                        surface, point_velocity, point_anchor, row_start, cols, depth, grad,
+                    )  # fmt: skip
+                    if status == 1:
+                        found = store_contact(
+                            p, e, t, w, d, g, v, point_velocity, dt, capacity, count_out, contact_point_out,
+                            contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+                        )  # fmt: skip
+                    elif status == 2:
+                        found = True
+                        pending = e
+                        pending_w = w
+                        pending_d = d
+                        pending_g = g
             else:
                 stack = (stack << wp.int64(8)) | wp.int64(mask)
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
                 mask = group_holds(q, node_lower, node_upper, ns + base, 8)
+    return pending, pending_w, pending_d, pending_g
 
 
 @wp.kernel
@@ -588,12 +639,17 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        walk_tree(
+        e, w, d, g = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
             point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out, contact_tet_out,
             contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
         )  # fmt: skip
+        if e >= 0:
+            answer_pending(
+                p, e, w, d, g, surface, x, v, tets, point_velocity, dt, capacity, count_out, contact_point_out,
+                contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+            )  # fmt: skip
 
 
 @wp.kernel
@@ -658,13 +714,19 @@ def detect_contacts_direct(
             candidate += 1
             same = body == body_p
             if candidate % lanes == lane and (self_ok or not same):
-                walk_tree(
+                e, w, d, g = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad, capacity, count_out,
                     contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
                     stats_out, late,
                 )  # fmt: skip
+                if e >= 0:
+                    answer_pending(
+                        p, e, w, d, g, surface, x, v, tets, point_velocity, dt, capacity, count_out,
+                        contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
+                        stats_out, late,
+                    )  # fmt: skip
 
 
 @wp.func
@@ -710,7 +772,7 @@ def contact_forces(
 ):
     """Penalty force a d g on the point's tet corners (by its weights), the reaction on the contact tet's.
 
-    The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`record_contact`),
+    The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`store_contact`),
     after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
     totals are left alone and thread 0 adds how many there are to ``late_count_out[0]``. Each contact's
     point is marked in ``point_contact_out``, so a late pass does not answer it twice.

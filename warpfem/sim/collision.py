@@ -167,7 +167,7 @@ class Collider:
         """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
 
         Points already in contact this step are left be; each new contact enters the built system with the
-        depth at the step's start its linearisation implies (see ``kernels.collision.record_contact``), its
+        depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added.
         """
         self.prepare(x, v)
