@@ -72,6 +72,24 @@ def environment(device) -> dict:
     }
 
 
+def pile_body(
+    i: int, mesh: str, faces: int, scale: float, rotate: tuple, translate: tuple, young: float
+) -> ObjectConfig:
+    """Body ``i`` of a pile: the mesh placed as given, Young's modulus ``young`` (Pa), the piles' material."""
+    return ObjectConfig(
+        name=f"body_{i}",
+        mesh=mesh,
+        faces=faces,
+        scale=scale,
+        rotate=rotate,
+        translate=translate,
+        young=young,
+        poisson=0.3,
+        density=1000.0,
+        damping_stiffness=0.005,
+    )
+
+
 def pile(scene: warpfem.Scene, n: int, mesh: str, faces: int, scale: float = 0.0066) -> warpfem.Scene:
     """``scene`` with N 1 m armadillos (or any mesh) in layers of a 4x4 grid, each turned about y, dropped."""
     rng = np.random.default_rng(n)
@@ -80,20 +98,9 @@ def pile(scene: warpfem.Scene, n: int, mesh: str, faces: int, scale: float = 0.0
     for i in range(n):
         layer, cell = divmod(i, side * side)
         row, col = divmod(cell, side)
-        objects.append(
-            ObjectConfig(
-                name=f"body_{i}",
-                mesh=mesh,
-                faces=faces,
-                scale=scale,
-                rotate=(0.0, float(rng.uniform(0, 360)), 0.0),
-                translate=(1.1 * (col - (side - 1) / 2), 0.7 + 1.1 * layer, 1.1 * (row - (side - 1) / 2)),
-                young=1e6,
-                poisson=0.3,
-                density=1000.0,
-                damping_stiffness=0.005,
-            )
-        )
+        rotate = (0.0, float(rng.uniform(0, 360)), 0.0)
+        translate = (1.1 * (col - (side - 1) / 2), 0.7 + 1.1 * layer, 1.1 * (row - (side - 1) / 2))
+        objects.append(pile_body(i, mesh, faces, scale, rotate, translate, 1e6))
     return dataclasses.replace(scene, objects=objects)
 
 
@@ -129,20 +136,8 @@ def mixed_pile(
         centre = scale * euler_rotation(rotate) @ ((lo + hi) / 2)
         height = 0.2 + scale * (hi[1] - lo[1]) / 2 + 1.6 * layer
         target = np.array([1.1 * (col - (side - 1) / 2), height, 1.1 * (row - (side - 1) / 2)])
-        objects.append(
-            ObjectConfig(
-                name=f"body_{i}",
-                mesh=mesh,
-                faces=faces,
-                scale=scale,
-                rotate=rotate,
-                translate=tuple(float(t) for t in target - centre),
-                young=float(young[i]),
-                poisson=0.3,
-                density=1000.0,
-                damping_stiffness=0.005,
-            )
-        )
+        translate = tuple(float(t) for t in target - centre)
+        objects.append(pile_body(i, mesh, faces, scale, rotate, translate, float(young[i])))
     return dataclasses.replace(scene, objects=objects)
 
 
