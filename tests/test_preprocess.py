@@ -140,6 +140,23 @@ def test_cache_hit_and_rebuild_of_a_damaged_file(ellipsoid_file, tmp_path):
     assert sorted(p.suffix for p in cache.iterdir()) == [".npz", ".npz", ".txt", ".txt"]  # no temporary files left
 
 
+def test_what_other_preprocessing_code_prepared_is_not_read(ellipsoid_file, tmp_path, monkeypatch):
+    """Entries are keyed by the preprocessing code: code that changed (here, one more kernel module counted
+    as its own) prepares the mesh again instead of reading what the older code made, through the entry and
+    through the index naming it by the file's bytes; the code as it was still reads its own."""
+    from warpfem.prep import pipeline
+
+    cache = tmp_path / "cache"
+    assert prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache).stats["cache"] == "miss"
+    with monkeypatch.context() as patch:
+        patch.setattr(pipeline, "PREP_KERNELS", (*pipeline.PREP_KERNELS, "fem"))
+        pipeline.code_digest.cache_clear()
+        assert prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache).stats["cache"] == "miss"
+    pipeline.code_digest.cache_clear()
+    assert prepare(ellipsoid_file, faces=200, maxh=0.3, cache_dir=cache).stats["cache"] == "hit"
+    assert sorted(p.suffix for p in cache.iterdir()) == [".npz", ".npz", ".txt", ".txt"]
+
+
 def test_a_cached_mesh_file_is_found_by_its_bytes_without_loading_it(ellipsoid_file, tmp_path, monkeypatch):
     """The second prepare of the same file and parameters reads the cache without loading and repairing the
     mesh; a file whose bytes changed is loaded again; the index never outlives a damaged entry."""

@@ -22,6 +22,7 @@ prepared body are cached beside it (:func:`cached_surface_samples`).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import tempfile
@@ -40,7 +41,30 @@ from warpfem.prep.sizing import DEFAULT_MAX_TETS, SIZING_FORMAT
 from warpfem.prep.surface import Surface, load_surface, source_file, subdivide_surface
 
 CACHE_FORMAT = 4
-"""Version of the cache file layout and of the preprocessing algorithm; bump to invalidate old entries."""
+"""Version of the cache file layout; entries are also keyed by :func:`code_digest`, so preprocessing code
+that changed never reads what older code prepared."""
+
+PREP_KERNELS = ("distance", "embedding", "intersect", "thickness")
+"""The ``warpfem.kernels`` modules preprocessing runs."""
+
+
+@functools.cache
+def code_digest() -> str:
+    """A digest of the preprocessing source and the kernels it runs: what decides a body besides its inputs.
+
+    Not the versions of the packages that make the meshes: a cache prepared where Netgen is installed is
+    read where it is not (a GPU machine), and an older Netgen's mesh is still a valid one.
+    """
+    from warpfem import kernels
+
+    digest = hashlib.sha256()
+    files = sorted(Path(__file__).parent.glob("*.py")) + [
+        Path(kernels.__file__).parent / f"{k}.py" for k in PREP_KERNELS
+    ]
+    for path in files:
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
 
 INSIDE_EPS = 1e-9
 """A dense vertex whose smallest barycentric coordinate is >= -this counts as inside its tet."""
@@ -169,7 +193,8 @@ def cache_key(surface: Surface, faces: int, subdivide: int, maxh: float, options
     """
     digest = hashlib.sha256()
     digest.update(
-        f"warpfem-prepare v{CACHE_FORMAT} faces={faces} subdivide={subdivide} maxh={maxh!r} {options}\n".encode()
+        f"warpfem-prepare v{CACHE_FORMAT} {code_digest()} faces={faces} subdivide={subdivide} maxh={maxh!r}"
+        f" {options}\n".encode()
     )
     digest.update(np.ascontiguousarray(surface.vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(surface.faces, dtype="<i4").tobytes())
@@ -241,7 +266,7 @@ def _source_index(cache_dir: Path, mesh: str | Path, params: str) -> Path | None
     source = source_file(mesh)
     if source is None:
         return None
-    digest = hashlib.sha256(f"warpfem-source v{CACHE_FORMAT} {params}\n".encode())
+    digest = hashlib.sha256(f"warpfem-source v{CACHE_FORMAT} {code_digest()} {params}\n".encode())
     digest.update(source.read_bytes())
     return Path(cache_dir) / f"source-{digest.hexdigest()}.txt"
 
