@@ -158,7 +158,7 @@ class Collider:
         """
         self.point_contact.zero_()
         self.first.zero_()
-        self._detect_points(x, v, dt)
+        self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
     def respond_late(
@@ -174,25 +174,8 @@ class Collider:
         wp.launch(
             K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
         )
-        self._detect_points(x, v, dt, late=True)
+        self._detect(x, v, dt, late=True)
         self._answer(v, dt, rhs_out, matrix_out, count_out)
-
-    def _detect_points(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
-        """:meth:`_detect` for the model's collision points, as :meth:`prepare` placed them."""
-        m = self.model
-        self._detect(
-            x,
-            v,
-            dt,
-            self.points,
-            self.point_velocity,
-            m.point_body,
-            m.point_anchor,
-            m.body_self,
-            self.capacity,
-            self.depth_max,
-            late=late,
-        )
 
     def _answer(
         self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
@@ -261,7 +244,7 @@ class Collider:
     def rotate_gradients(self, rotation: wp.array) -> None:
         """grad = sum over incident tets of R_t g0, per tet vertex (detection normalises it where it reads it).
 
-        The step gets this from the elastic launch; this is for :meth:`deepest` and callers outside a step.
+        The step gets this from the elastic launch; this is for callers outside a step.
         """
         m = self.model
         self.grad.zero_()
@@ -273,20 +256,8 @@ class Collider:
             device=m.device,
         )
 
-    def _detect(
-        self,
-        x,
-        v,
-        dt,
-        points,
-        point_velocity,
-        point_body,
-        point_anchor,
-        body_self,
-        capacity: int,
-        depth_max_out,
-        late: bool = False,
-    ) -> None:
+    def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
+        """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
         m = self.model
         if not late:
             self.count.zero_()
@@ -294,7 +265,7 @@ class Collider:
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
             K.detect_contacts_direct if self.direct else K.detect_contacts,
-            dim=points.shape[0] * lanes,
+            dim=self.points.shape[0] * lanes,
             inputs=[
                 *bodies,
                 self.node_start,
@@ -313,16 +284,16 @@ class Collider:
                 m.tet_face_ids,
                 m.face_depth,
                 self.visible,
-                points,
-                point_velocity,
-                point_body,
-                point_anchor,
-                body_self,
+                self.points,
+                self.point_velocity,
+                m.point_body,
+                m.point_anchor,
+                m.body_self,
                 m.row_start,
                 m.cols,
                 m.vertex_depth,
                 self.grad,
-                capacity,
+                self.capacity,
                 lanes,
                 self.point_contact,
                 int(late),
@@ -334,35 +305,10 @@ class Collider:
                 self.contact_bary,
                 self.contact_normal,
                 self.contact_depth,
-                depth_max_out,
+                self.depth_max,
             ],
             device=m.device,
         )
-
-    def deepest(self, x: wp.array, rotation: wp.array, points: np.ndarray, point_body: np.ndarray) -> float:
-        """Depth (m) of the deepest of ``points`` inside another body's tets at positions ``x`` (0 if none).
-
-        A measure for summaries and tests, with the contacts' own depth rule (allocates: not for the step).
-        """
-        m = self.model
-        dev = m.device
-        self.rotate_gradients(rotation)
-        self._bound(x)
-        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
-        deepest = wp.zeros(1, dtype=float, device=dev)
-        self._detect(
-            x,
-            wp.zeros(m.vertex_count, dtype=wp.vec3, device=dev),
-            0.0,
-            pts,
-            wp.zeros(len(points), dtype=wp.vec3, device=dev),
-            wp.array(np.asarray(point_body, np.int32), dtype=wp.int32, device=dev),
-            wp.full(len(points), wp.vec3i(-1, -1, -1), dtype=wp.vec3i, device=dev),
-            wp.zeros(len(m.bodies), dtype=wp.int32, device=dev),
-            0,
-            deepest,
-        )
-        return float(deepest.numpy()[0])
 
     def read_stats(self) -> tuple[int, int, float, bool]:
         """Contact statistics since the last call (one host synchronisation).
