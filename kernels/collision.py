@@ -23,7 +23,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 
 import warp as wp
 
-from .distance import VisibleSurface, add_rotated_gradients, interpolate_directions, visible_depth
+from .distance import VisibleSurface, add_rotated_gradients, face_query, interpolate_directions, visible_depth
 from .embedding import interpolate
 from .grid import warp_max_at
 from .integrate import FRICTION_SPEED_EPS
@@ -75,69 +75,6 @@ def near_tet(
                 if adjacent(row_start, cols, t[c], a):
                     return True
     return False
-
-
-LATTICE = 4
-"""Each surface face carries the depth of the visible surface below it at the points of a lattice that
-splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
-middle, which the corners' depths alone miss (preprocessing fills it: ``warpfem.prep.geometry.face_lattice``)."""
-
-LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
-
-
-@wp.func
-def lattice_index(i: int, j: int) -> int:
-    """Position of lattice point (i, j) in a face's row-by-row list."""
-    return i * (LATTICE + 1) - i * (i - 1) // 2 + j
-
-
-@wp.func
-def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2: float) -> float:
-    """The face's lattice depths interpolated (linearly on the lattice's triangles) at weights w1, w2."""
-    u = w1 * float(LATTICE)
-    v = w2 * float(LATTICE)
-    i = wp.min(int(u), LATTICE - 1)
-    j = wp.min(int(v), LATTICE - 1 - i)
-    fu = u - float(i)
-    fv = v - float(j)
-    base = face_id * LATTICE_POINTS
-    d00 = face_depth[base + lattice_index(i, j)]
-    d10 = face_depth[base + lattice_index(i + 1, j)]
-    d01 = face_depth[base + lattice_index(i, j + 1)]
-    if fu + fv <= 1.0:
-        return (1.0 - fu - fv) * d00 + fu * d10 + fv * d01
-    d11 = face_depth[base + lattice_index(i + 1, j + 1)]
-    return (fu + fv - 1.0) * d11 + (1.0 - fv) * d10 + (1.0 - fu) * d01
-
-
-@wp.func
-def face_weights(r: wp.vec3, e1: wp.vec3, e2: wp.vec3, c: wp.vec3) -> wp.vec2:
-    """Weights of corners 1 and 2 of ``r``'s projection on a face, clamped to it (``r`` from corner 0, c = e1 x e2)."""
-    area2 = wp.dot(c, c)
-    w1 = wp.clamp(wp.dot(wp.cross(r, e2), c) / area2, 0.0, 1.0)
-    w2 = wp.clamp(wp.dot(wp.cross(e1, r), c) / area2, 0.0, 1.0 - w1)
-    return wp.vec2(w1, w2)
-
-
-@wp.func
-def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face_id: int, face: wp.vec3i, q: wp.vec3):
-    """``q`` against an outward-wound surface face: normal, depth below its plane and below the visible surface.
-
-    Returns the face's outward normal, ``q``'s depth below its plane and below the visible surface near it
-    (m), and ``q``'s distance to (about) the face's nearest point (m). The visible surface's depth is the
-    plane's plus the visible surface's depth below the face at ``q``'s projection, clamped to the face
-    (interpolated on the face's lattice: negative where the face is part of a cage around a dense surface,
-    zero where the face is the visible surface).
-    """
-    a = x[face[0]]
-    e1 = x[face[1]] - a
-    e2 = x[face[2]] - a
-    c = wp.cross(e1, e2)
-    n = wp.normalize(c)
-    w = face_weights(q - a, e1, e2, c)
-    plane = wp.dot(n, a - q)
-    depth = plane + lattice_depth(face_depth, face_id, w[0], w[1])
-    return n, plane, depth, wp.length(q - (a + w[0] * e1 + w[1] * e2))
 
 
 @wp.kernel

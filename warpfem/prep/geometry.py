@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from warpfem.kernels.collision import LATTICE, LATTICE_POINTS
+from warpfem.kernels.distance import LATTICE, LATTICE_POINTS
 from warpfem.prep.distance import distance_field
 from warpfem.prep.embedding import boundary_face_tets
 from warpfem.prep.tetmesh import boundary_faces

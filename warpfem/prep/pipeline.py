@@ -55,12 +55,11 @@ def code_digest() -> str:
     Not the versions of the packages that make the meshes: a cache prepared where Netgen is installed is
     read where it is not (a GPU machine), and an older Netgen's mesh is still a valid one.
     """
-    from warpfem import kernels
+    from warpfem.kernels import embedding as kernel
 
+    kernel_dir = Path(kernel.__file__).parent
     digest = hashlib.sha256()
-    files = sorted(Path(__file__).parent.glob("*.py")) + [
-        Path(kernels.__file__).parent / f"{k}.py" for k in PREP_KERNELS
-    ]
+    files = sorted(Path(__file__).parent.glob("*.py")) + [kernel_dir / f"{k}.py" for k in PREP_KERNELS]
     for path in files:
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
