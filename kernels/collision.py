@@ -216,6 +216,23 @@ def leaf_holds(
     return mask
 
 
+@wp.struct
+class Found:
+    """The contacts detection finds: per contact the point, the tet, its weights there, the way out, the depth (m).
+
+    ``count[0]`` counts every contact found; those past the buffers' length are dropped (the host sees the
+    count above it). ``deepest[0]`` keeps the largest depth.
+    """
+
+    count: wp.array(dtype=wp.int32)
+    point: wp.array(dtype=wp.int32)
+    tet: wp.array(dtype=wp.int32)
+    bary: wp.array(dtype=wp.vec4)
+    normal: wp.array(dtype=wp.vec3)
+    depth: wp.array(dtype=float)
+    deepest: wp.array(dtype=float)
+
+
 @wp.func
 def depth_in_tet(
     p: int,
@@ -294,14 +311,7 @@ def store_contact(
     v: wp.array(dtype=wp.vec3),
     point_velocity: wp.array(dtype=wp.vec3),
     dt: float,
-    capacity: int,
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
+    found_out: Found,
     late: int,
 ) -> bool:
     """Records point p's contact with tet e (weights w) if its depth ``d`` is positive; returns whether it did.
@@ -317,14 +327,14 @@ def store_contact(
     if late != 0:
         kept = d + dt * wp.dot(n, point_velocity[p] - interpolate(v, t, w))
     else:
-        wp.atomic_max(stats_out, 0, d)
-    slot = wp.atomic_add(count_out, 0, 1)
-    if slot < capacity:
-        contact_point_out[slot] = p
-        contact_tet_out[slot] = e
-        contact_bary_out[slot] = w
-        contact_normal_out[slot] = n
-        contact_depth_out[slot] = kept
+        wp.atomic_max(found_out.deepest, 0, d)
+    slot = wp.atomic_add(found_out.count, 0, 1)
+    if slot < found_out.point.shape[0]:
+        found_out.point[slot] = p
+        found_out.tet[slot] = e
+        found_out.bary[slot] = w
+        found_out.normal[slot] = n
+        found_out.depth[slot] = kept
     return True
 
 
@@ -341,14 +351,7 @@ def answer_pending(
     tets: wp.array(dtype=wp.vec4i),
     point_velocity: wp.array(dtype=wp.vec3),
     dt: float,
-    capacity: int,
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
+    found_out: Found,
     late: int,
 ):
     """Records point p's contact with tet e, near a dense surface, if it lies below that surface.
@@ -359,8 +362,7 @@ def answer_pending(
     t = tets[e]
     dv, gv = visible_depth(surface, x, e, t, w, d, g)
     store_contact(
-        p, e, t, w, dv, gv, v, point_velocity, dt, capacity, count_out, contact_point_out, contact_tet_out,
-        contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+        p, e, t, w, dv, gv, v, point_velocity, dt, found_out, late,
     )  # fmt: skip
 
 
@@ -427,14 +429,7 @@ def walk_tree(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    capacity: int,
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
+    found_out: Found,
     late: int,
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
@@ -491,8 +486,7 @@ def walk_tree(
                     )  # fmt: skip
                     if status == 1:
                         found = store_contact(
-                            p, e, t, w, d, g, v, point_velocity, dt, capacity, count_out, contact_point_out,
-                            contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+                            p, e, t, w, d, g, v, point_velocity, dt, found_out, late,
                         )  # fmt: skip
                     elif status == 2:
                         found = True
@@ -537,18 +531,11 @@ def detect_contacts(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    capacity: int,
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
     # outputs
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
+    found_out: Found,
 ):
     """Per collision point and body whose box holds it: that body's tet tree, at most one contact.
 
@@ -556,9 +543,7 @@ def detect_contacts(
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
     each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
-    A contact records the point, the tet, the weights, the unit direction and the depth (m);
-    ``stats_out[0]`` keeps the largest depth, ``count_out[0]`` counts every contact found, and those past
-    ``capacity`` are dropped (the host sees count > capacity).
+    Each contact goes to ``found_out`` (:class:`Found`).
     """
     tid = wp.tid()
     p = tid // lanes
@@ -579,13 +564,11 @@ def detect_contacts(
         e, w, d, g = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
-            point_anchor, row_start, cols, depth, grad, capacity, count_out, contact_point_out, contact_tet_out,
-            contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+            point_anchor, row_start, cols, depth, grad, found_out, late,
         )  # fmt: skip
         if e >= 0:
             answer_pending(
-                p, e, w, d, g, surface, x, v, tets, point_velocity, dt, capacity, count_out, contact_point_out,
-                contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out, stats_out, late,
+                p, e, w, d, g, surface, x, v, tets, point_velocity, dt, found_out, late,
             )  # fmt: skip
 
 
@@ -619,18 +602,11 @@ def detect_contacts_direct(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    capacity: int,
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
     # outputs
-    count_out: wp.array(dtype=wp.int32),
-    contact_point_out: wp.array(dtype=wp.int32),
-    contact_tet_out: wp.array(dtype=wp.int32),
-    contact_bary_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
-    stats_out: wp.array(dtype=float),
+    found_out: Found,
 ):
     """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
 
@@ -654,15 +630,11 @@ def detect_contacts_direct(
                 e, w, d, g = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
-                    point_velocity, point_anchor, row_start, cols, depth, grad, capacity, count_out,
-                    contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
-                    stats_out, late,
+                    point_velocity, point_anchor, row_start, cols, depth, grad, found_out, late,
                 )  # fmt: skip
                 if e >= 0:
                     answer_pending(
-                        p, e, w, d, g, surface, x, v, tets, point_velocity, dt, capacity, count_out,
-                        contact_point_out, contact_tet_out, contact_bary_out, contact_normal_out, contact_depth_out,
-                        stats_out, late,
+                        p, e, w, d, g, surface, x, v, tets, point_velocity, dt, found_out, late,
                     )  # fmt: skip
 
 

@@ -79,6 +79,12 @@ class Collider:
         self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
         self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
+        self.depth_max = wp.zeros(1, dtype=float, device=dev)
+        self.found = K.Found()
+        """The buffers above as detection's one output."""
+        self.found.count, self.found.point, self.found.tet = self.count, self.contact_point, self.contact_tet
+        self.found.bary, self.found.normal = self.contact_bary, self.contact_normal
+        self.found.depth, self.found.deepest = self.contact_depth, self.depth_max
         self.coupling = Coupling(
             self.count,
             wp.zeros(self.capacity, dtype=wp.vec4i, device=dev),
@@ -90,7 +96,6 @@ class Collider:
         """The contacts as CG's matrix-free term (filled each step by :meth:`respond`)."""
         self.friction = wp.zeros(1, dtype=float, device=dev)
         self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
-        self.depth_max = wp.zeros(1, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
@@ -293,20 +298,11 @@ class Collider:
                 m.cols,
                 m.vertex_depth,
                 self.grad,
-                self.capacity,
                 lanes,
                 self.point_contact,
                 int(late),
             ],
-            outputs=[
-                self.count,
-                self.contact_point,
-                self.contact_tet,
-                self.contact_bary,
-                self.contact_normal,
-                self.contact_depth,
-                self.depth_max,
-            ],
+            outputs=[self.found],
             device=m.device,
         )
 
