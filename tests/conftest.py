@@ -1,5 +1,6 @@
-"""Shared fixtures: the Warp device under test and the shared assets folder."""
+"""Shared fixtures: the Warp device under test, the shared assets folder and a preprocessing cache."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -36,3 +37,12 @@ def asset():
         return path
 
     return get
+
+
+@pytest.fixture(scope="session")
+def prep_cache(tmp_path_factory) -> Path:
+    """A preprocessing cache the session's simulation tests share: ``$WARPFEM_TEST_CACHE`` where set (a
+    cache filled on a machine with Netgen lets these tests run on one without it, such as the GPU machine),
+    else a fresh folder. Tests of the cache itself use folders of their own."""
+    given = os.environ.get("WARPFEM_TEST_CACHE")
+    return Path(given) if given else tmp_path_factory.mktemp("prep-cache")

@@ -118,7 +118,7 @@ def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
     assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0) > 0.015
 
 
-def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, tmp_path):
+def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, prep_cache):
     """Four 1 m armadillos (500 coarse faces each) dropped in a 2 x 2 grid from 0.7 m with scene defaults, every
     frame checked on the dense meshes alone: no dense vertex gets deeper than 1 % of the size inside another
     body (the goal) and the dense surfaces stay within 0.15 % of the size of the ground."""
@@ -138,7 +138,7 @@ def test_a_pile_of_armadillos_keeps_its_surfaces_apart(device, asset, tmp_path):
         for i in range(4)
     ]
     scene = warpfem.Scene.from_dict({"scene": {"frames": 90}, "object": objects}, name="pile")
-    sim = warpfem.Simulation(scene, device=device, cache_dir=tmp_path)
+    sim = warpfem.Simulation(scene, device=device, cache_dir=prep_cache)
     inside = below = 0.0
     for _ in range(90):
         sim.step_frame()
@@ -181,7 +181,7 @@ def _dense_obj(path, vertices, faces):
     return str(path)
 
 
-def test_crossing_thin_bars_keep_their_dense_surfaces_apart(device, tmp_path):
+def test_crossing_thin_bars_keep_their_dense_surfaces_apart(device, tmp_path, prep_cache):
     """A 1 m bar of 4 cm square section (31k dense faces, scene defaults otherwise) dropped at 3 m/s across a
     pinned one: it bounces twice and comes to lie across it, its corners pressed on the other's edges. Checked
     every frame on the dense meshes alone (winding numbers): no dense vertex gets deeper than 1 % of the size
@@ -205,7 +205,7 @@ def test_crossing_thin_bars_keep_their_dense_surfaces_apart(device, tmp_path):
             },
         ],
     }
-    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="bars"), device=device, cache_dir=tmp_path)
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="bars"), device=device, cache_dir=prep_cache)
     worst, lowest = 0.0, []
     for _ in range(70):
         sim.step_frame()
@@ -216,7 +216,7 @@ def test_crossing_thin_bars_keep_their_dense_surfaces_apart(device, tmp_path):
     assert all(0.02 - 0.002 < y < 0.022 for y in lowest[-10:])  # the lower bar's top is at 0.02 m
 
 
-def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path):
+def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, prep_cache):
     """Two rounded boxes (superellipsoids, 0.4 x 0.2 x 0.4 m, 20k dense faces: their dense surfaces bulge
     out of the coarse ones at every edge) stacked on a third whose base is pinned, scene defaults otherwise:
     after 2 s the stack stands where it was put, at rest, and no dense vertex is deeper than 0.3 % of the size
@@ -236,7 +236,7 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path):
             {"name": "top", "rotate": [0, 60, 0], "translate": [-0.03, 0.52, 0.02], **common},
         ],
     }
-    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stack"), device=device, cache_dir=tmp_path)
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stack"), device=device, cache_dir=prep_cache)
     for _ in range(118):
         sim.step_frame()
     before = sim.dense_points()
@@ -250,7 +250,7 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path):
     assert warpfem.frame_penetration(sim).relative < 0.003
 
 
-def test_an_armadillo_rests_on_the_ground_with_its_visible_surface(device, asset, tmp_path):
+def test_an_armadillo_rests_on_the_ground_with_its_visible_surface(device, asset, prep_cache):
     """A 1 m armadillo (500 coarse faces, scene defaults otherwise) dropped from 0.24 m onto the ground: its
     lowest dense point is never more than 0.1 % of its size below the ground, landing included (measured
     on the dense mesh alone)."""
@@ -269,7 +269,7 @@ def test_an_armadillo_rests_on_the_ground_with_its_visible_surface(device, asset
             }
         ],
     }
-    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="armadillo"), device=device, cache_dir=tmp_path)
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="armadillo"), device=device, cache_dir=prep_cache)
     below = 0.0
     for _ in range(60):
         sim.step_frame()
