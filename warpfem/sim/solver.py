@@ -109,7 +109,8 @@ class Solver:
         self.handles = list(handles)
         moving = self.colliders.moving
         self.drive = Drive(model, handles, moving, self.colliders.poses) if handles or moving else None
-        self.held_v = self.drive.held_v if self.drive is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
+        self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
+        self.held_v = self.drive.held_v if self.drive is not None else self._no_vec3
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
@@ -123,8 +124,7 @@ class Solver:
         self.elastic_force = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self.force
         self.elastic_matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.matrix_base = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
-        self.rhs_base = wp.zeros(n if apart else 0, dtype=wp.vec3, device=dev)
-        self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
+        self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
         self._zeroed = [self.force, self.matrix_base, *((self.elastic_force, self.elastic_matrix) if apart else ())]
         """What a step zeroes before it accumulates into (the matrix itself is the base when nothing is apart)."""
         self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
