@@ -185,6 +185,46 @@ def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec
 
 
 @wp.kernel
+def clear_step(
+    force: wp.array(dtype=wp.vec3),
+    grad: wp.array(dtype=wp.vec3),
+    elastic_force: wp.array(dtype=wp.vec3),
+    momentum: wp.array(dtype=wp.vec3),
+    matrix: wp.array(dtype=wp.mat33),
+    elastic_matrix: wp.array(dtype=wp.mat33),
+    point_contact: wp.array(dtype=wp.int32),
+    late_vertex: wp.array(dtype=wp.int32),
+    late_skin: wp.array(dtype=wp.int32),
+    contact_counts: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """Zero every array a step accumulates into or counts in: one launch instead of a memset each."""
+    i = wp.tid()
+    if i < force.shape[0]:
+        force[i] = wp.vec3(0.0)
+    if i < grad.shape[0]:
+        grad[i] = wp.vec3(0.0)
+    if i < elastic_force.shape[0]:
+        elastic_force[i] = wp.vec3(0.0)
+    if i < momentum.shape[0]:
+        momentum[i] = wp.vec3(0.0)
+    if i < matrix.shape[0]:
+        matrix[i] = wp.mat33(0.0)
+    if i < elastic_matrix.shape[0]:
+        elastic_matrix[i] = wp.mat33(0.0)
+    if i < point_contact.shape[0]:
+        point_contact[i] = 0
+    if i < late_vertex.shape[0]:
+        late_vertex[i] = 0
+    if i < late_skin.shape[0]:
+        late_skin[i] = 0
+    if i < contact_counts.shape[0]:
+        contact_counts[i] = 0
+    if i < flags.shape[0]:
+        flags[i] = 0
+
+
+@wp.kernel
 def body_momentum(
     v: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),

@@ -90,6 +90,35 @@ def pile_body(
     )
 
 
+def override(doc: dict, setting: str) -> None:
+    """Apply ``section.key=value`` to a scene document (``object.key`` sets it on every object)."""
+    name, _, text = setting.partition("=")
+    section, _, key = name.partition(".")
+    if not key or not text:
+        raise SystemExit(f"--set {setting!r}: expected section.key=value")
+    value = tomllib.loads(f"v = {text}")["v"]
+    if section == "object":
+        for obj in doc.get("object", []):
+            obj[key] = value
+    else:
+        doc.setdefault(section, {})[key] = value
+
+
+def replaced(scene, setting: str):
+    """``scene`` (a ``warpfem.Scene``) with ``section.key=value`` set (``object.key`` on every object)."""
+    import dataclasses
+
+    doc = {"object": [{}]}
+    override(doc, setting)
+    section = setting.partition(".")[0]
+    values = doc[section][0] if section == "object" else doc[section]
+    if section == "object":
+        return dataclasses.replace(scene, objects=[dataclasses.replace(o, **values) for o in scene.objects])
+    if section == "scene":
+        return dataclasses.replace(scene, **values)
+    return dataclasses.replace(scene, **{section: dataclasses.replace(getattr(scene, section), **values)})
+
+
 def pile(scene: warpfem.Scene, n: int, mesh: str, faces: int, scale: float = 0.0066) -> warpfem.Scene:
     """``scene`` with N 1 m armadillos (or any mesh) in layers of a 4x4 grid, each turned about y, dropped."""
     rng = np.random.default_rng(n)
@@ -553,6 +582,13 @@ def main(argv=None) -> int:
         help="comma list: also run each paper scene with CG to these relative tolerances (the speed/accuracy "
         "trade; every paper run reports its one-frame error against converged CG)",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="set a scene key in every scene of the run (object.KEY on every object; the value read as TOML)",
+    )
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
@@ -593,6 +629,14 @@ def main(argv=None) -> int:
             work.append(("mixed", 2 * len(MIXED), mixed_pile(scene_defaults, meshes)))
         frames, cg_cells = args.frames, (60, 60, 52)
 
+    try:
+        for setting in args.set:
+            work = [(kind, n, replaced(scene, setting)) for kind, n, scene in work]
+        for _, _, scene in work:
+            scene.validate()
+    except (warpfem.InputError, TypeError, AttributeError) as err:  # a bad value, an unknown section or key
+        raise SystemExit(f"bench: --set: {err}") from None
+    results["settings"] = args.set
     work += [
         (kind, n, dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, rotation_updates=k)))
         for kind, n, scene in list(work)

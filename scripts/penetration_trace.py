@@ -22,43 +22,14 @@ import tomllib
 from pathlib import Path
 
 
-def override(doc: dict, setting: str) -> None:
-    """Apply ``section.key=value`` to a scene document (``object.key`` sets it on every object)."""
-    name, _, text = setting.partition("=")
-    section, _, key = name.partition(".")
-    if not key or not text:
-        raise SystemExit(f"penetration_trace: --set {setting!r}: expected section.key=value")
-    value = tomllib.loads(f"v = {text}")["v"]
-    if section == "object":
-        for obj in doc.get("object", []):
-            obj[key] = value
-    else:
-        doc.setdefault(section, {})[key] = value
-
-
-def replaced(scene, setting: str):
-    """``scene`` (a ``warpfem.Scene``) with ``section.key=value`` set (``object.key`` on every object)."""
-    import dataclasses
-
-    doc = {"object": [{}]}
-    override(doc, setting)
-    section = setting.partition(".")[0]
-    values = doc[section][0] if section == "object" else doc[section]
-    if section == "object":
-        return dataclasses.replace(scene, objects=[dataclasses.replace(o, **values) for o in scene.objects])
-    if section == "scene":
-        return dataclasses.replace(scene, **values)
-    return dataclasses.replace(scene, **{section: dataclasses.replace(getattr(scene, section), **values)})
-
-
 def load(args):
     """The scene of ``args``: its file with ``--set`` applied, or bench.py's pile of ``--pile`` armadillos."""
     import warpfem
 
-    if args.pile:
-        sys.path.insert(0, str(ROOT / "scripts"))
-        from bench import pile
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench import override, pile, replaced
 
+    if args.pile:
         defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
         scene = pile(defaults, args.pile, str((args.assets / "armadillo.off").resolve()), 500)
         for setting in args.set:
@@ -82,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, help="frames to run (default: the scene's)")
     parser.add_argument("--every", type=int, default=1, help="check every Nth frame (and the last)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--contact-passes", type=int, help="the solver's late-contact passes (default: its own)")
+    parser.add_argument(
+        "--contact-passes", type=int, help="the solver's late-contact passes (default: its own; only fewer)"
+    )
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = parser.parse_args(argv)
     if (args.scene is None) == (args.pile <= 0):
@@ -97,7 +70,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"penetration_trace: {err}") from None
     sim = warpfem.Simulation(scene, device=args.device, cache_dir=ROOT / ".warpfem-cache" if args.pile else None)
     if args.contact_passes is not None:
-        sim.solver.contact_passes = args.contact_passes
+        try:
+            sim.solver.contact_passes = args.contact_passes
+        except ValueError as err:
+            raise SystemExit(f"penetration_trace: --contact-passes: {err}") from None
     frames = args.frames or scene.frames
     inside = below = 0.0
     clock = time.perf_counter()

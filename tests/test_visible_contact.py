@@ -166,11 +166,14 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
         trace.main([str(scene), "--set", "young"])
     with pytest.raises(SystemExit):  # a scene file or --pile, not both
         trace.main([str(scene), "--pile", "4"])
-    # --pile's overrides reach the scene's dataclasses as the file's reach its document
+    # --pile's overrides (scripts/bench.py's, as its own --set) reach the scene's dataclasses as the file's
+    # reach its document
+    import bench  # scripts/, on the path once the trace has run
+
     loaded = warpfem.load_scene(scene)
-    changed = trace.replaced(trace.replaced(loaded, "object.young=3e5"), "collision.stiffness=1e8")
+    changed = bench.replaced(bench.replaced(loaded, "object.young=3e5"), "collision.stiffness=1e8")
     assert [o.young for o in changed.objects] == [3e5, 3e5] and changed.collision.stiffness == 1e8
-    assert trace.replaced(loaded, "scene.substeps=3").substeps == 3
+    assert bench.replaced(loaded, "scene.substeps=3").substeps == 3
 
 
 def _dense_obj(path, vertices, faces):

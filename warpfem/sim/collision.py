@@ -72,7 +72,10 @@ class Collider:
         self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
-        self.count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.counts = wp.zeros(2, dtype=wp.int32, device=dev)
+        """How many contacts the step found, and where those being answered start in the buffers (0, or a late
+        pass's first): ``count`` and ``first``, views of it."""
+        self.count, self.first = self.counts[0:1], self.counts[1:2]
         self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_tet = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
@@ -100,8 +103,6 @@ class Collider:
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
         """Which points have a contact this step (a late pass leaves them be)."""
-        self.first = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Where the contacts being answered start in the buffers (0, or a late pass's first)."""
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
@@ -154,15 +155,19 @@ class Collider:
         )
         self._bound(x)
 
-    def respond(self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array) -> None:
+    def respond(
+        self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, cleared: bool = False
+    ) -> None:
         """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
 
         Needs :meth:`prepare` at the same ``x`` and ``v`` first. Reads the rotated distance gradients in
         ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
-        first.
+        first. ``cleared``: ``point_contact`` and ``counts`` are zero already (a step clears them with its
+        own accumulators, in one launch).
         """
-        self.point_contact.zero_()
-        self.first.zero_()
+        if not cleared:
+            self.point_contact.zero_()
+            self.counts.zero_()
         self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
@@ -264,8 +269,6 @@ class Collider:
     def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
         """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
         m = self.model
-        if not late:
-            self.count.zero_()
         lanes = self.lanes
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(

@@ -208,9 +208,13 @@ class StaticColliders:
         return [a.center, a.rotation, a.center_next, a.rotation_next]
 
 
+def clear_step(zeroed: Sequence[wp.array], device: wp.context.Device) -> None:
+    """Zero a step's accumulators and counters in one launch, in ``kernels.integrate.clear_step``'s order."""
+    wp.launch(K.clear_step, dim=max(a.shape[0] for a in zeroed), inputs=list(zeroed), device=device)
+
+
 def body_momentum(model: Model, state: State, momentum_out: wp.array) -> None:
-    """Each body's momentum (kg m/s) into ``momentum_out`` (zeroed here): the static contacts' body speed."""
-    momentum_out.zero_()
+    """Each body's momentum (kg m/s) added into ``momentum_out`` (zero it first): the static contacts' body speed."""
     wp.launch(
         K.body_momentum,
         dim=model.vertex_count,

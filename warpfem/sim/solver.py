@@ -63,7 +63,7 @@ class Solver:
             again from that answer (a solve only where some did; 0: never). One linear solve moves each vertex
             along the tangent of its rotation, which stretches a fast-turning body and adds energy; these
             updates converge to implicit Euler with the elastic force at the step's end, which does not.
-            Lowering ``rotation_updates`` after construction is allowed; raising it from 0 is not.
+            Either count may be lowered after construction, not raised.
         rotation_tolerance: See ``rotation_updates`` (rad, >= 0).
         handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
             or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
@@ -91,7 +91,7 @@ class Solver:
             raise ValueError(f"rotation_updates must be >= 0, got {rotation_updates}")
         if not rotation_tolerance >= 0.0:
             raise ValueError(f"rotation_tolerance must be >= 0 rad, got {rotation_tolerance}")
-        self.rotation_updates, self.rotation_tolerance = rotation_updates, float(rotation_tolerance)
+        self._rotation_updates, self.rotation_tolerance = rotation_updates, float(rotation_tolerance)
         self.model = model
         dev = model.device
         n = model.vertex_count
@@ -114,9 +114,7 @@ class Solver:
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
-        self.contact_passes = contact_passes if static or self.collider is not None else 0
-        self.turned = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Whether a rotation update changed some tet (the condition of its solve)."""
+        self._contact_passes = contact_passes if static or self.collider is not None else 0
         # with rotation updates the elastic part is kept apart from the rest of the system, so that a step
         # re-linearised about new rotations is assembled afresh (differences of stiff blocks lose the mass term
         # in float32); without, the elastic launch adds straight into the system
@@ -125,10 +123,14 @@ class Solver:
         self.elastic_matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.matrix_base = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
-        self._zeroed = [self.force, self.matrix_base, *((self.elastic_force, self.elastic_matrix) if apart else ())]
-        """What a step zeroes before it accumulates into (the matrix itself is the base when nothing is apart)."""
-        self.late_count = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Late contacts a pass added (the condition of its solve)."""
+        self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
+        self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
+        self.flags = wp.zeros(rotation_updates + self._contact_passes, dtype=wp.int32, device=dev)
+        """The step's conditions, each its own slot so one launch clears them all at the step's start."""
+        self.turned = [self.flags[k : k + 1] for k in range(rotation_updates)]
+        """Whether the k-th rotation update changed some tet (the condition of its solve)."""
+        self.late_count = [self.flags[k : k + 1] for k in range(rotation_updates, len(self.flags))]
+        """Late contacts the k-th pass added (the condition of its solve)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
             wp.zeros(model.skin_tet.shape[0] if static else 0, dtype=wp.int32, device=dev),
@@ -177,9 +179,7 @@ class Solver:
                 side.wait_stream(wp.get_stream(model.device))
                 with wp.ScopedStream(side, sync_enter=False):
                     self.collider.prepare(state_in.x, state_in.v)
-            for a in self._zeroed:
-                a.zero_()
-            self.grad.zero_()
+            self._clear()
             fem.elastic_forces_and_stiffness(
                 model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad,
                 v=state_in.v if self.apart else None,
@@ -191,7 +191,7 @@ class Solver:
                 wp.get_stream(model.device).wait_stream(side)
             else:
                 self.collider.prepare(state_in.x, state_in.v)
-            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix_base)
+            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix_base, cleared=True)
 
         def solve() -> None:
             if self.drive is not None:
@@ -208,6 +208,23 @@ class Solver:
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
         return [("elastic", elastic), ("collision", collision), ("solve", solve)]
+
+    def _clear(self) -> None:
+        """Zero what the step accumulates into and counts in, in one launch (the matrix is the base unless apart)."""
+        apart, collider = self.apart, self.collider
+        zeroed = [
+            self.force,
+            self.grad,
+            self.elastic_force if apart else self._no_vec3,
+            self.momentum,
+            self.matrix_base,
+            self.elastic_matrix if apart else self._no_mat33,
+            collider.point_contact if collider is not None else self._no_int,
+            *self.late,
+            collider.counts if collider is not None else self._no_int,
+            self.flags,
+        ]
+        integrate.clear_step(zeroed, self.model.device)
 
     def _assemble(self, state_in: State, state_out: State, dt: float) -> None:
         """Static contacts and the implicit Euler system on top of the elastic and contact terms."""
@@ -249,9 +266,9 @@ class Solver:
 
     def _update_rotations(self, state_in: State, state_out: State, dt: float, k: int) -> None:
         """The k-th look at the tets' rotations; a solve, and the next look, only where some turned."""
-        self.turned.zero_()
-        fem.turn_rotations(self.model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, self.turned)
-        wp.capture_if(self.turned, on_true=lambda: self._relinearise(state_in, state_out, dt, k))
+        turned = self.turned[k - 1]
+        fem.turn_rotations(self.model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, turned)
+        wp.capture_if(turned, on_true=lambda: self._relinearise(state_in, state_out, dt, k))
 
     def _relinearise(self, state_in: State, state_out: State, dt: float, k: int) -> None:
         """The system again about the rotations ``rotation`` holds, solved from the last answer."""
@@ -271,23 +288,39 @@ class Solver:
         """The contact passes: contacts the answer makes that the step did not count, and a solve where any."""
         if not self.contact_passes:
             return
-        self.late[0].zero_()
-        self.late[1].zero_()
         for k in range(self.contact_passes):
-            self.late_count.zero_()
+            count = self.late_count[k]
             if self.colliders.kind.shape[0]:
                 integrate.late_contacts(
-                    self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late,
-                    self.late_count, self.matrix, self.rhs,
+                    self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
+                    self.matrix, self.rhs,
                 )  # fmt: skip
             if self.collider is not None and k < LATE_BODY_PASSES:
-                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, self.late_count)
-            wp.capture_if(self.late_count, on_true=lambda: self._solve_again(state_in, state_out, dt))
+                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count)
+            wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt))
 
     def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._advance(state_in, state_out, dt)
+
+    @property
+    def rotation_updates(self) -> int:
+        """Rotation updates per step (see :class:`Solver`); may be lowered after construction."""
+        return self._rotation_updates
+
+    @rotation_updates.setter
+    def rotation_updates(self, value: int) -> None:
+        self._rotation_updates = _lowered("rotation_updates", value, len(self.turned))
+
+    @property
+    def contact_passes(self) -> int:
+        """Late-contact passes per step (see :class:`Solver`); may be lowered after construction."""
+        return self._contact_passes
+
+    @contact_passes.setter
+    def contact_passes(self, value: int) -> None:
+        self._contact_passes = _lowered("contact_passes", value, len(self.late_count))
 
     @property
     def overlapped(self) -> bool:
@@ -313,3 +346,10 @@ class Solver:
     def read_cg_stats(self) -> CGStats:
         """CG statistics since the last call (one host synchronisation)."""
         return self.cg.read_stats()
+
+
+def _lowered(name: str, value: int, allocated: int) -> int:
+    """``value`` if a count set after construction is within what the solver allocated for, else ValueError."""
+    if not 0 <= value <= allocated:
+        raise ValueError(f"{name} can be lowered after construction, to 0-{allocated}, not set to {value}")
+    return value
