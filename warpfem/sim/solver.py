@@ -140,7 +140,22 @@ class Solver:
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
         # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
-        self.grad = self.collider.grad if self.collider is not None else wp.zeros(0, dtype=wp.vec3, device=dev)
+        self.grad = self.collider.grad if self.collider is not None else self._no_vec3
+        collider = self.collider
+        self._cleared = [
+            self.force,
+            self.grad,
+            self.elastic_force if apart else self._no_vec3,
+            self.momentum,
+            self.matrix_base,
+            self.elastic_matrix if apart else self._no_mat33,
+            collider.point_contact if collider is not None else self._no_int,
+            *self.late,
+            collider.counts if collider is not None else self._no_int,
+            self.flags,
+        ]
+        """What a step zeroes before it accumulates and counts, in one launch (``kernels.integrate.clear_step``'s
+        order; the matrix itself is the base when nothing is apart)."""
         mode, _, blocks = (cg_path or "").partition(":")
         if blocks and (mode != "grid" or not blocks.isdigit()):
             raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
@@ -179,7 +194,7 @@ class Solver:
                 side.wait_stream(wp.get_stream(model.device))
                 with wp.ScopedStream(side, sync_enter=False):
                     self.collider.prepare(state_in.x, state_in.v)
-            self._clear()
+            integrate.clear_step(self._cleared, model.device)
             fem.elastic_forces_and_stiffness(
                 model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad,
                 v=state_in.v if self.apart else None,
@@ -208,23 +223,6 @@ class Solver:
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
         return [("elastic", elastic), ("collision", collision), ("solve", solve)]
-
-    def _clear(self) -> None:
-        """Zero what the step accumulates into and counts in, in one launch (the matrix is the base unless apart)."""
-        apart, collider = self.apart, self.collider
-        zeroed = [
-            self.force,
-            self.grad,
-            self.elastic_force if apart else self._no_vec3,
-            self.momentum,
-            self.matrix_base,
-            self.elastic_matrix if apart else self._no_mat33,
-            collider.point_contact if collider is not None else self._no_int,
-            *self.late,
-            collider.counts if collider is not None else self._no_int,
-            self.flags,
-        ]
-        integrate.clear_step(zeroed, self.model.device)
 
     def _assemble(self, state_in: State, state_out: State, dt: float) -> None:
         """Static contacts and the implicit Euler system on top of the elastic and contact terms."""
