@@ -123,3 +123,22 @@ def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_abov
     for i, a in enumerate(placed):
         for b in placed[i + 1 :]:
             assert np.any(a.min(axis=0) > b.max(axis=0)) or np.any(b.min(axis=0) > a.max(axis=0))
+
+
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("young", "expected section.key=value"),
+        ("bogus.x=1", "no attribute 'bogus'"),
+        ("collision.bogus=1", "bogus"),
+        ("collision.stiffness=-1", "stiffness"),
+        ("object.young=nan", "young"),
+    ],
+)
+def test_a_bad_set_is_a_one_line_error_before_anything_runs(tmp_path, setting, message):
+    """``--set`` with no key, an unknown section or key, or a value the scene refuses stops the run with one
+    line naming it, before any scene runs or any file is written."""
+    with pytest.raises(SystemExit, match=message) as stop:
+        bench.main(["--quick", "--out", str(tmp_path), "--cache-dir", str(tmp_path / "cache"), "--set", setting])
+    assert "\n" not in str(stop.value)
+    assert not list(tmp_path.iterdir())

@@ -269,3 +269,18 @@ def test_late_contact_passes_only_where_something_can_be_touched(device):
     assert Solver(model, ground=None).contact_passes == 0
     with pytest.raises(ValueError, match="contact_passes"):
         Solver(model, contact_passes=-1)
+
+
+def test_late_passes_and_rotation_updates_can_be_lowered_after_construction_not_raised(device):
+    """Each pass and update has its condition's slot allocated at construction: a count set later may drop to
+    0 and come back, but not exceed what was allocated nor go negative (a one-line ValueError)."""
+    model, _ = _cube(device, y0=0.5)
+    solver = Solver(model, contact_passes=2, rotation_updates=2)
+    solver.contact_passes, solver.rotation_updates = 0, 1
+    assert (solver.contact_passes, solver.rotation_updates) == (0, 1)
+    solver.contact_passes = 2
+    for name, value in (("contact_passes", 3), ("rotation_updates", 3), ("contact_passes", -1)):
+        with pytest.raises(ValueError, match=f"{name} can be lowered after construction, to 0-2, not set to {value}"):
+            setattr(solver, name, value)
+    assert (solver.contact_passes, solver.rotation_updates) == (2, 1)
+    assert np.isfinite(_run(solver, model, 4, 1 / 240).x.numpy()).all()  # the lowered counts still step
