@@ -23,7 +23,14 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 
 import warp as wp
 
-from .distance import VisibleSurface, add_rotated_gradients, face_query, interpolate_directions, visible_depth
+from .distance import (
+    VisibleSurface,
+    add_rotated_gradients,
+    depth_above,
+    face_query,
+    interpolate_directions,
+    visible_depth,
+)
 from .embedding import interpolate
 from .grid import warp_max_at
 from .integrate import FRICTION_SPEED_EPS
@@ -262,6 +269,8 @@ def depth_in_tet(
     ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
     of a body with a dense mesh: then :func:`kernels.distance.visible_depth` answers, with ``d``, ``g`` where
     it finds no surface in reach. The caller asks it after the tree walk, so the walk's registers are free.
+    3 when the point surely lies outside that dense surface (:func:`kernels.distance.depth_above` below zero
+    at the nearest face): no contact, and no query.
     """
     d = float(0.0)
     g = wp.vec3()
@@ -278,6 +287,7 @@ def depth_in_tet(
         nearest = float(1.0e30)
         d_near = float(0.0)
         g_near = wp.vec3()
+        f_near = f0
         for f in range(f0, f1):
             n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
             if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
@@ -288,10 +298,14 @@ def depth_in_tet(
                 nearest = dist
                 d_near = depth_f
                 g_near = n_f
+                f_near = f
         if entered == 1.0e30:
             d = d_near
             g = g_near
         if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
+            rest_q = interpolate(surface.rest_x, t, w)
+            if depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q) < 0.0:
+                return 3, d, g
             return 2, d, g
         return 1, d, g
     # deep inside: the paper's interpolated distance field and rotated gradients
@@ -488,6 +502,8 @@ def walk_tree(
                         found = store_contact(
                             p, e, t, w, d, g, v, point_velocity, dt, found_out, late,
                         )  # fmt: skip
+                    elif status == 3:
+                        found = True
                     elif status == 2:
                         found = True
                         pending = e
