@@ -165,7 +165,9 @@ def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), fa
 
 
 @wp.func
-def depth_above(rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3):
+def depth_above(
+    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
+):
     """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
 
     The face's lattice holds the signed distance to the dense rest surface, which changes by at most the

@@ -93,7 +93,7 @@ def _bounds(
 ):
     i = wp.tid()
     e = tet_ids[i]
-    b = float(1.0e30)
+    b = float(1.0e30)  # noqa: UP018 (a Warp kernel local it mutates)
     for f in range(tet_face_start[e], tet_face_start[e + 1]):
         b = wp.min(b, depth_above(rest_x, face_depth, tet_faces[f], tet_face_ids[f], points[i]))
     bound_out[i] = b
