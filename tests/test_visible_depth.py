@@ -2,7 +2,8 @@
 
 import numpy as np
 import warp as wp
-from warpfem.kernels.distance import VisibleSurface, depth_above, visible_depth
+from warpfem.kernels.collision import depth_above
+from warpfem.kernels.distance import VisibleSurface, visible_depth
 
 import warpfem
 
@@ -100,7 +101,7 @@ def _bounds(
 
 
 def test_depth_bound_from_a_face_lattice_never_falls_below_the_depth(device):
-    """The bound the collider uses to skip the dense query (:func:`depth_above`), from every surface face
+    """The bound the collider uses to skip the dense query (``depth_above``), from every surface face
     near a tet, at points in the tets near the surface of a bunny at rest: never below libigl's signed depth
     under the dense mesh, and below zero (the query skipped) at most points that lie outside it by more than
     1 % of the size."""
