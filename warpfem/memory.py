@@ -60,8 +60,13 @@ TREE_TET_BYTES = 32
 """Bytes per tet of the bodies' tet trees at most: under one 24-byte node box and half a 16-byte leaf (a
 power of two of leaves of up to four tets)."""
 
-TET_FACE_BYTES = 12
-"""Model bytes per (tet, nearby surface face) pair: the face's vertex indices (the contact depth rule)."""
+TET_FACE_BYTES = 16
+"""Model bytes per (tet, nearby surface face) pair: the face's vertex indices and its index (the contact depth
+rule)."""
+
+SURFACE_FACE_BYTES = 180
+"""Model bytes per surface face of the tets: its lattice of depths below the visible surface (45 floats,
+``warpfem.kernels.distance.LATTICE_POINTS``)."""
 
 CONTACT_BYTES = 140
 """Device bytes per contact slot: point, tet, weights, normal, depth, 3x3 block, the pair's vertices and weights."""
@@ -124,6 +129,7 @@ def estimate(
     collision_points: Sequence[int],
     collision: bool,
     tet_face_refs: Sequence[int] = (),
+    surface_faces: Sequence[int] = (),
     obstacle_meshes: Sequence[tuple[int, int]] = (),
     dense_meshes: Sequence[tuple[int, int]] = (),
 ) -> Estimate:
@@ -137,6 +143,7 @@ def estimate(
             several bodies or one colliding with itself.
         tet_face_refs: Each body's count of (tet, surface face around its corners) pairs
             (:func:`warpfem.prep.geometry.tet_surface_faces`).
+        surface_faces: Each body's count of surface faces of its tets.
         obstacle_meshes: ``(vertices, triangles)`` of each mesh obstacle.
         dense_meshes: ``(vertices, triangles)`` of each distinct dense surface (copies of one prepared body
             share one), which the collider keeps as a ``wp.Mesh`` for the depth of contacts.
@@ -150,7 +157,7 @@ def estimate(
     n = sum(int(np.unique(t).size) for t in tets)
     blocks = sum(matrix_blocks(t) for t in tets)
     parts = {
-        "tets": TET_BYTES * q + TET_FACE_BYTES * sum(tet_face_refs),
+        "tets": TET_BYTES * q + TET_FACE_BYTES * sum(tet_face_refs) + SURFACE_FACE_BYTES * sum(surface_faces),
         "tet vertices": VERTEX_BYTES * n,
         "matrix": (BLOCK_BYTES + (GATHER_BLOCK_BYTES if n <= GATHER_MAX_ROWS else 0)) * blocks,
         "dense vertices": DENSE_BYTES * sum(dense_vertices),
@@ -175,7 +182,8 @@ def scene_estimate(scene: Scene, prepared: Sequence[PreparedBody], geometry: Seq
     meshes = [_mesh_size(scene, i) for i, o in enumerate(scene.obstacles) if o.kind == "mesh"]
     dense = [len(p.dense_vertices) for p in prepared]
     shapes = {id(p): (len(p.dense_vertices), len(p.dense_faces)) for p in prepared}
-    return estimate([p.tets for p in prepared], dense, points, collider, refs, meshes, list(shapes.values()))
+    faces = [len(g.face_depth) for g in geometry]
+    return estimate([p.tets for p in prepared], dense, points, collider, refs, faces, meshes, list(shapes.values()))
 
 
 def _mesh_size(scene: Scene, index: int) -> tuple[int, int]:

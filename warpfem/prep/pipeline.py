@@ -154,7 +154,7 @@ class PreparedBody:
         embed_bary: (n, 4) float64 barycentric coordinates of each dense vertex in its tet.
         vertex_depth: (p,) float64 distance of each tet vertex to the coarse surface (0 on it).
         vertex_grad: (p, 3) float64 unit gradient of that distance, pointing out of the body.
-        face_depth: (l, 15) float64 depth of the dense surface below the lattice points of each boundary
+        face_depth: (l, LATTICE_POINTS) float64 depth of the dense surface below the lattice points of each boundary
             face (:func:`warpfem.prep.geometry.face_lattice`), negative where the cage lies outside it.
         stats: What was made and how long it took (see :func:`prepare`).
     """

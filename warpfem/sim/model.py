@@ -95,7 +95,7 @@ class Model:
     tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
     tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
     tet_face_ids: wp.array  # int32, the global index of each of those faces
-    face_depth: wp.array  # float (15 per face), depth of the visible surface below each face's lattice points (m)
+    face_depth: wp.array  # float (LATTICE_POINTS per face), depth of the visible surface below its lattice (m)
     body_self: wp.array  # int32, 1 where a body collides with itself
     point_tet: wp.array  # int32, global tet of each collision point
     point_bary: wp.array  # vec4, its barycentric weights there
@@ -227,7 +227,7 @@ class BodyArrays(Protocol):
         vertex_grad: (p, 3) outward unit gradient of that distance at rest.
         point_tet, point_bary, point_anchor: Collision points: tet, barycentric weights, vertices they lie on.
         tet_face_start, tet_faces: CSR, the surface faces touching each tet's corners.
-        face_depth: (l, 15) depth of the visible surface below each surface face's lattice points (m).
+        face_depth: (l, LATTICE_POINTS) depth of the visible surface below each surface face's lattice points (m).
         leaf_tets: (L, 4) leaves of the body's tree of tets (-1: none), L a power of two.
     """
 
