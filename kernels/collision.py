@@ -24,11 +24,14 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 import warp as wp
 
 from .distance import (
+    LATTICE,
+    LATTICE_POINTS,
     VisibleSurface,
     add_rotated_gradients,
     face_query,
+    face_weights,
     interpolate_directions,
-    surely_outside,
+    lattice_index,
     visible_depth,
 )
 from .embedding import interpolate
@@ -241,6 +244,29 @@ class Found:
 
 
 @wp.func
+def depth_above(
+    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
+):
+    """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
+
+    The face's lattice holds the signed distance to the dense rest surface, which changes by at most the
+    distance moved: below it by at most ``q``'s distance from a corner of the face's cell nearest ``q``, all
+    at rest (``rest_x``). Negative: ``q`` surely lies outside the visible surface.
+    """
+    a = rest_x[face[0]]
+    e1 = rest_x[face[1]] - a
+    e2 = rest_x[face[2]] - a
+    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
+    i = wp.min(int(w[0] * float(LATTICE)), LATTICE - 1)
+    j = wp.min(int(w[1] * float(LATTICE)), LATTICE - 1 - i)
+    r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
+    base = face_id * LATTICE_POINTS
+    bound = face_depth[base + lattice_index(i, j)] + wp.length(r)
+    bound = wp.min(bound, face_depth[base + lattice_index(i + 1, j)] + wp.length(r - e1 / float(LATTICE)))
+    return wp.min(bound, face_depth[base + lattice_index(i, j + 1)] + wp.length(r - e2 / float(LATTICE)))
+
+
+@wp.func
 def depth_in_tet(
     p: int,
     q: wp.vec3,
@@ -269,8 +295,8 @@ def depth_in_tet(
     ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
     of a body with a dense mesh: then :func:`kernels.distance.visible_depth` answers, with ``d``, ``g`` where
     it finds no surface in reach. The caller asks it after the tree walk, so the walk's registers are free.
-    3 when the point surely lies outside that dense surface (:func:`kernels.distance.surely_outside`): no
-    contact, and no query.
+    3 when the point surely lies outside that dense surface (:func:`depth_above` below zero
+    at the nearest face): no contact, and no query.
     """
     d = float(0.0)
     g = wp.vec3()
@@ -304,7 +330,7 @@ def depth_in_tet(
             g = g_near
         if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
-            if surely_outside(surface.rest_x, face_depth, tet_faces, tet_face_ids, f_near, f0, f1, rest_q):
+            if depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q) < 0.0:
                 return 3, d, g
             return 2, d, g
         return 1, d, g

@@ -106,7 +106,7 @@ LATTICE = 8
 splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
 middle, which the corners' depths alone miss (preprocessing fills it: ``warpfem.prep.geometry.face_lattice``).
 The finer the lattice, the more points near a surface it proves outside without asking the dense surface
-(:func:`depth_above`): at 8, half the queries that 4 left in a pile of armadillos."""
+(``warpfem.kernels.collision.depth_above``): at 8, half the queries that 4 left in a pile of armadillos."""
 
 LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
 
@@ -164,53 +164,6 @@ def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), fa
     plane = wp.dot(n, a - q)
     depth = plane + lattice_depth(face_depth, face_id, w[0], w[1])
     return n, plane, depth, wp.length(q - (a + w[0] * e1 + w[1] * e2))
-
-
-@wp.func
-def depth_above(
-    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
-):
-    """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
-
-    The face's lattice holds the signed distance to the dense rest surface, which changes by at most the
-    distance moved: below it by at most ``q``'s distance from a corner of the face's cell nearest ``q``, all
-    at rest (``rest_x``). Negative: ``q`` surely lies outside the visible surface.
-    """
-    a = rest_x[face[0]]
-    e1 = rest_x[face[1]] - a
-    e2 = rest_x[face[2]] - a
-    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
-    i = wp.min(int(w[0] * float(LATTICE)), LATTICE - 1)
-    j = wp.min(int(w[1] * float(LATTICE)), LATTICE - 1 - i)
-    r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
-    base = face_id * LATTICE_POINTS
-    bound = face_depth[base + lattice_index(i, j)] + wp.length(r)
-    bound = wp.min(bound, face_depth[base + lattice_index(i + 1, j)] + wp.length(r - e1 / float(LATTICE)))
-    return wp.min(bound, face_depth[base + lattice_index(i, j + 1)] + wp.length(r - e2 / float(LATTICE)))
-
-
-@wp.func
-def surely_outside(
-    rest_x: wp.array(dtype=wp.vec3),
-    face_depth: wp.array(dtype=float),
-    tet_faces: wp.array(dtype=wp.vec3i),
-    tet_face_ids: wp.array(dtype=wp.int32),
-    first: int,
-    f0: int,
-    f1: int,
-    q: wp.vec3,
-) -> bool:
-    """Whether a surface face ``f0`` to ``f1`` bounds rest position ``q``'s depth below zero (:func:`depth_above`).
-
-    Face ``first`` (the nearest) is tried first; the others where it cannot tell.
-    """
-    outside = depth_above(rest_x, face_depth, tet_faces[first], tet_face_ids[first], q) < 0.0
-    f = f0
-    while not outside and f < f1:
-        if f != first:
-            outside = depth_above(rest_x, face_depth, tet_faces[f], tet_face_ids[f], q) < 0.0
-        f += 1
-    return outside
 
 
 @wp.struct

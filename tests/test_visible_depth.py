@@ -2,7 +2,8 @@
 
 import numpy as np
 import warp as wp
-from warpfem.kernels.distance import VisibleSurface, depth_above, visible_depth
+from warpfem.kernels.collision import depth_above
+from warpfem.kernels.distance import VisibleSurface, visible_depth
 
 import warpfem
 
