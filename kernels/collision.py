@@ -31,6 +31,7 @@ from .distance import (
     face_query,
     face_weights,
     interpolate_directions,
+    lattice_cell,
     lattice_index,
     visible_depth,
 )
@@ -257,8 +258,7 @@ def depth_above(
     e1 = rest_x[face[1]] - a
     e2 = rest_x[face[2]] - a
     w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
-    i = wp.min(int(w[0] * float(LATTICE)), LATTICE - 1)
-    j = wp.min(int(w[1] * float(LATTICE)), LATTICE - 1 - i)
+    i, j, fu, fv = lattice_cell(w[0], w[1])
     r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
     base = face_id * LATTICE_POINTS
     bound = face_depth[base + lattice_index(i, j)] + wp.length(r)

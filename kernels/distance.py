@@ -106,7 +106,7 @@ LATTICE = 8
 splits it into LATTICE^2 triangles: a cage face lies farther from a dense bulge at its corners than at its
 middle, which the corners' depths alone miss (preprocessing fills it: ``warpfem.prep.geometry.face_lattice``).
 The finer the lattice, the more points near a surface it proves outside without asking the dense surface
-(``warpfem.kernels.collision.depth_above``): at 8, half the queries that 4 left in a pile of armadillos."""
+(``warpfem.kernels.collision.depth_above``)."""
 
 LATTICE_POINTS = (LATTICE + 1) * (LATTICE + 2) // 2
 
@@ -118,14 +118,19 @@ def lattice_index(i: int, j: int) -> int:
 
 
 @wp.func
-def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2: float) -> float:
-    """The face's lattice depths interpolated (linearly on the lattice's triangles) at weights w1, w2."""
+def lattice_cell(w1: float, w2: float):
+    """The lattice cell (i, j) at face weights w1, w2 (of corners 1 and 2), and the offsets in it (cell units)."""
     u = w1 * float(LATTICE)
     v = w2 * float(LATTICE)
     i = wp.min(int(u), LATTICE - 1)
     j = wp.min(int(v), LATTICE - 1 - i)
-    fu = u - float(i)
-    fv = v - float(j)
+    return i, j, u - float(i), v - float(j)
+
+
+@wp.func
+def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2: float) -> float:
+    """The face's lattice depths interpolated (linearly on the lattice's triangles) at weights w1, w2."""
+    i, j, fu, fv = lattice_cell(w1, w2)
     base = face_id * LATTICE_POINTS
     d00 = face_depth[base + lattice_index(i, j)]
     d10 = face_depth[base + lattice_index(i + 1, j)]
