@@ -64,8 +64,8 @@ TET_FACE_BYTES = 16
 """Model bytes per (tet, nearby surface face) pair: the face's vertex indices and its index (the contact depth
 rule)."""
 
-SURFACE_FACE_BYTES = 180
-"""Model bytes per surface face of the tets: its lattice of depths below the visible surface (45 floats,
+LATTICE_POINT_BYTES = 4
+"""Model bytes per point of a surface face's lattice of depths below the visible surface (one float; a face has
 ``warpfem.kernels.distance.LATTICE_POINTS``)."""
 
 CONTACT_BYTES = 140
@@ -151,13 +151,16 @@ def estimate(
     Returns:
         The estimate by part.
     """
+    from warpfem.kernels.distance import LATTICE_POINTS
     from warpfem.sim.cg import GATHER_MAX_ROWS
 
     q = sum(len(t) for t in tets)
     n = sum(int(np.unique(t).size) for t in tets)
     blocks = sum(matrix_blocks(t) for t in tets)
     parts = {
-        "tets": TET_BYTES * q + TET_FACE_BYTES * sum(tet_face_refs) + SURFACE_FACE_BYTES * sum(surface_faces),
+        "tets": TET_BYTES * q
+        + TET_FACE_BYTES * sum(tet_face_refs)
+        + LATTICE_POINT_BYTES * LATTICE_POINTS * sum(surface_faces),
         "tet vertices": VERTEX_BYTES * n,
         "matrix": (BLOCK_BYTES + (GATHER_BLOCK_BYTES if n <= GATHER_MAX_ROWS else 0)) * blocks,
         "dense vertices": DENSE_BYTES * sum(dense_vertices),
