@@ -208,9 +208,12 @@ class StaticColliders:
         return [a.center, a.rotation, a.center_next, a.rotation_next]
 
 
-def clear_step(zeroed: Sequence[wp.array], device: wp.context.Device) -> None:
-    """Zero a step's accumulators and counters in one launch, in ``kernels.integrate.clear_step``'s order."""
-    wp.launch(K.clear_step, dim=max(a.shape[0] for a in zeroed), inputs=list(zeroed), device=device)
+def clear_step(zeroed: list[wp.array], dim: int, device: wp.context.Device) -> None:
+    """Zero a step's accumulators and counters in one launch, in ``kernels.integrate.clear_step``'s order.
+
+    ``dim``: the longest of the arrays (worked out once by the caller, not on every step).
+    """
+    wp.launch(K.clear_step, dim=dim, inputs=zeroed, device=device)
 
 
 def body_momentum(model: Model, state: State, momentum_out: wp.array) -> None:

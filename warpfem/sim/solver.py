@@ -156,6 +156,7 @@ class Solver:
         ]
         """What a step zeroes before it accumulates and counts, in one launch (``kernels.integrate.clear_step``'s
         order; the matrix itself is the base when nothing is apart)."""
+        self._cleared_dim = max(a.shape[0] for a in self._cleared)
         mode, _, blocks = (cg_path or "").partition(":")
         if blocks and (mode != "grid" or not blocks.isdigit()):
             raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
@@ -194,7 +195,7 @@ class Solver:
                 side.wait_stream(wp.get_stream(model.device))
                 with wp.ScopedStream(side, sync_enter=False):
                     self.collider.prepare(state_in.x, state_in.v)
-            integrate.clear_step(self._cleared, model.device)
+            integrate.clear_step(self._cleared, self._cleared_dim, model.device)
             fem.elastic_forces_and_stiffness(
                 model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad,
                 v=state_in.v if self.apart else None,
