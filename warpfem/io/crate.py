@@ -1,0 +1,271 @@
+"""A USD crate (``.usdc``) layer of time samples streamed to disk: each frame's values are written as they come.
+
+usd-core builds a layer in memory and exports it whole, holding the interpreter lock while it copies, hashes
+and writes every array; beside a simulation's threads that cost several times a plain write of the same
+bytes. A chunk of a run is one simple kind of layer: ``over`` prims whose attributes hold time samples of
+float3 arrays or 4x4 matrices. :class:`CrateStream` writes exactly that in crate version 0.8.0 (the version
+usd-core writes by default): the values go to the file with plain writes frame by frame, and closing adds
+the small tables that index them (the time-sample records, then the structural sections: tokens, fields,
+field sets, paths, specs, and the table of contents the header points to). The layout follows OpenUSD's
+``pxr/usd/usd/crateFile.cpp``; the integer lists are written in its integer coding with every value as a
+32-bit difference, and each compressed block as one literal run of LZ4, which every LZ4 decoder reads.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+VERSION = (0, 8, 0)
+"""The crate version written."""
+
+_BOOTSTRAP_BYTES = 88  # "PXR-USDC", 8 version bytes, the table of contents' offset, 8 reserved int64
+
+# TypeEnum values and ValueRep bits (crateDataTypes.h, crateFile.h)
+_BOOL, _TOKEN, _MATRIX4D, _VEC3F = 1, 11, 15, 24
+_TOKEN_VECTOR, _SPECIFIER, _VARIABILITY, _TIME_SAMPLES, _DOUBLE_VECTOR = 41, 42, 44, 46, 48
+_ARRAY_BIT, _INLINED_BIT = 1 << 63, 1 << 62
+
+_SPEC_ATTRIBUTE, _SPEC_PRIM, _SPEC_PSEUDO_ROOT = 1, 6, 7  # SdfSpecType
+_SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
+
+TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
+"""The attribute types a stream holds, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
+float64 in USD's row-vector convention."""
+
+
+def _rep(kind: int, payload: int, inlined: bool = False, array: bool = False) -> int:
+    """A ValueRep: the type in bits 48-55, flags in the top bits, an offset or inlined value below."""
+    return (_ARRAY_BIT if array else 0) | (_INLINED_BIT if inlined else 0) | (kind << 48) | payload
+
+
+def lz4_literal_block(data: bytes) -> bytes:
+    """``data`` as TfFastCompression writes a single chunk: a zero byte, then an LZ4 block of one literal run."""
+    n = len(data)
+    if n < 15:
+        return bytes((0, n << 4)) + data
+    rest, extra = n - 15, bytearray()
+    while rest >= 255:
+        extra.append(255)
+        rest -= 255
+    extra.append(rest)
+    return b"\x00\xf0" + bytes(extra) + data
+
+
+def compressed_ints(values: Sequence[int]) -> bytes:
+    """A list of 32-bit integers as Usd_IntegerCompression stores it, preceded by its byte count.
+
+    Coded as differences from the previous value, each as a 32-bit integer (code 3), with 0 as the
+    common value, then compressed as one LZ4 literal run.
+    """
+    signed = np.asarray(values, dtype=np.int64).astype(np.uint32).view(np.int32)
+    deltas = np.diff(signed, prepend=np.int32(0)).astype(np.int32)  # wraps like the C++ int32 arithmetic
+    codes = b"\xff" * ((2 * len(signed) + 7) // 8)
+    block = lz4_literal_block(struct.pack("<i", 0) + codes + deltas.tobytes())
+    return struct.pack("<Q", len(block)) + block
+
+
+@dataclass
+class _Node:
+    """A path in the layer: the pseudo-root, a prim or an attribute."""
+
+    name: str
+    attribute: str | None = None  # the type name of an attribute; None for a prim
+    children: list[_Node] = field(default_factory=list)
+    samples: int = -1  # an attribute's time-sample record offset
+
+    def child(self, name: str) -> _Node:
+        """The prim child ``name``, made if new."""
+        for c in self.children:
+            if c.name == name and c.attribute is None:
+                return c
+        node = _Node(name)
+        self.children.append(node)
+        return node
+
+
+class CrateStream:
+    """One ``.usdc`` layer of ``over`` prims whose attributes hold time samples, written frame by frame.
+
+    Args:
+        path: The file written (created or truncated now; complete only once :meth:`close` returns).
+        attributes: ``(path, type name)`` per attribute, e.g. ``("/World/bunny.points", "point3f[]")``: an
+            absolute prim path and a property name; type names from :data:`TYPES`.
+
+    Every :meth:`add` samples every attribute at one time code, in increasing order.
+    """
+
+    def __init__(self, path: str | Path, attributes: Sequence[tuple[str, str]]) -> None:
+        self.path = Path(path)
+        self._root = _Node("")
+        self._attributes: list[_Node] = []
+        for attribute, type_name in attributes:
+            if type_name not in TYPES:
+                raise ValueError(f"attribute {attribute}: type {type_name!r} is not one of {sorted(TYPES)}")
+            prim, _, name = attribute.rpartition(".")
+            node = self._root
+            for part in prim.strip("/").split("/"):
+                node = node.child(part)
+            leaf = _Node(name, type_name)
+            node.children.append(leaf)
+            self._attributes.append(leaf)
+        self._reps: list[list[int]] = [[] for _ in self._attributes]
+        self._times: list[float] = []
+        self._file = open(self.path, "wb", buffering=0)  # noqa: SIM115 (closed by close or discard)
+        self._file.write(bytes(_BOOTSTRAP_BYTES))
+        self._offset = _BOOTSTRAP_BYTES
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes in the file so far."""
+        return self._offset
+
+    def add(self, time: float, values: Sequence[np.ndarray]) -> None:
+        """Sample every attribute at time code ``time``: one value per attribute, in the constructor's order.
+
+        A float3 array is an (n, 3) float32 array (C-contiguous), a matrix a 4x4 float64 array. Values are
+        written before this returns; the arrays may be reused after it.
+        """
+        if len(values) != len(self._attributes):
+            raise ValueError(f"expected {len(self._attributes)} values, got {len(values)}")
+        if self._times and not time > self._times[-1]:
+            raise ValueError(f"time {time} after {self._times[-1]}: times must increase")
+        reps = []  # the frame counts only once all its values are written
+        for node, value in zip(self._attributes, values, strict=True):
+            if TYPES[node.attribute] == _MATRIX4D:
+                reps.append(_rep(_MATRIX4D, self._offset))
+                self._write(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+            else:
+                pad = -self._offset % 8  # arrays start 8-byte aligned, so a reader may map them in place
+                if pad:
+                    self._write(bytes(pad))
+                reps.append(_rep(_VEC3F, self._offset if len(value) else 0, array=True))  # payload 0: empty
+                if len(value):
+                    self._write(struct.pack("<Q", len(value)))
+                    self._write(memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B"))
+        for column, rep in zip(self._reps, reps, strict=True):
+            column.append(rep)
+        self._times.append(float(time))
+
+    def _write(self, data: bytes | memoryview) -> None:
+        """Append ``data`` (a raw file writes less than asked only on a full disk or a signal: loop)."""
+        view = memoryview(data)
+        while view.nbytes:
+            written = self._file.write(view)
+            if written is None:
+                raise OSError(f"{self.path}: write failed")
+            view = view[written:]
+            self._offset += written
+
+    def close(self) -> None:
+        """Write the time-sample records and the structural sections, then the header: the file is complete."""
+        times = self._offset
+        self._write(struct.pack("<Q", len(self._times)) + np.asarray(self._times, "<f8").tobytes())
+        for node, reps in zip(self._attributes, self._reps, strict=True):
+            node.samples = self._offset
+            record = struct.pack("<qQq", 8, _rep(_DOUBLE_VECTOR, times), 8)  # no nested data: each jump is 8
+            self._write(record + struct.pack("<Q", len(reps)) + np.asarray(reps, "<u8").tobytes())
+        sections = self._structure()
+        toc = self._offset
+        entries = b"".join(struct.pack("<16sqq", name, start, size) for name, start, size in sections)
+        self._write(struct.pack("<Q", len(sections)) + entries)
+        self._file.seek(0)
+        self._file.write(b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc))
+        self._file.close()
+
+    def discard(self) -> None:
+        """Close and remove the file."""
+        self._file.close()
+        self.path.unlink(missing_ok=True)
+
+    def _structure(self) -> list[tuple[bytes, int, int]]:
+        """Write tokens, strings, fields, field sets, paths and specs; return ``(name, start, size)`` of each."""
+        tokens: dict[str, int] = {"": 0}
+
+        def token(text: str) -> int:
+            return tokens.setdefault(text, len(tokens))
+
+        fields: list[tuple[int, int]] = []
+        field_sets: list[int] = []
+        specs: list[tuple[int, int, int]] = []
+        paths: list[tuple[int, int]] = []  # (element token, or minus it for a property; jump)
+
+        def add_spec(kind: int, entries: list[tuple[str, int]]) -> None:
+            specs.append((len(paths) - 1, len(field_sets), kind))
+            for name, rep in entries:
+                field_sets.append(len(fields))
+                fields.append((token(name), rep))
+            field_sets.append(0xFFFFFFFF)
+
+        def token_vector(names: list[str]) -> int:
+            offset = self._offset
+            indices = [token(n) for n in names]
+            self._write(struct.pack("<Q", len(indices)) + struct.pack(f"<{len(indices)}I", *indices))
+            return _rep(_TOKEN_VECTOR, offset)
+
+        def visit(node: _Node, kind: int, last: bool) -> None:
+            index = len(paths)
+            paths.append((-token(node.name) if node.attribute else token(node.name), 0))
+            if node.attribute:
+                add_spec(
+                    _SPEC_ATTRIBUTE,
+                    [
+                        ("typeName", _rep(_TOKEN, token(node.attribute), inlined=True)),
+                        ("custom", _rep(_BOOL, 0, inlined=True)),
+                        ("variability", _rep(_VARIABILITY, _VARIABILITY_VARYING, inlined=True)),
+                        ("timeSamples", _rep(_TIME_SAMPLES, node.samples)),
+                    ],
+                )
+            else:
+                prims = [c.name for c in node.children if c.attribute is None]
+                props = [c.name for c in node.children if c.attribute is not None]
+                entries = [] if kind == _SPEC_PSEUDO_ROOT else [("specifier", _rep(_SPECIFIER, _SPECIFIER_OVER, True))]
+                entries += [("primChildren", token_vector(prims))] if prims else []
+                entries += [("properties", token_vector(props))] if props else []
+                add_spec(kind, entries)
+            for i, child in enumerate(node.children):
+                visit(child, _SPEC_PRIM, i == len(node.children) - 1)
+            has_child, has_sibling = bool(node.children), not last
+            jump = len(paths) - index if has_child and has_sibling else 0 if has_sibling else -1 if has_child else -2
+            paths[index] = (paths[index][0], jump)
+
+        visit(self._root, _SPEC_PSEUDO_ROOT, True)
+        names = list(tokens)
+        sections: list[tuple[bytes, int, int]] = []
+
+        def section(name: bytes, data: bytes) -> None:
+            sections.append((name, self._offset, len(data)))
+            self._write(data)
+
+        text = b"".join(n.encode() + b"\0" for n in names)
+        block = lz4_literal_block(text)
+        section(b"TOKENS", struct.pack("<QQQ", len(names), len(text), len(block)) + block)
+        section(b"STRINGS", struct.pack("<Q", 0))
+        reps = lz4_literal_block(np.asarray([r for _, r in fields], "<u8").tobytes())
+        section(
+            b"FIELDS",
+            struct.pack("<Q", len(fields))
+            + compressed_ints([t for t, _ in fields])
+            + struct.pack("<Q", len(reps))
+            + reps,
+        )
+        section(b"FIELDSETS", struct.pack("<Q", len(field_sets)) + compressed_ints(field_sets))
+        section(
+            b"PATHS",
+            struct.pack("<QQ", len(paths), len(paths))
+            + compressed_ints(range(len(paths)))
+            + compressed_ints([e for e, _ in paths])
+            + compressed_ints([j for _, j in paths]),
+        )
+        section(
+            b"SPECS",
+            struct.pack("<Q", len(specs))
+            + compressed_ints([p for p, _, _ in specs])
+            + compressed_ints([f for _, f, _ in specs])
+            + compressed_ints([k for _, _, k in specs]),
+        )
+        return sections
