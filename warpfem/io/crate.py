@@ -13,8 +13,10 @@ field sets, paths, specs, and the table of contents the header points to). The l
 
 from __future__ import annotations
 
+import os
 import struct
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +34,14 @@ _ARRAY_BIT, _INLINED_BIT = 1 << 63, 1 << 62
 
 _SPEC_ATTRIBUTE, _SPEC_PRIM, _SPEC_PSEUDO_ROOT = 1, 6, 7  # SdfSpecType
 _SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
+
+PARALLEL_BYTES = 8 << 20
+"""Frames of at least this many bytes are written by :data:`WRITE_THREADS` threads at once, each its own range
+of the file (one thread does not reach the disk's or the page cache's speed on large frames)."""
+
+WRITE_THREADS = 4
+
+_IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
 
 TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
 """The attribute types a stream holds, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
@@ -115,9 +125,10 @@ class CrateStream:
             self._attributes.append(leaf)
         self._reps: list[list[int]] = [[] for _ in self._attributes]
         self._times: list[float] = []
-        self._file = open(self.path, "wb", buffering=0)  # noqa: SIM115 (closed by close or discard)
-        self._file.write(bytes(_BOOTSTRAP_BYTES))
-        self._offset = _BOOTSTRAP_BYTES
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._pool: ThreadPoolExecutor | None = None
+        self._offset = 0
+        self._write(bytes(_BOOTSTRAP_BYTES))
 
     @property
     def bytes_written(self) -> int:
@@ -134,32 +145,41 @@ class CrateStream:
             raise ValueError(f"expected {len(self._attributes)} values, got {len(values)}")
         if self._times and not time > self._times[-1]:
             raise ValueError(f"time {time} after {self._times[-1]}: times must increase")
-        reps = []  # the frame counts only once all its values are written
+        reps, parts = [], []  # the frame counts only once all its values are written
+        end = self._offset
         for node, value in zip(self._attributes, values, strict=True):
             if TYPES[node.attribute] == _MATRIX4D:
-                reps.append(_rep(_MATRIX4D, self._offset))
-                self._write(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+                reps.append(_rep(_MATRIX4D, end))
+                parts.append(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+            elif len(value):
+                pad = -end % 8  # arrays start 8-byte aligned, so a reader may map them in place
+                reps.append(_rep(_VEC3F, end + pad, array=True))
+                parts += [bytes(pad) + struct.pack("<Q", len(value))]
+                parts += [memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B")]
             else:
-                pad = -self._offset % 8  # arrays start 8-byte aligned, so a reader may map them in place
-                if pad:
-                    self._write(bytes(pad))
-                reps.append(_rep(_VEC3F, self._offset if len(value) else 0, array=True))  # payload 0: empty
-                if len(value):
-                    self._write(struct.pack("<Q", len(value)))
-                    self._write(memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B"))
+                reps.append(_rep(_VEC3F, 0, array=True))  # an empty array: payload 0, nothing in the file
+            end = self._offset + sum(len(part) for part in parts)
+        self._write_parts(parts)
         for column, rep in zip(self._reps, reps, strict=True):
             column.append(rep)
         self._times.append(float(time))
 
-    def _write(self, data: bytes | memoryview) -> None:
-        """Append ``data`` (a raw file writes less than asked only on a full disk or a signal: loop)."""
-        view = memoryview(data)
-        while view.nbytes:
-            written = self._file.write(view)
-            if written is None:
-                raise OSError(f"{self.path}: write failed")
-            view = view[written:]
-            self._offset += written
+    def _write(self, data: bytes) -> None:
+        """Append ``data``."""
+        self._write_parts([data])
+
+    def _write_parts(self, parts: list[bytes | memoryview]) -> None:
+        """Append ``parts`` in order: one thread below :data:`PARALLEL_BYTES`, else several, each a range."""
+        total = sum(len(part) for part in parts)
+        if total < PARALLEL_BYTES:
+            _pwrite_all(self._fd, parts, self._offset)
+        else:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(WRITE_THREADS, thread_name_prefix="warpfem-crate")
+            jobs = [self._pool.submit(_pwrite_all, self._fd, *job) for job in _ranges(parts, self._offset, total)]
+            for job in jobs:
+                job.result()
+        self._offset += total
 
     def close(self) -> None:
         """Write the time-sample records and the structural sections, then the header: the file is complete."""
@@ -173,14 +193,22 @@ class CrateStream:
         toc = self._offset
         entries = b"".join(struct.pack("<16sqq", name, start, size) for name, start, size in sections)
         self._write(struct.pack("<Q", len(sections)) + entries)
-        self._file.seek(0)
-        self._file.write(b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc))
-        self._file.close()
+        _pwrite_all(self._fd, [b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc)], 0)
+        self._release()
 
     def discard(self) -> None:
         """Close and remove the file."""
-        self._file.close()
+        self._release()
         self.path.unlink(missing_ok=True)
+
+    def _release(self) -> None:
+        """Close the file and stop the writing threads."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
 
     def _structure(self) -> list[tuple[bytes, int, int]]:
         """Write tokens, strings, fields, field sets, paths and specs; return ``(name, start, size)`` of each."""
@@ -269,3 +297,33 @@ class CrateStream:
             + compressed_ints([k for _, _, k in specs]),
         )
         return sections
+
+
+def _pwrite_all(fd: int, parts: Sequence[bytes | memoryview], offset: int) -> None:
+    """Write ``parts`` one after the other from ``offset`` (``pwritev`` may write less than asked: go on)."""
+    views = [memoryview(part).cast("B") for part in parts if len(part)]
+    while views:
+        written = os.pwritev(fd, views[:_IOV_MAX], offset)
+        offset += written
+        while views and written >= views[0].nbytes:
+            written -= views[0].nbytes
+            views.pop(0)
+        if written:
+            views[0] = views[0][written:]
+
+
+def _ranges(parts: Sequence[bytes | memoryview], offset: int, total: int) -> list[tuple[list[memoryview], int]]:
+    """``parts`` cut into :data:`WRITE_THREADS` runs of about equal bytes: ``(buffers, file offset)`` each."""
+    share = -(-total // WRITE_THREADS)
+    runs: list[tuple[list[memoryview], int]] = [([], offset)]
+    room = share
+    for part in parts:
+        view = memoryview(part).cast("B")
+        while view.nbytes:
+            if room == 0:
+                runs.append(([], offset))
+                room = share
+            piece = view[:room]
+            runs[-1][0].append(piece)
+            view, room, offset = view[piece.nbytes :], room - piece.nbytes, offset + piece.nbytes
+    return runs
