@@ -3,14 +3,16 @@
 Each case runs in a child process through ``warpfem.run`` (the real writer on its background thread, to a
 real file), then writes the same bytes raw to the same folder (the floor any writer pays). Per frame: wall
 (first step to file written), simulate, write and check (on threads beside it), waiting for the writer,
-the raw write; the child's peak resident memory; the file's size on disk. One JSON per run under scripts/results/.
+the raw write, and the time the writer processes spent authoring and exporting (summed over them, in
+parallel with the rest); the child's peak resident memory and the largest of its writer processes'; the
+file's size on disk. One JSON per run under scripts/results/.
 
     python scripts/bench_end_to_end.py --quick                # CPU: the default scene and paper C, 30 frames
     python scripts/bench_end_to_end.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU: all cases
 
 Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), any shipped scene by name
 (default, shake, slide), or the writer alone taking frames of N points as fast as it can (writerN; the
-default scene has 97602), with the caller's CPU time. Meshes must
+default scene has 97602), with the CPU time of the caller and of the writer processes. Meshes must
 already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
 """
 
@@ -80,15 +82,19 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
     faces = rng.integers(0, vertices, (2 * vertices, 3))
     out = Path(args.workdir) / f"writer{vertices}.usdc"
     writer = UsdWriter(out, [("body", faces)], fps=60.0)
+    time.sleep(1.0)  # as in a run, the writer processes start while the simulation is built
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
     clock, cpu = time.perf_counter(), time.process_time()
     with writer:
         for frame in range(args.frames + 1):
             points[frame % vertices] += 1.0
             writer.add_frame(frame, [points])
     write, cpu = time.perf_counter() - clock, time.process_time() - cpu
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the writer processes, waited for on closing
+    writers_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
     raw = raw_write_seconds(out.with_suffix(".raw"), 12 * vertices, args.frames + 1)
     per = {"wall": 1e3 * write / args.frames, "write": 1e3 * write / args.frames}
-    per.update(simulate=0.0, check=0.0, wait=0.0)
+    per.update(simulate=0.0, check=0.0, wait=0.0, write_workers=1e3 * writer.export_seconds / args.frames)
     return {
         "case": f"writer{vertices}",
         "frames": args.frames,
@@ -96,18 +102,23 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / args.frames,
         "write_over_raw": write / raw,
-        "cpu_ms_per_frame": 1e3 * cpu / args.frames,
+        "cpu_ms_per_frame": {"caller": 1e3 * cpu / args.frames, "writers": 1e3 * writers_cpu / args.frames},
+        "writers": writer.workers,
         "file_bytes": out.stat().st_size + sum(p.stat().st_size for p in out.with_suffix(".clips").glob("*")),
         "clips": writer.chunks > 0,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "writer_peak_rss_mb": writer.writer_peak_bytes / 2**20,
     }
 
 
 def run_case(case: str, args: argparse.Namespace) -> dict:
     """Run one case in this process and return its figures."""
     import warpfem
+    import warpfem.io.usd as usd
     from warpfem.io.usd import clips_folder
 
+    if args.writers is not None:  # what UsdWriter asks for by default
+        usd.default_workers = lambda *_: args.writers
     if case.startswith("writer") and case[6:].isdigit():
         return writer_case(int(case[6:]), args)
     scene = case_scene(case, args.assets, args.frames)
@@ -130,6 +141,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / summary.frames,
         "write_over_raw": summary.seconds["write"] / raw,
+        "writers": usd.default_workers(12 * summary.dense_vertices),
         "wall_over_larger_of_simulate_and_write": summary.seconds["wall"]
         / max(summary.seconds["simulate"], summary.seconds["write"]),
         "seconds": {k: summary.seconds[k] for k in ("prepare", "build") if k in summary.seconds},
@@ -137,6 +149,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "file_bytes": size,
         "clips": clips.is_dir(),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "writer_peak_rss_mb": summary.writer_peak_bytes / 2**20,
         "penetration": {"relative": summary.penetration.relative, "below_ground": summary.penetration.below_ground},
         "cg_iterations_per_step": summary.cg_iterations_per_step,
     }
@@ -152,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
+    parser.add_argument("--writers", type=int, help="writer processes (0: none)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.quick:
@@ -170,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         for case in args.cases.split(","):
             cmd = [sys.executable, __file__, "--one", case, "--device", device.alias, "--frames", str(args.frames)]
             cmd += ["--assets", str(args.assets), "--cache-dir", str(args.cache_dir), "--workdir", folder]
+            cmd += [] if args.writers is None else ["--writers", str(args.writers)]
             done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if done.returncode != 0:
                 results["runs"].append({"case": case, "error": done.stderr.strip().splitlines()[-1:]})
@@ -178,10 +193,17 @@ def main(argv: list[str] | None = None) -> int:
             run = json.loads(done.stdout.strip().splitlines()[-1])
             results["runs"].append(run)
             ms = run["ms_per_frame"]
+            if "cpu_ms_per_frame" in run:
+                print(
+                    f"{case:11s} CPU ms/frame: caller {run['cpu_ms_per_frame']['caller']:.2f}, writer processes "
+                    f"{run['cpu_ms_per_frame']['writers']:.2f}"
+                )
             print(
                 f"{case:11s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
-                f"  raw {run['raw_write_ms_per_frame']:6.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
-                f"  peak {run['peak_rss_mb']:5.0f} MB  file {run['file_bytes'] / 2**20:7.0f} MB"
+                f"  raw {run['raw_write_ms_per_frame']:6.2f}  writers {run['writers']}"
+                f" {ms['write_workers']:7.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
+                f"  peak {run['peak_rss_mb']:5.0f} + {run['writers']} x {run['writer_peak_rss_mb']:4.0f} MB"
+                f"  file {run['file_bytes'] / 2**20:7.0f} MB"
             )
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")

@@ -233,13 +233,13 @@ def end_to_end_lines(found: tuple[Path, dict] | None) -> list[str]:
         "",
         "The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.",
         "",
-        "| case | bodies | dense vertices | wall ms | simulate | write | check | raw write "
-        "| wall / max(simulate, write) | write / raw | peak memory | file |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| case | bodies | dense vertices | writer processes | wall ms | simulate | write | check | raw write "
+        "| wall / max(simulate, write) | write / raw | peak memory (caller + each process) | file |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in data["runs"]:
         if "error" in r:
-            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 10)
+            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 11)
             continue
         lines.append(end_to_end_row(r))
     return lines
@@ -254,9 +254,9 @@ def end_to_end_row(r: dict) -> str:
     else:
         wall = write = f"{ms['wall']:.2f}"
         simulate = check = bodies = ratio = "-"
-    peak = f"{r['peak_rss_mb'] / 1024:.2f} GB"
+    peak = f"{r['peak_rss_mb'] / 1024:.2f} + {r.get('writer_peak_rss_mb', 0) / 1024:.2f} GB"
     file = f"{r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''}"
-    cells = [r["case"], bodies, f"{r['dense_vertices']:,}", wall, simulate, write, check]
+    cells = [r["case"], bodies, f"{r['dense_vertices']:,}", str(r.get("writers", 0)), wall, simulate, write, check]
     cells += [f"{r['raw_write_ms_per_frame']:.2f}", ratio, f"{r['write_over_raw']:.1f}", peak, file]
     return "| " + " | ".join(cells) + " |"
 

@@ -118,15 +118,20 @@ def test_an_exception_in_the_caller_still_hands_over_the_frames_submitted(device
     assert taken == [0, 1, 2, 3, 4]
 
 
-def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device, tmp_path):
+@pytest.mark.parametrize("writers", [0, 2], ids=["inline", "2 writer processes"])
+def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device, tmp_path, monkeypatch, writers):
     """The golden two balls, a chunk per frame: every frame of the written clip set equals the positions the
-    simulation held at that frame (read on the calling thread, synchronously), on the run's device."""
+    simulation held at that frame (read on the calling thread, synchronously), on the run's device, with the
+    chunks written on the writer's thread or by writer processes."""
     from pathlib import Path
 
     from pxr import Usd, UsdGeom
 
     import warpfem
+    import warpfem.io.usd
     from warpfem.runner import record
+
+    monkeypatch.setattr(warpfem.io.usd, "default_workers", lambda *_: writers)
 
     root = Path(__file__).resolve().parents[1]
     scene = warpfem.load_scene(root / "tests" / "data" / "golden" / "two_balls.toml").with_frames(12)
@@ -147,3 +152,4 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
             np.testing.assert_array_equal(np.array(attr.Get(frame)), points[i].astype(np.float32))
     s = summary.seconds
     assert s["wall"] > 0 and s["write"] > 0 and summary.ms_per_frame == pytest.approx(1e3 * s["wall"] / 12)
+    assert s["write_workers"] > 0 and (summary.writer_peak_bytes > 0) == (writers > 0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -34,14 +35,15 @@ def validation_errors(stage):
     return [e.GetMessage() for e in ctx.Validate(stage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
 
 
+@pytest.mark.parametrize("workers", [0, 3], ids=["inline", "3 writer processes"])
 @pytest.mark.parametrize("chunk_bytes", [1 << 20, 100, 400], ids=["one file", "a clip per frame", "clips"])
 @pytest.mark.parametrize("ext", [".usdc", ".usda"])
-def test_round_trip(tmp_path, ext, chunk_bytes):
+def test_round_trip(tmp_path, ext, chunk_bytes, workers):
     from pxr import Sdf, Usd, UsdGeom
 
     bodies, frames = bodies_and_frames(5)
     path = tmp_path / f"out{ext}"
-    writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z", chunk_bytes=chunk_bytes)
+    writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z", chunk_bytes=chunk_bytes, workers=workers)
     for f, points in enumerate(frames):
         writer.add_frame(f, points)
     assert writer.frames_added == 5
@@ -99,7 +101,7 @@ def test_temp_file_gone_and_no_partial_target(tmp_path):
     writer.add_frame(0, frames[0])
     writer.add_frame(1, frames[1])
     # before close only a hidden temporary file streams the samples: no partial target
-    assert not path.exists() and [p.name for p in tmp_path.iterdir()] == [f".anim.000000.tmp-{os.getpid()}.usdc"]
+    assert not path.exists() and [p.name for p in tmp_path.iterdir()] == [f".warpfem-chunk-0.tmp-{os.getpid()}.usdc"]
     writer.close()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.usdc"]
 
@@ -257,10 +259,32 @@ def _rss_bytes(pid: int | str = "self") -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+def _children(pid: int | str = "self") -> list[int]:
+    """The process ids of ``pid``'s children (from /proc, whichever thread started them)."""
+    from pathlib import Path
+
+    return [int(c) for task in Path(f"/proc/{pid}/task").iterdir() for c in (task / "children").read_text().split()]
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (exists and is not a zombie waiting to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _family_rss_bytes() -> int:
+    """Resident memory of this process and its children (the writer processes)."""
+    return _rss_bytes() + sum(_rss_bytes(child) for child in _children())
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs /proc to read the resident memory")
 def test_memory_stays_flat_over_a_long_run_and_every_frame_reads_back(tmp_path):
-    """300 frames of 50k vertices (180 MB of samples) in 8 MB chunks: resident memory grows by less than two
-    chunks between frame 100 and the end, and the file reads back every frame."""
+    """300 frames of 50k vertices (180 MB of samples) in 8 MB chunks through two writer processes: resident
+    memory of this process and the writers grows by less than two chunks between frame 100 and the end, and
+    the file reads back every frame."""
     from pxr import Usd, UsdGeom
 
     n, chunk = 50_000, 8 << 20
@@ -268,12 +292,13 @@ def test_memory_stays_flat_over_a_long_run_and_every_frame_reads_back(tmp_path):
     base = rng.normal(size=(n, 3)).astype(np.float32)
     faces = rng.integers(0, n, size=(n, 3))
     path = tmp_path / "long.usdc"
-    with UsdWriter(path, [("m", faces)], fps=60.0, save_every=None, chunk_bytes=chunk) as writer:
+    with UsdWriter(path, [("m", faces)], fps=60.0, save_every=None, chunk_bytes=chunk, workers=2) as writer:
         for f in range(300):
             writer.add_frame(f, [base + np.float32(f)])
             if f == 100:
-                before = _rss_bytes()
-        grown = _rss_bytes() - before
+                assert len(_children()) == 2
+                before = _family_rss_bytes()
+        grown = _family_rss_bytes() - before
     assert grown < 2 * chunk, f"resident memory grew {grown / 2**20:.1f} MB over 200 frames of 0.6 MB"
     assert writer.chunks == -(-300 // -(-chunk // (12 * n)))
     stage = Usd.Stage.Open(str(path))
@@ -290,7 +315,7 @@ from warpfem.io.usd import UsdWriter
 n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
 faces = np.arange(3 * n).reshape(n, 3) % n
-with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n) as writer:
+with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n, workers=2) as writer:
     for f in range(10**9):
         writer.add_frame(f, [base * np.float32(1 + f)])
 """
@@ -311,8 +336,13 @@ def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
     while len(list((tmp_path / "killed.clips").glob("killed.*.usdc"))) < 6 and time.monotonic() < deadline:
         assert child.poll() is None, child.stderr.read()
         time.sleep(0.005)
+    writers = _children(child.pid)
+    assert writers, "no writer process"
     child.send_signal(signal.SIGKILL)
     child.wait(timeout=60)
+    while any(map(_alive, writers)) and time.monotonic() < deadline:
+        time.sleep(0.01)  # the writer processes see their socket close and exit
+    assert not any(map(_alive, writers)), "a writer process outlived its caller"
     base = np.random.default_rng(2).normal(size=(1000, 3)).astype(np.float32)
     stage = Usd.Stage.Open(str(path))
     attr = UsdGeom.Mesh(stage.GetPrimAtPath("/World/m")).GetPointsAttr()
@@ -332,7 +362,7 @@ n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
 faces = np.arange(3 * n).reshape(n, 3) % n
 try:
-    with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n) as w:
+    with UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n, workers=2) as w:
         for f in range(10**9):
             w.add_frame(f, [base * np.float32(1 + f)])
             if f == 30:
@@ -343,8 +373,8 @@ except KeyboardInterrupt:
 
 
 def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
-    """SIGINT to the whole process group, as a terminal's Ctrl-C sends it: the file holds every frame added,
-    each as given."""
+    """SIGINT to the whole process group, as a terminal's Ctrl-C sends it: the writer processes are not
+    stopped by it, and the file holds every frame added, each as given."""
     import signal
     import subprocess
     import sys
@@ -355,11 +385,14 @@ def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
     cmd = [sys.executable, "-c", _INTERRUPTED_WRITER, str(path)]
     child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     assert child.stdout.readline() == "writing\n", child.stderr.read()
+    writers = _children(child.pid)
     os.killpg(child.pid, signal.SIGINT)
     try:
         out, err = child.communicate(timeout=60)
     except subprocess.TimeoutExpired:
-        os.killpg(child.pid, signal.SIGKILL)
+        for pid in [child.pid, *writers]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
         child.communicate()
         raise
     assert child.returncode == 0, err
@@ -373,30 +406,30 @@ def test_ctrl_c_at_the_terminal_keeps_every_frame_added(tmp_path):
     for f in range(len(times)):
         np.testing.assert_array_equal(np.array(attr.Get(f)), base * np.float32(1 + f))
     assert not any(".tmp-" in p.name for p in (tmp_path / "stopped.clips").iterdir())
-    assert not any(".tmp-" in p.name for p in tmp_path.iterdir())
+    assert writers and not any(map(_alive, writers))
 
 
 _INTERRUPTED_INSIDE = """
 import signal
 import sys
 import numpy as np
-from warpfem.io.crate import CrateStream
 from warpfem.io.usd import UsdWriter
 n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
 faces = np.arange(3 * n).reshape(n, 3) % n
-w = UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n)
-method = getattr(CrateStream, sys.argv[2])
+w = UsdWriter(sys.argv[1], [("m", faces)], fps=60.0, save_every=None, chunk_bytes=3 * 12 * n, workers=2)
+method = getattr(w._pool, sys.argv[2])
 calls = []
 
 def interrupted(*args, **kwargs):
     out = method(*args, **kwargs)
-    calls.append(1)
+    if out != []:  # a chunk sent, or chunks reported exported
+        calls.append(1)
     if len(calls) == 3:
         signal.raise_signal(signal.SIGINT)
     return out
 
-setattr(CrateStream, sys.argv[2], interrupted)
+setattr(w._pool, sys.argv[2], interrupted)
 try:
     with w:
         for f in range(200):
@@ -406,10 +439,11 @@ except KeyboardInterrupt:
 """
 
 
-@pytest.mark.parametrize("where", ["add", "close"])
+@pytest.mark.parametrize("where", ["done", "cut"])
 def test_ctrl_c_inside_the_writer_keeps_every_frame_added(tmp_path, where):
-    """Ctrl-C landing just after the writer wrote a frame's samples, or just after it completed a chunk: the
-    run stops at once and the file holds every frame added."""
+    """Ctrl-C landing just after the writer read its processes' messages, or just after it sent a chunk
+    for export (where a stop used to lose a message and wait forever, or export a chunk twice): the run
+    stops at once and the file holds every frame added."""
     import signal
     import subprocess
     import sys
@@ -440,21 +474,25 @@ def test_ctrl_c_inside_the_writer_keeps_every_frame_added(tmp_path, where):
     np.testing.assert_array_equal(np.array(attr.Get(added - 1)), base * np.float32(added))
 
 
-def test_a_failed_write_reaches_the_caller_and_stops_the_writer(tmp_path):
-    """The clips folder replaced by a file under a running writer: the next chunk's write fails, the caller
-    gets an OSError naming the chunk file, and no temporary file is left."""
+@pytest.mark.parametrize("workers", [0, 2], ids=["inline", "2 writer processes"])
+def test_a_failed_export_reaches_the_caller_and_stops_the_writer(tmp_path, workers):
+    """The clips folder replaced by a file under a running writer: the next export fails, the caller gets an
+    OSError naming the chunk file, and no writer process or temporary file is left."""
     import shutil
 
     bodies, frames = bodies_and_frames(8)
-    writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0, chunk_bytes=1, save_every=None)
+    before = set(_children())
+    writer = UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0, chunk_bytes=1, save_every=None, workers=workers)
+    started = set(_children()) - before
     writer.add_frame(0, frames[0])
     writer.save()
     shutil.rmtree(tmp_path / "x.clips")
     (tmp_path / "x.clips").write_text("not a folder")
-    with pytest.raises(OSError, match=r"x\.00000\d\.tmp-\d+\.usdc"):
+    with pytest.raises(OSError, match=r"x\.00000\d\.tmp-\d+\.usdc: USD export failed"):
         with writer:
             for f in range(1, 8):
                 writer.add_frame(f, frames[f])
+    assert not any(map(_alive, started))
     assert not any(".tmp-" in p.name for p in tmp_path.iterdir())
 
 
@@ -500,6 +538,22 @@ def test_prop_transforms_are_checked_per_frame(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_no_writer_process_where_python_cannot_be_started_again(monkeypatch, tmp_path):
+    """Inside an application embedding Python, ``sys.executable`` is the application: the writer stays inline."""
+    import sys
+
+    from warpfem.io import usd_workers
+
+    monkeypatch.setattr(sys, "executable", "/opt/app/bin/app")
+    assert usd_workers.default_workers() == 0
+    bodies, frames = bodies_and_frames(2)
+    before = _children()
+    with UsdWriter(tmp_path / "x.usdc", bodies, fps=60.0) as writer:
+        assert _children() == before
+        writer.add_frame(0, frames[0])
+    assert (tmp_path / "x.usdc").is_file()
+
+
 @pytest.mark.parametrize("n", [1, 5, 63, 64, 65, 1000, 97_602])
 def test_extent_bounds_agree_with_numpy(n):
     """The extent's corners, reduced in blocks, equal NumPy's plain min and max over the points, also for a
@@ -514,3 +568,15 @@ def test_extent_bounds_agree_with_numpy(n):
     p[n // 2, 1] = np.nan
     lo, hi = bounds(p)
     assert np.isnan(lo[1]) and np.isnan(hi[1]) and np.isfinite(lo[[0, 2]]).all()
+
+
+def test_writer_processes_only_for_large_frames(monkeypatch):
+    """On 16 cores, 4 processes for a 20 MB frame; a 1 MB frame (the default scene's) is written inline."""
+    import os
+
+    from warpfem.io import usd_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _pid: set(range(16)), raising=False)
+    assert usd_workers.default_workers(20 * 2**20) == 4
+    assert usd_workers.default_workers(2**20) == 0
+    assert usd_workers.default_workers() == 4

@@ -42,7 +42,8 @@ class RunSummary:
         cg_short_solves: Solves (of all frames' steps) that stopped at the cap above the tolerance.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
             write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
-            for the writer), and wall (from the first step to the file written).
+            for the writer), and wall (from the first step to the file written); write_workers: time spent authoring and
+            exporting chunks, summed over the writer processes (beside the run; on the writer's thread with none).
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
             whose later frames replay a captured graph).
@@ -57,6 +58,8 @@ class RunSummary:
         penetration_frames: Frames whose bodies were checked against each other.
         ground_frames: Frames checked against the ground and obstacles (every written frame, but for those the
             check's thread skipped to keep up with the run; the last always).
+        writer_peak_bytes: The largest peak resident memory of one of the processes that wrote the file (bytes;
+            0 when it was written on the writer's thread).
     """
 
     output: Path
@@ -82,6 +85,7 @@ class RunSummary:
     penetration_end: Penetration = field(default_factory=Penetration)
     penetration_frames: int = 0
     ground_frames: int = 0
+    writer_peak_bytes: int = 0
 
     @property
     def ms_per_frame(self) -> float:
@@ -218,10 +222,13 @@ def record(
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
+    seconds["write_workers"] = writer.export_seconds
     seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited
     seconds["wall"] = time.perf_counter() - started
-    return _summary(sim, out, seconds, check)
+    summary = _summary(sim, out, seconds, check)
+    summary.writer_peak_bytes = writer.writer_peak_bytes
+    return summary
 
 
 def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:

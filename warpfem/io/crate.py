@@ -16,7 +16,6 @@ from __future__ import annotations
 import os
 import struct
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,12 +33,6 @@ _ARRAY_BIT, _INLINED_BIT = 1 << 63, 1 << 62
 
 _SPEC_ATTRIBUTE, _SPEC_PRIM, _SPEC_PSEUDO_ROOT = 1, 6, 7  # SdfSpecType
 _SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
-
-PARALLEL_BYTES = 8 << 20
-"""Frames of at least this many bytes are written by :data:`WRITE_THREADS` threads at once, each its own range
-of the file (one thread does not reach the disk's or the page cache's speed on large frames)."""
-
-WRITE_THREADS = 4
 
 _IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
 
@@ -126,7 +119,6 @@ class CrateStream:
         self._reps: list[list[int]] = [[] for _ in self._attributes]
         self._times: list[float] = []
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        self._pool: ThreadPoolExecutor | None = None
         self._offset = 0
         self._write(bytes(_BOOTSTRAP_BYTES))
 
@@ -169,17 +161,9 @@ class CrateStream:
         self._write_parts([data])
 
     def _write_parts(self, parts: list[bytes | memoryview]) -> None:
-        """Append ``parts`` in order: one thread below :data:`PARALLEL_BYTES`, else several, each a range."""
-        total = sum(len(part) for part in parts)
-        if total < PARALLEL_BYTES:
-            _pwrite_all(self._fd, parts, self._offset)
-        else:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(WRITE_THREADS, thread_name_prefix="warpfem-crate")
-            jobs = [self._pool.submit(_pwrite_all, self._fd, *job) for job in _ranges(parts, self._offset, total)]
-            for job in jobs:
-                job.result()
-        self._offset += total
+        """Append ``parts`` in order (one system call for up to 1,024 of them)."""
+        _pwrite_all(self._fd, parts, self._offset)
+        self._offset += sum(len(part) for part in parts)
 
     def close(self) -> None:
         """Write the time-sample records and the structural sections, then the header: the file is complete."""
@@ -202,10 +186,7 @@ class CrateStream:
         self.path.unlink(missing_ok=True)
 
     def _release(self) -> None:
-        """Close the file and stop the writing threads."""
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        """Close the file."""
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
@@ -310,20 +291,3 @@ def _pwrite_all(fd: int, parts: Sequence[bytes | memoryview], offset: int) -> No
             views.pop(0)
         if written:
             views[0] = views[0][written:]
-
-
-def _ranges(parts: Sequence[bytes | memoryview], offset: int, total: int) -> list[tuple[list[memoryview], int]]:
-    """``parts`` cut into :data:`WRITE_THREADS` runs of about equal bytes: ``(buffers, file offset)`` each."""
-    share = -(-total // WRITE_THREADS)
-    runs: list[tuple[list[memoryview], int]] = [([], offset)]
-    room = share
-    for part in parts:
-        view = memoryview(part).cast("B")
-        while view.nbytes:
-            if room == 0:
-                runs.append(([], offset))
-                room = share
-            piece = view[:room]
-            runs[-1][0].append(piece)
-            view, room, offset = view[piece.nbytes :], room - piece.nbytes, offset + piece.nbytes
-    return runs

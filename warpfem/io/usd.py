@@ -6,18 +6,18 @@ whichever comes first, and is never rewritten:
 - a run whose frames all fit in its first chunk writes one self-contained file at the target;
 - a longer run streams USD value clips: ``<stem>.clips/`` beside the target holds the topology (written
   once), a manifest and one ``.usdc`` per chunk; the target is a small top-level layer that sublayers the
-  topology and lists the clips, replaced atomically after each chunk.
+  topology and lists the clips, replaced atomically after each chunk. Memory stays at a few chunks whatever
+  the frame count, and each chunk costs one export of its own bytes.
 
-Each frame's samples go to the open chunk's file as they come (:class:`~warpfem.io.crate.CrateStream`: plain
-writes, which let the simulation's threads run meanwhile), and cutting a chunk only adds its index tables,
-so memory does not grow with the frame count and nothing is ever rewritten. Every file is written to a
-temporary name and moved into place with ``os.replace``, so each path only ever holds a complete file. What
-survives a stop:
+Chunks are authored and exported by a few writer processes (:mod:`warpfem.io.usd_workers`), several at
+once, while the caller goes on; the caller places each one, in order, once it is exported. Every file is
+written to a temporary name and moved into place with ``os.replace``, so each path only ever holds a
+complete file. What survives a stop:
 
 - an exception (NaN, a failing kernel), ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM mapped to it by the
   CLI): every frame added, written on leaving the ``with`` block;
 - the process killed outright (SIGKILL, power loss): every chunk placed, i.e. every frame up to at most
-  ``save_every`` seconds of run time back, readable through the target.
+  ``save_every`` seconds of run time back (plus the chunks being exported), readable through the target.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from types import TracebackType
 
 import numpy as np
 
-from warpfem.io.crate import CrateStream
-from warpfem.io.usd_layers import MARKER, Prop, StageInfo, add_topology, export, extent, write_clip_files
+from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export
+from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
 _NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -45,13 +45,11 @@ SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
 
 CHUNK_BYTES = 32 << 20
-"""Bytes of point samples after which a chunk is cut.
+"""Bytes of point samples after which a chunk is cut (one export of about this size).
 
-A run of one chunk is exported as one self-contained file once its last frame is in, which a small chunk keeps
-short; a longer run's clips are complete as each is cut (the switch point's measurement: docs/decisions.md)."""
-
-
-_BODY_ATTRIBUTES = (("points", "point3f[]"), ("extent", "float3[]"))
+A single file is exported only once its last frame is in, so a run of one chunk waits for its whole export at
+the end, which a small chunk keeps short; a longer run's clips are exported while it goes on (the switch point's
+measurement: docs/decisions.md)."""
 
 
 class UsdWriter:
@@ -85,8 +83,9 @@ class UsdWriter:
         save_every: float | None = SAVE_EVERY_S,
         chunk_bytes: int = CHUNK_BYTES,
         props: Sequence[Prop] = (),
+        workers: int | None = None,
     ):
-        """Check the arguments (nothing is written before the first frame).
+        """Check the arguments and start the writer processes (nothing is written before the first frame).
 
         Args:
             path: The output file; its extension picks the format: ``.usdc`` or ``.usd``
@@ -102,9 +101,12 @@ class UsdWriter:
             chunk_bytes: Bytes of point samples per chunk (>= 1).
             props: Rigid shapes moving with the bodies (obstacles, handles): each a :class:`Prop`, written at
                 ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
+            workers: Writer processes that author and export chunks, several at once (0: on the calling
+                thread); None: :func:`~warpfem.io.usd_workers.default_workers` for the bodies' frame size.
 
         Raises:
-            ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes`` or prop.
+            ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes``, prop or
+                worker count.
             FileNotFoundError: The output folder does not exist.
             FileExistsError: ``path`` or its clips folder exists and ``overwrite`` is False.
         """
@@ -125,8 +127,9 @@ class UsdWriter:
         if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
             raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
         import pxr.Sdf  # noqa: F401  (loaded now, before a run steps, not on its writer's thread at the first chunk)
-        import pxr.UsdGeom  # noqa: F401
 
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+            raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
         self.clips_dir = clips_folder(self.path)
         if not overwrite and (self.path.exists() or self.clips_dir.exists()):
             raise FileExistsError(f"{self.path}: the file exists (overwriting was not asked for)")
@@ -146,16 +149,23 @@ class UsdWriter:
         self._placed = False
         self._clips: list[tuple[int, str]] = []  # placed: (first frame, path relative to the target's folder)
         self._clips_end = 0  # the last frame of the last chunk placed
-        self._stream: CrateStream | None = None  # the open chunk; None: none open
-        self._chunk_first = 0  # the open chunk's first frame
+        self._cut: dict[int, tuple[int, Path]] = {}  # exporting: number -> (first frame, temporary file)
+        self._exported: dict[int, int] = {}  # exported, waiting for the chunks before them: number -> last frame
+        self._cuts = 0  # chunks cut so far: the open chunk's number
+        self._chunk_first: int | None = None  # the open chunk's first frame; None: no chunk open
         self._chunk_bytes = 0
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
-        self._attributes = [(f"/World/{name}.{a}", t) for name, _ in self._bodies for a, t in _BODY_ATTRIBUTES]
-        self._attributes += [(f"/World/{p.path}.xformOp:transform", "matrix4d") for p in self._props]
-        self.seconds = 0.0
-        """Time spent writing samples and cutting chunks (s)."""
+        if workers is None:  # the frame's point bytes
+            workers = default_workers(12 * sum(self._min_vertices))
+        self.workers = workers
+        """Writer processes (0: chunks written on the calling thread)."""
+        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
+        inline = workers == 0
+        self._pool = (
+            InlinePool(names, prop_paths, self.path.parent) if inline else ProcessPool(names, prop_paths, workers)
+        )
 
     def _check_body(self, name: str, faces: np.ndarray) -> None:
         """Check one body's name and faces and keep them."""
@@ -180,6 +190,16 @@ class UsdWriter:
         return len(self._clips)
 
     @property
+    def writer_peak_bytes(self) -> int:
+        """The largest peak resident memory of one writer process so far (bytes; 0 with ``workers=0``)."""
+        return self._pool.peak_bytes
+
+    @property
+    def export_seconds(self) -> float:
+        """Time spent authoring and exporting the chunks exported so far, summed over the writer processes (s)."""
+        return self._pool.seconds
+
+    @property
     def frames_added(self) -> int:
         """How many frames have been added."""
         return self._frames_added
@@ -202,32 +222,22 @@ class UsdWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        values = self._checked(frame, points)
-        values += [m.T for m in _checked_transforms(transforms, len(self._props))]  # USD: row vectors
-        clock = time.perf_counter()
+        arrays = self._checked(frame, points)
+        matrices = _checked_transforms(transforms, len(self._props))
         with _held_signals(), self._aborting_on_failure():
-            if self._stream is None:
-                self._stream = CrateStream(self._stream_path(int(frame)), self._attributes)
+            self._pool.add(self._cuts, int(frame), arrays, matrices)
+            if self._chunk_first is None:
                 self._chunk_first = int(frame)
-            self._stream.add(float(frame), values)
-            for i in range(len(self._bodies)):
-                self._vertices[i] = len(values[2 * i])
+            for i, p in enumerate(arrays):
+                self._vertices[i] = len(p)
             self._last_frame = int(frame)
             self._frames_added += 1
-            self._chunk_bytes += sum(values[2 * i].nbytes for i in range(len(self._bodies)))
+            self._chunk_bytes += sum(p.nbytes for p in arrays)
             if self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every:
                 self.save()
             elif self._chunk_bytes >= self._chunk_limit:
                 self._cut_chunk()
-        self.seconds += time.perf_counter() - clock
-
-    def _stream_path(self, first: int) -> Path:
-        """Where a chunk starting at frame ``first`` is written, under a temporary name.
-
-        In the clips folder once it exists, else beside the target (the run may still end as one file).
-        """
-        folder = self.clips_dir if self._clips else self.path.parent
-        return folder / f".{self.path.stem}.{first:06d}.tmp-{os.getpid()}.usdc"
+            self._place_exported(block=False)
 
     @contextlib.contextmanager
     def _aborting_on_failure(self) -> Iterator[None]:
@@ -239,11 +249,7 @@ class UsdWriter:
             raise
 
     def _checked(self, frame: int, points: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """``points`` as contiguous float32 arrays, each followed by its extent, after checking them.
-
-        The frame number, the shapes and the values are checked: a NaN or an infinity shows in the extent, so one
-        pass over the points does both.
-        """
+        """``points`` as contiguous float32 arrays, after checking the frame number, shapes and values."""
         if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
             raise ValueError(f"frame must be an integer >= 0, got {frame!r}")
         if self._last_frame is not None and frame <= self._last_frame:
@@ -260,18 +266,17 @@ class UsdWriter:
                 raise ValueError(f"body {name!r}: {len(p)} points, but its faces use {self._min_vertices[i]} vertices")
             if expected is not None and len(p) != expected:
                 raise ValueError(f"body {name!r}: {len(p)} points, expected {expected} (its vertex count)")
-            box = extent(p)
-            if not np.isfinite(box).all():
+            if not np.isfinite(p).all():
                 raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
-            arrays += [p, box]
+            arrays.append(p)
         return arrays
 
     def save(self) -> None:
-        """Cut the frames added since the last chunk as a chunk: on disk and listed when this returns.
+        """Cut the frames added since the last chunk as a chunk, and wait until every chunk is on disk.
 
         Raises:
             RuntimeError: The writer is closed.
-            OSError: A write or a move failed (the writer is aborted: temporary files are removed, the
+            OSError: An export or a move failed (the writer is aborted: temporary files are removed, the
                 target keeps the chunks placed before).
             FileExistsError: The first write found a file at the target and ``overwrite`` is False.
         """
@@ -279,21 +284,38 @@ class UsdWriter:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
         with _held_signals(), self._aborting_on_failure():
             self._cut_chunk()
+            while self._cut:
+                self._place_exported(block=True)
+        self._saved_at = time.monotonic()
 
     def _cut_chunk(self) -> None:
-        """Complete the open chunk (if any), move it into the clips folder and list it in the top-level file."""
-        self._saved_at = time.monotonic()
-        if self._stream is None:
+        """Hand the open chunk (if any) to be exported as the next clip; it is placed once exported."""
+        if self._chunk_first is None:
             return
-        if not self._clips:
+        if not self._clips and not self._cut:
             self._start_clips()
-        stream, self._stream, self._chunk_bytes = self._stream, None, 0
-        stream.close()
-        name = f"{self.path.stem}.{self._chunk_first:06d}.usdc"
-        os.replace(stream.path, self.clips_dir / name)
-        self._clips.append((self._chunk_first, f"./{self.clips_dir.name}/{name}"))
-        self._clips_end = self._last_frame
-        self._write_top()
+        name = self.clips_dir / f"{self.path.stem}.{self._chunk_first:06d}.usdc"
+        tmp = name.with_name(f".{name.stem}.tmp-{os.getpid()}{name.suffix}")
+        self._pool.cut(self._cuts, tmp)
+        self._cut[self._cuts] = (self._chunk_first, tmp)
+        self._cuts += 1
+        self._chunk_first, self._chunk_bytes = None, 0
+        self._saved_at = time.monotonic()
+
+    def _place_exported(self, block: bool) -> None:
+        """Move the exported chunks into place, in order, and list them in the top-level file.
+
+        ``block``: wait for at least one message from the writer processes first.
+        """
+        self._exported.update(self._pool.done(block and bool(self._cut)))
+        while (number := len(self._clips)) in self._exported:
+            first, tmp = self._cut.pop(number)
+            last = self._exported.pop(number)
+            name = tmp.name.replace(f".tmp-{os.getpid()}", "")[1:]
+            os.replace(tmp, self.clips_dir / name)
+            self._clips.append((first, f"./{self.clips_dir.name}/{name}"))
+            self._clips_end = last
+            self._write_top()  # after each chunk: the file lists every chunk in place but the last at most
 
     def _start_clips(self) -> None:
         """Make the clips folder with the topology and the manifest (replacing a folder of ours with ``overwrite``)."""
@@ -303,7 +325,7 @@ class UsdWriter:
                 raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
             shutil.rmtree(folder)
         folder.mkdir()
-        write_clip_files(folder, str(os.getpid()), self._bodies, self._props)
+        self._pool.clip_files(folder, self._bodies, self._props)
 
     def _write_top(self) -> None:
         """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""
@@ -357,10 +379,11 @@ class UsdWriter:
             raise RuntimeError(f"{self.path}: no frame was added; nothing written")
         try:
             with _held_signals():
-                if self._clips:
-                    self._cut_chunk()
+                if self._clips or self._cut:
+                    self.save()
                 else:
                     self._write_single()
+                self._pool.stop()
         except BaseException:
             self.abort()
             raise
@@ -368,24 +391,10 @@ class UsdWriter:
         return self.path
 
     def _write_single(self) -> None:
-        """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there.
-
-        The chunk's file is completed, opened by usd-core, given the topology and the stage metadata and
-        exported to the target's format.
-        """
-        from pxr import Sdf
-
-        stream, self._stream = self._stream, None
-        stream.close()
-        layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
-        try:
-            if layer is None:
-                raise OSError(f"{stream.path}: usd-core could not read the chunk written")
-            add_topology(layer, self._bodies, self._props)
-            StageInfo(self._up_axis, self._fps).author(layer, self._last_frame)
-            export(layer, self._tmp)
-        finally:
-            stream.path.unlink(missing_ok=True)
+        """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there."""
+        self._pool.single(0, self._tmp, self._bodies, self._props, StageInfo(self._up_axis, self._fps))
+        while not self._pool.done(block=True):
+            pass
         self._place()
         if self._overwrite and self.clips_dir.is_dir() and _is_ours(self.clips_dir):
             shutil.rmtree(self.clips_dir)
@@ -393,9 +402,7 @@ class UsdWriter:
     def abort(self) -> None:
         """Drop what is in memory and remove temporary files; the target keeps the chunks placed before."""
         self._closed = True
-        if self._stream is not None:
-            self._stream.discard()
-            self._stream = None
+        self._pool.kill()
         self._tmp.unlink(missing_ok=True)
         if self.clips_dir.is_dir():
             for leftover in self.clips_dir.glob(f".*.tmp-{os.getpid()}.*"):

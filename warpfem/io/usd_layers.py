@@ -1,11 +1,13 @@
-"""The USD layers :class:`~warpfem.io.usd.UsdWriter` writes with usd-core: the topology, the manifest, the metadata.
+"""The USD layers :class:`~warpfem.io.usd.UsdWriter` writes: a chunk of time samples, the topology, the metadata.
 
-Built in memory with the Sdf API (inside ``Sdf.ChangeBlock``, about twice as fast as the Usd API with many
-prims). The chunks' time samples are streamed by :mod:`warpfem.io.crate` instead.
+Everything here builds Sdf layers in memory with the Sdf API (inside ``Sdf.ChangeBlock``, about twice as fast
+as the Usd API with many prims) and needs only usd-core and NumPy, so a writer process can import it alone.
 """
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -53,6 +55,57 @@ class StageInfo:
         target.endTimeCode = float(end)
 
 
+class Chunk:
+    """One chunk's time samples in an in-memory layer: each body's points and extent, each prop's transform.
+
+    Args:
+        names: The bodies' prim names under ``/World``.
+        prop_paths: The props' prim paths under ``/World``.
+
+    Attributes:
+        last: The last frame sampled (-1: none yet).
+    """
+
+    def __init__(self, names: Sequence[str], prop_paths: Sequence[str]) -> None:
+        from pxr import Sdf
+
+        self.layer = layer(names, prop_paths)
+        self._points = [Sdf.Path(f"/World/{name}.points") for name in names]
+        self._extents = [Sdf.Path(f"/World/{name}.extent") for name in names]
+        self._transforms = [Sdf.Path(f"/World/{path}.xformOp:transform") for path in prop_paths]
+        self.last = -1
+
+    def add(self, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
+        """Sample contiguous float32 (n_i, 3) ``points`` and 4x4 column-vector ``matrices`` at ``frame``.
+
+        Either every sample of the frame is authored or none (an exception half way, Ctrl-C included,
+        erases what was set).
+        """
+        from pxr import Gf, Sdf, Vt
+
+        code = float(frame)
+        try:
+            with Sdf.ChangeBlock():
+                for i, p in enumerate(points):
+                    self.layer.SetTimeSample(self._points[i], code, vec3f_array(p))
+                    self.layer.SetTimeSample(self._extents[i], code, Vt.Vec3fArray.FromNumpy(extent(p)))
+                for path, m in zip(self._transforms, matrices, strict=True):
+                    self.layer.SetTimeSample(path, code, Gf.Matrix4d(m.T.tolist()))
+        except BaseException:
+            for path in (*self._points, *self._extents, *self._transforms):
+                self.layer.EraseTimeSample(path, code)
+            raise
+        self.last = frame
+
+    def export_single(
+        self, path: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo
+    ) -> None:
+        """Export the chunk as a self-contained file: the topology and the metadata added to it."""
+        add_topology(self.layer, bodies, props)
+        info.author(self.layer, self.last)
+        export(self.layer, path)
+
+
 MARKER = "warpfem.clips"
 """The topology layer's comment: marks a clips folder as one a writer made (and may replace)."""
 
@@ -89,6 +142,36 @@ def export(layer: object, path: Path) -> None:
     except Tf.ErrorException as err:
         reason = str(err).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
     raise OSError(f"{path}: USD export failed: {reason}")
+
+
+def vec3f_array(points: np.ndarray) -> object:
+    """A ``Vt.Vec3fArray`` of contiguous (n, 3) float32 ``points``.
+
+    Filled by one copy into a fresh array's storage, which its (read-only) buffer exposes: ``FromNumpy``
+    converts element by element, much slower (docs/decisions.md). Where the buffer is not the storage
+    (checked once per process), ``FromNumpy``.
+    """
+    from pxr import Vt
+
+    if not _buffer_is_storage():
+        return Vt.Vec3fArray.FromNumpy(points)
+    array = Vt.Vec3fArray(len(points))
+    ctypes.memmove(np.asarray(array).ctypes.data, points.ctypes.data, points.nbytes)
+    return array
+
+
+@functools.cache
+def _buffer_is_storage() -> bool:
+    """Whether writing through a fresh ``Vt.Vec3fArray``'s buffer changes its elements (read back one by one)."""
+    from pxr import Vt
+
+    probe = np.arange(12, dtype=np.float32).reshape(4, 3)
+    array = Vt.Vec3fArray(4)
+    view = np.asarray(array)
+    if view.shape != (4, 3) or view.dtype != np.float32 or not view.flags.c_contiguous:
+        return False
+    ctypes.memmove(view.ctypes.data, probe.ctypes.data, probe.nbytes)
+    return all(tuple(array[i]) == tuple(probe[i]) for i in range(4))
 
 
 def extent(points: np.ndarray) -> np.ndarray:
