@@ -9,8 +9,9 @@ whichever comes first, and is never rewritten:
   topology and lists the clips, replaced atomically after each chunk. Memory stays at a few chunks whatever
   the frame count, and each chunk costs one export of its own bytes.
 
-Chunks are authored and exported by a few writer processes (:mod:`warpfem.io.usd_workers`), several at
-once, while the caller goes on; the caller places each one, in order, once it is exported. Every file is
+Large frames' chunks are authored and exported by a few writer processes (:mod:`warpfem.io.usd_workers`),
+several at once, while the caller goes on; small frames stream into their chunk's file on the calling thread.
+The caller places each chunk, in order, once it is written. Every file is
 written to a temporary name and moved into place with ``os.replace``, so each path only ever holds a
 complete file. What survives a stop:
 
