@@ -123,9 +123,9 @@ class CrateStream:
         self._write(bytes(_BOOTSTRAP_BYTES))
 
     @property
-    def bytes_written(self) -> int:
-        """Bytes in the file so far."""
-        return self._offset
+    def last_time(self) -> float:
+        """The last time code sampled (raises IndexError before the first :meth:`add`)."""
+        return self._times[-1]
 
     def add(self, time: float, values: Sequence[np.ndarray]) -> None:
         """Sample every attribute at time code ``time``: one value per attribute, in the constructor's order.
@@ -138,19 +138,21 @@ class CrateStream:
         if self._times and not time > self._times[-1]:
             raise ValueError(f"time {time} after {self._times[-1]}: times must increase")
         reps, parts = [], []  # the frame counts only once all its values are written
-        end = self._offset
+        end = self._offset  # where the next part goes
         for node, value in zip(self._attributes, values, strict=True):
             if TYPES[node.attribute] == _MATRIX4D:
                 reps.append(_rep(_MATRIX4D, end))
-                parts.append(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+                new = [np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes()]
             elif len(value):
                 pad = -end % 8  # arrays start 8-byte aligned, so a reader may map them in place
                 reps.append(_rep(_VEC3F, end + pad, array=True))
-                parts += [bytes(pad) + struct.pack("<Q", len(value))]
-                parts += [memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B")]
+                array = memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B")
+                new = [bytes(pad) + struct.pack("<Q", len(value)), array]
             else:
                 reps.append(_rep(_VEC3F, 0, array=True))  # an empty array: payload 0, nothing in the file
-            end = self._offset + sum(len(part) for part in parts)
+                new = []
+            parts += new
+            end += sum(len(part) for part in new)
         self._write_parts(parts)
         for column, rep in zip(self._reps, reps, strict=True):
             column.append(rep)

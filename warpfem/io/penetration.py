@@ -57,8 +57,9 @@ def bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rows = (len(p) - start) // size * size
         if rows:
             block = p[start : start + rows].reshape(-1, 3 * size)
-            lows.append(block.min(axis=0).reshape(-1, 192).min(axis=0).reshape(-1, 3))  # 64 points
-            highs.append(block.max(axis=0).reshape(-1, 192).max(axis=0).reshape(-1, 3))
+            row = 3 * _BLOCKS[-1]  # a block's corners reduced again to as many as the smallest block has
+            lows.append(block.min(axis=0).reshape(-1, row).min(axis=0).reshape(-1, 3))
+            highs.append(block.max(axis=0).reshape(-1, row).max(axis=0).reshape(-1, 3))
             start += rows
     lows.append(p[start:])
     highs.append(p[start:])

@@ -163,10 +163,8 @@ class UsdWriter:
         self.workers = workers
         """Writer processes (0: chunks written on the calling thread)."""
         names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
-        inline = workers == 0
-        self._pool = (
-            InlinePool(names, prop_paths, self.path.parent) if inline else ProcessPool(names, prop_paths, workers)
-        )
+        folder = self.path.parent  # where an inline chunk streams before it is placed
+        self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths, folder)
 
     def _check_body(self, name: str, faces: np.ndarray) -> None:
         """Check one body's name and faces and keep them."""

@@ -100,10 +100,25 @@ class Chunk:
     def export_single(
         self, path: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo
     ) -> None:
-        """Export the chunk as a self-contained file: the topology and the metadata added to it."""
-        add_topology(self.layer, bodies, props)
-        info.author(self.layer, self.last)
-        export(self.layer, path)
+        """Export the chunk as a self-contained file (:func:`export_single`)."""
+        export_single(self.layer, path, bodies, props, info, self.last)
+
+
+def export_single(
+    target: object,
+    path: Path,
+    bodies: Sequence[tuple[str, np.ndarray]],
+    props: Sequence[Prop],
+    info: StageInfo,
+    end: int,
+) -> None:
+    """Export the samples layer ``target`` as a self-contained file.
+
+    The topology and the stage metadata (time codes to frame ``end``) are added to it first.
+    """
+    add_topology(target, bodies, props)
+    info.author(target, end)
+    export(target, path)
 
 
 MARKER = "warpfem.clips"
@@ -179,25 +194,31 @@ def extent(points: np.ndarray) -> np.ndarray:
     return np.array(bounds(points), np.float32)
 
 
+def animated_attributes(names: Sequence[str], prop_paths: Sequence[str]) -> list[tuple[str, str]]:
+    """``(attribute path, USD type name)`` of what a run samples every frame, in the order a frame gives it.
+
+    A body's ``points`` and ``extent`` per name, then a prop's transform per prop path, all under ``/World``.
+    """
+    result = [(f"/World/{n}.{a}", t) for n in names for a, t in (("points", "point3f[]"), ("extent", "float3[]"))]
+    return result + [(f"/World/{p}.xformOp:transform", "matrix4d") for p in prop_paths]
+
+
 def layer(names: Sequence[str], prop_paths: Sequence[str]) -> object:
     """An anonymous layer of ``over`` specs declaring what is animated (a chunk, or the clips' manifest).
 
-    ``/World``, a body's ``points`` and ``extent`` per name, a prop's transform per prop path.
+    ``/World`` and every :func:`animated_attributes` path under it.
     """
     from pxr import Sdf
 
     result = Sdf.Layer.CreateAnonymous("warpfem.usdc")
     with Sdf.ChangeBlock():
         world = Sdf.PrimSpec(result, "World", Sdf.SpecifierOver)
-        for name in names:
-            mesh = Sdf.PrimSpec(world, name, Sdf.SpecifierOver)
-            Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
-            Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
-        for path in prop_paths:
+        for path, type_name in animated_attributes(names, prop_paths):
+            prim, _, attribute = path.removeprefix("/World/").rpartition(".")
             parent = world
-            for part in path.split("/"):
+            for part in prim.split("/"):
                 parent = parent.nameChildren.get(part) or Sdf.PrimSpec(parent, part, Sdf.SpecifierOver)
-            Sdf.AttributeSpec(parent, "xformOp:transform", Sdf.ValueTypeNames.Matrix4d)
+            Sdf.AttributeSpec(parent, attribute, Sdf.ValueTypeNames.Find(type_name))
     return result
 
 

@@ -30,7 +30,16 @@ from pathlib import Path
 import numpy as np
 
 from warpfem.io.crate import CrateStream
-from warpfem.io.usd_layers import Chunk, Prop, StageInfo, add_topology, export, extent, write_clip_files
+from warpfem.io.usd_layers import (
+    Chunk,
+    Prop,
+    StageInfo,
+    animated_attributes,
+    export,
+    export_single,
+    extent,
+    write_clip_files,
+)
 
 QUEUE_BYTES = 128 << 20
 """Shared memory for frames on their way to the writer processes (bytes); 2 to 8 frames whatever their size."""
@@ -72,12 +81,9 @@ class InlinePool:
     """
 
     def __init__(self, names: Sequence[str], prop_paths: Sequence[str], folder: Path) -> None:
-        self._attributes = [
-            (f"/World/{n}.{a}", t) for n in names for a, t in (("points", "point3f[]"), ("extent", "float3[]"))
-        ]
-        self._attributes += [(f"/World/{p}.xformOp:transform", "matrix4d") for p in prop_paths]
+        self._attributes = animated_attributes(names, prop_paths)
         self._folder = folder
-        self._streams: dict[int, tuple[CrateStream, int]] = {}  # chunk -> (its stream, its last frame)
+        self._streams: dict[int, CrateStream] = {}
         self._done: list[tuple[int, int]] = []
         self.seconds = 0.0
         self.peak_bytes = 0
@@ -87,10 +93,9 @@ class InlinePool:
         clock = time.perf_counter()
         if chunk not in self._streams:
             path = self._folder / f".warpfem-chunk-{chunk}.tmp-{os.getpid()}.usdc"
-            self._streams[chunk] = (CrateStream(path, self._attributes), frame)
-        stream = self._streams[chunk][0]
-        stream.add(float(frame), [v for p in points for v in (p, extent(p))] + [m.T for m in matrices])  # USD: rows
-        self._streams[chunk] = (stream, frame)
+            self._streams[chunk] = CrateStream(path, self._attributes)
+        values = [v for p in points for v in (p, extent(p))] + [m.T for m in matrices]  # USD: row vectors
+        self._streams[chunk].add(float(frame), values)
         self.seconds += time.perf_counter() - clock
 
     def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
@@ -102,14 +107,14 @@ class InlinePool:
     def cut(self, chunk: int, tmp: Path) -> None:
         """Complete chunk ``chunk`` and move it to ``tmp``."""
         clock = time.perf_counter()
-        stream, last = self._streams.pop(chunk)
+        stream = self._streams.pop(chunk)
         try:
             stream.close()
             os.replace(stream.path, tmp)
         except OSError as err:
             stream.discard()
             raise OSError(f"{tmp}: USD export failed: {err.strerror or err}") from None
-        self._done.append((chunk, last))
+        self._done.append((chunk, int(stream.last_time)))
         self.seconds += time.perf_counter() - clock
 
     def single(
@@ -123,15 +128,14 @@ class InlinePool:
         from pxr import Sdf
 
         clock = time.perf_counter()
-        stream, last = self._streams.pop(chunk)
+        stream = self._streams.pop(chunk)
         stream.close()
+        last = int(stream.last_time)
         try:
             layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
             if layer is None:
                 raise OSError(f"{stream.path}: usd-core could not read the chunk written")
-            add_topology(layer, bodies, props)
-            info.author(layer, last)
-            export(layer, tmp)
+            export_single(layer, tmp, bodies, props, info, last)
         finally:
             stream.path.unlink(missing_ok=True)
         self._done.append((chunk, last))
@@ -147,7 +151,7 @@ class InlinePool:
 
     def kill(self) -> None:
         """Remove the chunks being written."""
-        for stream, _ in self._streams.values():
+        for stream in self._streams.values():
             stream.discard()
         self._streams.clear()
 
