@@ -2,7 +2,7 @@
 
 Depth and direction: in a tet touching the body's surface (a corner on it), the point's depth below the
 body's dense surface at rest, where its weights in the tet put it, and the way out to the nearest point
-of that surface, carried to the tet's current shape (:func:`kernels.distance.visible_depth`); where no
+of that surface, carried to the tet's current shape (:func:`kernels.surface.visible_depth`); where no
 dense surface is in reach, the point's distance below the plane of the surface face it came in through
 (of the faces around the tet's corners, the one it was outside of a step ago, relative to the tet; else
 the nearest), corrected by how far that face lies outside the visible surface, along that face's current
@@ -23,9 +23,11 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 
 import warp as wp
 
-from .distance import (
-    LATTICE,
-    LATTICE_POINTS,
+from .distance import LATTICE, LATTICE_POINTS
+from .embedding import interpolate
+from .grid import warp_max_at
+from .integrate import FRICTION_SPEED_EPS
+from .surface import (
     VisibleSurface,
     add_rotated_gradients,
     face_query,
@@ -35,9 +37,6 @@ from .distance import (
     lattice_index,
     visible_depth,
 )
-from .embedding import interpolate
-from .grid import warp_max_at
-from .integrate import FRICTION_SPEED_EPS
 
 
 @wp.kernel
@@ -291,18 +290,18 @@ def depth_in_tet(
 ):
     """Depth and direction of point p (at q, weights w in tet e, which holds it), and what they are.
 
-    Returns ``(status, d, g)``: status 0 when the point is refused (a point of the tet's own body,
+    Returns ``(status, d, g, bound)``: status 0 when the point is refused (a point of the tet's own body,
     ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
-    of a body with a dense mesh: then :func:`kernels.distance.visible_depth` answers, with ``d``, ``g`` where
-    it finds no surface in reach. The caller asks it after the tree walk, so the walk's registers are free.
-    3 when the point surely lies outside that dense surface (:func:`depth_above` below zero
-    at the nearest face): no contact, and no query.
+    of a body with a dense mesh: then :func:`kernels.surface.visible_depth` answers, with ``d``, ``g`` where
+    it finds no surface in reach, and ``bound`` (:func:`depth_above` at the nearest face) bounds the query.
+    The caller asks it after the tree walk, so the walk's registers are free. 3 when the point surely lies
+    outside that dense surface (``bound`` below zero): no contact, and no query.
     """
     d = float(0.0)
     g = wp.vec3()
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
-            return 0, d, g
+            return 0, d, g, 0.0
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
@@ -330,14 +329,15 @@ def depth_in_tet(
             g = g_near
         if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
-            if depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q) < 0.0:
-                return 3, d, g
-            return 2, d, g
-        return 1, d, g
+            bound = depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q)
+            if bound < 0.0:
+                return 3, d, g, bound
+            return 2, d, g, bound
+        return 1, d, g, 0.0
     # deep inside: the paper's interpolated distance field and rotated gradients
     d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
     g = interpolate_directions(grad, t, w)
-    return 1, d, g
+    return 1, d, g, 0.0
 
 
 @wp.func
@@ -385,6 +385,7 @@ def answer_pending(
     w: wp.vec4,
     d: float,
     g: wp.vec3,
+    bound: float,
     surface: VisibleSurface,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -396,11 +397,11 @@ def answer_pending(
 ):
     """Records point p's contact with tet e, near a dense surface, if it lies below that surface.
 
-    The depth and direction are :func:`kernels.distance.visible_depth`'s (the lattice's ``d``, ``g`` where
-    no surface is in reach).
+    The depth and direction are :func:`kernels.surface.visible_depth`'s (the lattice's ``d``, ``g`` where
+    no surface is in reach; ``bound`` bounds the depth from above).
     """
     t = tets[e]
-    dv, gv = visible_depth(surface, x, e, t, w, d, g)
+    dv, gv = visible_depth(surface, x, e, t, w, d, g, bound)
     store_contact(
         p, e, t, w, dv, gv, v, point_velocity, dt, found_out, late,
     )  # fmt: skip
@@ -498,6 +499,7 @@ def walk_tree(
     pending_w = wp.vec4()
     pending_d = float(0.0)
     pending_g = wp.vec3()
+    pending_bound = float(0.0)
     while not found and (mask != 0 or level > top):
         if mask == 0:
             # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
@@ -520,7 +522,7 @@ def walk_tree(
                     e = leaf[k]
                     t = tets[e]
                     w = tet_weights(q, tet_inverse[e], tet_origin[e])
-                    status, d, g = depth_in_tet(
+                    status, d, g, bound = depth_in_tet(
                         p, q, e, t, w, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth,
                         surface, point_velocity, point_anchor, row_start, cols, depth, grad,
                     )  # fmt: skip
@@ -536,12 +538,13 @@ def walk_tree(
                         pending_w = w
                         pending_d = d
                         pending_g = g
+                        pending_bound = bound
             else:
                 stack = (stack << wp.int64(8)) | wp.int64(mask)
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
                 mask = group_holds(q, node_lower, node_upper, ns + base, 8)
-    return pending, pending_w, pending_d, pending_g
+    return pending, pending_w, pending_d, pending_g, pending_bound
 
 
 @wp.kernel
@@ -603,14 +606,14 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        e, w, d, g = walk_tree(
+        e, w, d, g, bound = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
             point_anchor, row_start, cols, depth, grad, found_out, late,
         )  # fmt: skip
         if e >= 0:
             answer_pending(
-                p, e, w, d, g, surface, x, v, tets, point_velocity, dt, found_out, late,
+                p, e, w, d, g, bound, surface, x, v, tets, point_velocity, dt, found_out, late,
             )  # fmt: skip
 
 
@@ -669,14 +672,14 @@ def detect_contacts_direct(
             candidate += 1
             same = body == body_p
             if candidate % lanes == lane and (self_ok or not same):
-                e, w, d, g = walk_tree(
+                e, w, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad, found_out, late,
                 )  # fmt: skip
                 if e >= 0:
                     answer_pending(
-                        p, e, w, d, g, surface, x, v, tets, point_velocity, dt, found_out, late,
+                        p, e, w, d, g, bound, surface, x, v, tets, point_velocity, dt, found_out, late,
                     )  # fmt: skip
 
 

@@ -10,8 +10,8 @@ which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block c
 
 import warp as wp
 
-from .distance import add_rotated_gradients
 from .embedding import deformation_gradient
+from .surface import add_rotated_gradients
 
 
 @wp.func
@@ -119,7 +119,7 @@ def elastic_forces_and_stiffness(
     that turn exceeds ``predict_least`` (rad): a tet spinning steadily then needs no re-linearisation. The
     force ``-R K (R^T x - X)`` is linear in ``x`` for a fixed ``R``. With a ``grad_out`` (scenes with
     collisions; empty otherwise), also the distance gradients turned by the tet's rotation at ``x``, summed
-    at its corners (see ``kernels.distance.add_rotated_gradients``).
+    at its corners (see ``kernels.surface.add_rotated_gradients``).
     """
     e = wp.tid()
     t = tets[e]

@@ -3,9 +3,10 @@
 import numpy as np
 import warp as wp
 from warpfem.kernels.collision import depth_above
-from warpfem.kernels.distance import VisibleSurface, visible_depth
+from warpfem.kernels.surface import VisibleSurface, visible_depth
 
 import warpfem
+from warpfem.sim.surface import REACH, visible_surface
 
 
 @wp.kernel
@@ -15,12 +16,13 @@ def _depths(
     tets: wp.array(dtype=wp.vec4i),
     tet_ids: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=wp.vec4),
+    bounds: wp.array(dtype=float),
     depth_out: wp.array(dtype=float),
     direction_out: wp.array(dtype=wp.vec3),
 ):
     i = wp.tid()
     e = tet_ids[i]
-    d, g = visible_depth(s, x, e, tets[e], weights[i], -1.0e30, wp.vec3())
+    d, g = visible_depth(s, x, e, tets[e], weights[i], -1.0e30, wp.vec3(), bounds[i])
     depth_out[i] = d
     direction_out[i] = g
 
@@ -61,7 +63,7 @@ def test_depth_below_the_visible_surface_of_moved_turned_and_scaled_copies(devic
         _depths,
         dim=len(tet_ids),
         inputs=[visible, wp.array(x, dtype=wp.vec3, device=device), model.tets, wp.array(tet_ids, device=device),
-                wp.array(w, dtype=wp.vec4, device=device)],
+                wp.array(w, dtype=wp.vec4, device=device), wp.full(len(tet_ids), 1.0e30, dtype=float, device=device)],
         outputs=[depth, direction],
         device=device,
     )  # fmt: skip
@@ -132,3 +134,46 @@ def test_depth_bound_from_a_face_lattice_never_falls_below_the_depth(device):
     outside = dist > 1e-2 * body.size
     assert outside.sum() > 100
     assert np.mean(bound[outside] < 0.0) > 0.5, np.mean(bound[outside] < 0.0)
+
+
+def test_a_query_bounded_by_the_lattice_finds_every_depth_inside_and_none_outside(device):
+    """The dense query looks no farther than the face lattice's bound on the depth: at points in the tets
+    near a bunny's surface, where libigl's signed distance puts a point inside within the query's reach, the
+    bounded query gives that depth (to 1e-5 of the size); where it puts a point outside, no positive depth."""
+    import igl
+
+    scene = warpfem.Scene.from_dict({"object": [_bunny("a", 0.5, 30.0, 0.0)]}, name="bounded")
+    sim = warpfem.Simulation(scene, device=device)
+    model, body = sim.model, sim.model.bodies[0]
+    near = np.flatnonzero(np.diff(model.tet_face_start.numpy()) > 0).astype(np.int32)
+    rng = np.random.default_rng(7)
+    tet_ids = wp.array(near[rng.integers(0, len(near), 4000)], device=device)
+    w = rng.dirichlet(np.ones(4), len(tet_ids))
+    rest = model.rest_x.numpy().astype(np.float64)
+    points = np.einsum("nk,nkd->nd", w, rest[model.tets.numpy()[tet_ids.numpy()]])
+    bound = wp.zeros(len(tet_ids), dtype=float, device=device)
+    wp.launch(
+        _bounds,
+        dim=len(tet_ids),
+        inputs=[model.rest_x, model.face_depth, model.tet_face_start, model.tet_faces, model.tet_face_ids,
+                tet_ids, wp.array(points, dtype=wp.vec3, device=device)],
+        outputs=[bound],
+        device=device,
+    )  # fmt: skip
+    visible, meshes = visible_surface(model)  # a lone body has no collider
+    depth = wp.zeros(len(tet_ids), dtype=float, device=device)
+    direction = wp.zeros(len(tet_ids), dtype=wp.vec3, device=device)
+    wp.launch(
+        _depths,
+        dim=len(tet_ids),
+        inputs=[visible, model.rest_x, model.tets, tet_ids, wp.array(w, dtype=wp.vec4, device=device),
+                bound],
+        outputs=[depth, direction],
+        device=device,
+    )  # fmt: skip
+    depth = depth.numpy()
+    dist, *_ = igl.signed_distance(points, sim.dense_points(body.name), body.dense_faces.astype(np.int64))
+    inside = (-dist > 0.0) & (-dist < 0.99 * REACH * body.size)
+    assert inside.sum() > 200 and (dist > 0.0).sum() > 200
+    np.testing.assert_allclose(depth[inside], -dist[inside], atol=1e-5 * body.size)
+    assert depth[dist > 0.0].max() <= 1e-5 * body.size

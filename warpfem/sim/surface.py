@@ -1,7 +1,7 @@
 """Each body's dense surface at rest as a ``wp.Mesh``, for the exact depth of contacts near the surface.
 
 Copies of one prepared body (a pile: the same mesh moved, turned and scaled) share one mesh; each body
-keeps the similarity that takes its rest shape to that mesh's frame (:class:`warpfem.kernels.distance.VisibleSurface`).
+keeps the similarity that takes its rest shape to that mesh's frame (:class:`warpfem.kernels.surface.VisibleSurface`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import hashlib
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.distance import VisibleSurface
+from warpfem.kernels.surface import VisibleSurface
 from warpfem.sim.model import Model
 
 REACH = 0.1

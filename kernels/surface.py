@@ -1,0 +1,154 @@
+"""Depth below a body's visible surface during a step.
+
+The distance field's gradients turned with each tet (Kondo & Kanai step 7), the surface faces' lattice of
+depths below the visible surface (filled by preprocessing in the layout of :mod:`warpfem.kernels.distance`),
+and the dense surface itself at rest.
+"""
+
+import warp as wp
+
+from .distance import LATTICE, LATTICE_POINTS
+from .embedding import deformation_gradient, interpolate
+
+
+@wp.func
+def add_rotated_gradients(
+    t: wp.vec4i, R: wp.mat33, rest_grad: wp.array(dtype=wp.vec3), grad_out: wp.array(dtype=wp.vec3)
+):
+    """grad[v] += R g0[v] for the four corners v of a tet turned by R (Kondo & Kanai step 7, unnormalised)."""
+    for a in range(4):
+        wp.atomic_add(grad_out, t[a], R * rest_grad[t[a]])
+
+
+@wp.func
+def direction_at(grad: wp.array(dtype=wp.vec3), v: int) -> wp.vec3:
+    """normalize(sum_k R_k g0) at tet vertex v from the accumulated sum (zero stays zero)."""
+    g = grad[v]
+    n = wp.length(g)
+    if n > 0.0:
+        return g / n
+    return g
+
+
+@wp.func
+def interpolate_directions(grad: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.vec4) -> wp.vec3:
+    """The rotated gradients of a tet's corners, each normalised, blended with barycentric weights w."""
+    return (
+        w[0] * direction_at(grad, tet[0])
+        + w[1] * direction_at(grad, tet[1])
+        + w[2] * direction_at(grad, tet[2])
+        + w[3] * direction_at(grad, tet[3])
+    )
+
+
+@wp.func
+def lattice_index(i: int, j: int) -> int:
+    """Position of lattice point (i, j) in a face's row-by-row list."""
+    return i * (LATTICE + 1) - i * (i - 1) // 2 + j
+
+
+@wp.func
+def lattice_cell(w1: float, w2: float):
+    """The lattice cell (i, j) at face weights w1, w2 (of corners 1 and 2), and the offsets in it (cell units)."""
+    u = w1 * float(LATTICE)
+    v = w2 * float(LATTICE)
+    i = wp.min(int(u), LATTICE - 1)
+    j = wp.min(int(v), LATTICE - 1 - i)
+    return i, j, u - float(i), v - float(j)
+
+
+@wp.func
+def lattice_depth(face_depth: wp.array(dtype=float), face_id: int, w1: float, w2: float) -> float:
+    """The face's lattice depths interpolated (linearly on the lattice's triangles) at weights w1, w2."""
+    i, j, fu, fv = lattice_cell(w1, w2)
+    base = face_id * LATTICE_POINTS
+    d00 = face_depth[base + lattice_index(i, j)]
+    d10 = face_depth[base + lattice_index(i + 1, j)]
+    d01 = face_depth[base + lattice_index(i, j + 1)]
+    if fu + fv <= 1.0:
+        return (1.0 - fu - fv) * d00 + fu * d10 + fv * d01
+    d11 = face_depth[base + lattice_index(i + 1, j + 1)]
+    return (fu + fv - 1.0) * d11 + (1.0 - fv) * d10 + (1.0 - fu) * d01
+
+
+@wp.func
+def face_weights(r: wp.vec3, e1: wp.vec3, e2: wp.vec3, c: wp.vec3) -> wp.vec2:
+    """Weights of corners 1 and 2 of ``r``'s projection on a face, clamped to it (``r`` from corner 0, c = e1 x e2)."""
+    area2 = wp.dot(c, c)
+    w1 = wp.clamp(wp.dot(wp.cross(r, e2), c) / area2, 0.0, 1.0)
+    w2 = wp.clamp(wp.dot(wp.cross(e1, r), c) / area2, 0.0, 1.0 - w1)
+    return wp.vec2(w1, w2)
+
+
+@wp.func
+def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face_id: int, face: wp.vec3i, q: wp.vec3):
+    """``q`` against an outward-wound surface face: normal, depth below its plane and below the visible surface.
+
+    Returns the face's outward normal, ``q``'s depth below its plane and below the visible surface near it
+    (m), and ``q``'s distance to (about) the face's nearest point (m). The visible surface's depth is the
+    plane's plus the visible surface's depth below the face at ``q``'s projection, clamped to the face
+    (interpolated on the face's lattice: negative where the face is part of a cage around a dense surface,
+    zero where the face is the visible surface).
+    """
+    a = x[face[0]]
+    e1 = x[face[1]] - a
+    e2 = x[face[2]] - a
+    c = wp.cross(e1, e2)
+    n = wp.normalize(c)
+    w = face_weights(q - a, e1, e2, c)
+    plane = wp.dot(n, a - q)
+    depth = plane + lattice_depth(face_depth, face_id, w[0], w[1])
+    return n, plane, depth, wp.length(q - (a + w[0] * e1 + w[1] * e2))
+
+
+@wp.struct
+class VisibleSurface:
+    """Each body's dense surface at rest, for the exact depth of a point found inside one of its tets.
+
+    A point at barycentric weights ``w`` in tet ``t`` lies at ``sum_k w_k X[t_k]`` in the body's rest shape;
+    its depth there below the dense rest surface (a ``wp.Mesh``) is its depth below the visible surface,
+    the small strain of the tet aside. Bodies that are copies of one another (the same prepared mesh, moved,
+    turned and scaled) share one mesh: ``to_mesh`` and ``mesh_origin`` take a rest position to the mesh's
+    frame, ``mesh_scale`` takes a length there back to metres.
+    """
+
+    rest_x: wp.array(dtype=wp.vec3)
+    dm_inv: wp.array(dtype=wp.mat33)  # per tet, its rest shape matrix inverted
+    tet_body: wp.array(dtype=wp.int32)
+    mesh: wp.array(dtype=wp.uint64)  # per body; 0: no dense surface (the tets' surface is the visible one)
+    to_mesh: wp.array(dtype=wp.mat33)  # per body
+    mesh_origin: wp.array(dtype=wp.vec3)  # per body
+    mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
+    reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
+
+
+@wp.func
+def visible_depth(
+    s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.vec4i, w: wp.vec4, d: float, g: wp.vec3, bound: float
+):
+    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``.
+
+    The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
+    carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
+    deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
+    :func:`kernels.collision.depth_above`). ``d``, ``g`` are returned where the body has no dense surface
+    or none lies within its reach of the point.
+    """
+    b = s.tet_body[e]
+    mesh = s.mesh[b]
+    if mesh == wp.uint64(0):
+        return d, g
+    q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
+    hit = wp.mesh_query_point_sign_normal(mesh, q, s.reach[b])
+    if not hit.result:
+        return d, g
+    offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
+    dist = wp.length(offset)
+    out = wp.mesh_eval_face_normal(mesh, hit.face)
+    if dist > 1.0e-6 * s.reach[b]:
+        out = -hit.sign * offset / dist
+    depth = -hit.sign * dist * s.mesh_scale[b]
+    shape = deformation_gradient(x, t, s.dm_inv[e])
+    if wp.determinant(shape) <= 0.0:
+        return depth, g
+    return depth, wp.normalize(wp.transpose(wp.inverse(shape)) * (wp.transpose(s.to_mesh[b]) * out))
