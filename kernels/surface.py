@@ -131,16 +131,21 @@ def visible_depth(
     The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
-    :func:`kernels.collision.depth_above`). ``d``, ``g`` are returned where the body has no dense surface
-    or none lies within its reach of the point.
+    :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
+    the query looks no farther, and a point with no surface that near lies outside (depth 0 returned).
+    ``d``, ``g`` are returned where the body has no dense surface or, beyond the bound, none lies within
+    its reach of the point.
     """
     b = s.tet_body[e]
     mesh = s.mesh[b]
     if mesh == wp.uint64(0):
         return d, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
-    hit = wp.mesh_query_point_sign_normal(mesh, q, s.reach[b])
+    near = bound / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack on the bound
+    hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
+        if near < s.reach[b]:
+            return 0.0, g
         return d, g
     offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
     dist = wp.length(offset)
