@@ -23,15 +23,18 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 
 import warp as wp
 
+from .distance import LATTICE, LATTICE_POINTS
 from .embedding import interpolate
 from .grid import warp_max_at
 from .integrate import FRICTION_SPEED_EPS
 from .surface import (
     VisibleSurface,
     add_rotated_gradients,
-    depth_above,
     face_query,
+    face_weights,
     interpolate_directions,
+    lattice_cell,
+    lattice_index,
     visible_depth,
 )
 
@@ -98,9 +101,8 @@ def collision_points(
 ):
     """Collision point positions and velocities (interpolated like the dense mesh); per body the top speed.
 
-    The speed, a maximum over the calls until the array is zeroed, is an atomic max per body, one per warp
-    where the warp's points are one body's (the points are stored body after body), attempted only when above
-    the value already there (:func:`kernels.grid.warp_max_at`).
+    The speed is an atomic max per body, one per warp where the warp's points are one body's (the points are
+    stored body after body), attempted only when above the value already there (:func:`kernels.grid.warp_max_at`).
     """
     i = wp.tid()
     t = tets[point_tet[i]]
@@ -239,6 +241,28 @@ class Found:
     normal: wp.array(dtype=wp.vec3)
     depth: wp.array(dtype=float)
     deepest: wp.array(dtype=float)
+
+
+@wp.func
+def depth_above(
+    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
+):
+    """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
+
+    The face's lattice holds the signed distance to the dense rest surface, which changes by at most the
+    distance moved: below it by at most ``q``'s distance from a corner of the face's cell nearest ``q``, all
+    at rest (``rest_x``). Negative: ``q`` surely lies outside the visible surface.
+    """
+    a = rest_x[face[0]]
+    e1 = rest_x[face[1]] - a
+    e2 = rest_x[face[2]] - a
+    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
+    i, j, fu, fv = lattice_cell(w[0], w[1])
+    r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
+    base = face_id * LATTICE_POINTS
+    bound = face_depth[base + lattice_index(i, j)] + wp.length(r)
+    bound = wp.min(bound, face_depth[base + lattice_index(i + 1, j)] + wp.length(r - e1 / float(LATTICE)))
+    return wp.min(bound, face_depth[base + lattice_index(i, j + 1)] + wp.length(r - e2 / float(LATTICE)))
 
 
 @wp.func
@@ -381,24 +405,6 @@ def answer_pending(
     store_contact(
         p, e, t, w, dv, gv, v, point_velocity, dt, found_out, late,
     )  # fmt: skip
-
-
-@wp.func
-def too_slow(
-    late: int,
-    p: int,
-    body: int,
-    dt: float,
-    point_velocity: wp.array(dtype=wp.vec3),
-    late_speed: wp.array(dtype=float),
-    late_travel: wp.array(dtype=float),
-) -> bool:
-    """Whether a late pass leaves point p against ``body`` be, the two too slow for it to matter.
-
-    Their speeds at the solve's answer, added, carry the point less than ``late_travel[body]`` (m) into the
-    body in a step: the next step's detection finds that.
-    """
-    return late != 0 and dt * (wp.length(point_velocity[p]) + late_speed[body]) < late_travel[body]
 
 
 @wp.func
@@ -573,8 +579,6 @@ def detect_contacts(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    late_speed: wp.array(dtype=float),
-    late_travel: wp.array(dtype=float),
     # outputs
     found_out: Found,
 ):
@@ -584,8 +588,7 @@ def detect_contacts(
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
     each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
-    Each contact goes to ``found_out`` (:class:`Found`). A ``late`` pass (at the positions a solve
-    predicts) skips the points in contact already and the bodies too slow to matter (:func:`too_slow`).
+    Each contact goes to ``found_out`` (:class:`Found`).
     """
     tid = wp.tid()
     p = tid // lanes
@@ -602,8 +605,6 @@ def detect_contacts(
         candidate += 1
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
-            continue
-        if too_slow(late, p, body, dt, point_velocity, late_speed, late_travel):
             continue
         e, w, d, g, bound = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
@@ -649,8 +650,6 @@ def detect_contacts_direct(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    late_speed: wp.array(dtype=float),
-    late_travel: wp.array(dtype=float),
     # outputs
     found_out: Found,
 ):
@@ -672,8 +671,7 @@ def detect_contacts_direct(
         if overlaps(q, body_lower[body], body_upper[body]):
             candidate += 1
             same = body == body_p
-            slow = too_slow(late, p, body, dt, point_velocity, late_speed, late_travel)
-            if candidate % lanes == lane and (self_ok or not same) and not slow:
+            if candidate % lanes == lane and (self_ok or not same):
                 e, w, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,

@@ -196,7 +196,6 @@ def clear_step(
     late_vertex: wp.array(dtype=wp.int32),
     late_skin: wp.array(dtype=wp.int32),
     contact_counts: wp.array(dtype=wp.int32),
-    body_speed: wp.array(dtype=float),
     flags: wp.array(dtype=wp.int32),
 ):
     """Zero every array a step accumulates into or counts in: one launch instead of a memset each."""
@@ -221,8 +220,6 @@ def clear_step(
         late_skin[i] = 0
     if i < contact_counts.shape[0]:
         contact_counts[i] = 0
-    if i < body_speed.shape[0]:
-        body_speed[i] = 0.0
     if i < flags.shape[0]:
         flags[i] = 0
 

@@ -55,11 +55,6 @@ whose refit is a launch of its own each step (docs/decisions.md)."""
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
-LATE_TRAVEL = 2.0e-4
-"""A late pass looks for a point in a body only if the two, at their speeds after the solve, could bring it
-deeper than this fraction of the body's size in a step; shallower, the next step's detection finds it. Bodies
-at rest then cost the late pass nothing (docs/decisions.md)."""
-
 
 class Collider:
     """Buffers and launches of the collision stage for a model with collision points.
@@ -105,10 +100,6 @@ class Collider:
         self.friction = wp.zeros(1, dtype=float, device=dev)
         self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
-        self.late_speed = wp.zeros(len(model.bodies), dtype=float, device=dev)
-        """Per body, the fastest collision point at a late pass's positions (m/s; the step zeroes it)."""
-        sizes = np.array([LATE_TRAVEL * b.size for b in model.bodies], np.float32)
-        self.late_travel = wp.array(sizes, dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
         """Which points have a contact this step (a late pass leaves them be)."""
@@ -147,20 +138,19 @@ class Collider:
             device=self.model.device,
         )
 
-    def prepare(self, x: wp.array, v: wp.array, late: bool = False) -> None:
+    def prepare(self, x: wp.array, v: wp.array) -> None:
         """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
 
         The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
         inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
-        another stream (see ``Solver.phases``); :meth:`respond` needs it done first. The bodies' top speeds
-        go to ``speed_max`` (a step's start), or ``late_speed`` for a ``late`` pass.
+        another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
         """
         m = self.model
         wp.launch(
             K.collision_points,
             dim=self.points.shape[0],
             inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
-            outputs=[self.points, self.point_velocity, self.late_speed if late else self.speed_max],
+            outputs=[self.points, self.point_velocity, self.speed_max],
             device=m.device,
         )
         self._bound(x)
@@ -186,13 +176,11 @@ class Collider:
     ) -> None:
         """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
 
-        Points already in contact this step are left be, and so is a point against a body when the two are
-        too slow for it to reach :data:`LATE_TRAVEL` of the body's size into it in a step (the next step finds
-        that: bodies at rest cost nothing here). Each new contact enters the built system with the
+        Points already in contact this step are left be; each new contact enters the built system with the
         depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added.
         """
-        self.prepare(x, v, late=True)
+        self.prepare(x, v)
         wp.launch(
             K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
         )
@@ -316,8 +304,6 @@ class Collider:
                 lanes,
                 self.point_contact,
                 int(late),
-                self.late_speed,
-                self.late_travel,
             ],
             outputs=[self.found],
             device=m.device,

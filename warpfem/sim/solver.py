@@ -125,7 +125,6 @@ class Solver:
         self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
         self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
         self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
-        self._no_float = wp.zeros(0, dtype=float, device=dev)
         self.flags = wp.zeros(rotation_updates + self._contact_passes, dtype=wp.int32, device=dev)
         """The step's conditions, each its own slot so one launch clears them all at the step's start."""
         self.turned = [self.flags[k : k + 1] for k in range(rotation_updates)]
@@ -153,7 +152,6 @@ class Solver:
             collider.point_contact if collider is not None else self._no_int,
             *self.late,
             collider.counts if collider is not None else self._no_int,
-            collider.late_speed if collider is not None else self._no_float,
             self.flags,
         ]
         """What a step zeroes before it accumulates and counts, in one launch (``kernels.integrate.clear_step``'s
