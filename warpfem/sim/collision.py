@@ -20,6 +20,7 @@ import warp as wp
 
 from warpfem.kernels import collision as K
 from warpfem.sim.contacts import Coupling
+from warpfem.sim.launch import WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
 
 
@@ -54,6 +55,11 @@ whose refit is a launch of its own each step (docs/decisions.md)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
+
+BVH_DETECT_BLOCK = WARP_THREADS
+"""Threads per block of detection through the body BVH (CUDA). Warp's BVH query keeps its traversal stack
+in shared memory, 32 entries a thread: in blocks of 256 that is 33.8 KB a block and, beside the kernel's 162
+registers a thread, one block (8 warps) an SM; blocks of one warp fit 12 (docs/decisions.md)."""
 
 
 class Collider:
@@ -307,6 +313,7 @@ class Collider:
             ],
             outputs=[self.found],
             device=m.device,
+            block_dim=WIDE_BLOCK if self.direct or not m.device.is_cuda else BVH_DETECT_BLOCK,
         )
 
     def read_stats(self) -> tuple[int, int, float, bool]:
