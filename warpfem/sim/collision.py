@@ -313,7 +313,7 @@ class Collider:
             ],
             outputs=[self.found],
             device=m.device,
-            block_dim=WIDE_BLOCK if self.direct or not m.device.is_cuda else BVH_DETECT_BLOCK,
+            block_dim=BVH_DETECT_BLOCK if m.device.is_cuda else WIDE_BLOCK,
         )
 
     def read_stats(self) -> tuple[int, int, float, bool]:
