@@ -56,10 +56,10 @@ whose refit is a launch of its own each step (docs/decisions.md)."""
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
-BVH_DETECT_BLOCK = WARP_THREADS
-"""Threads per block of detection through the body BVH (CUDA). Warp's BVH query keeps its traversal stack
-in shared memory, 32 entries a thread: in blocks of 256 that is 33.8 KB a block and, beside the kernel's 162
-registers a thread, one block (8 warps) an SM; blocks of one warp fit 12 (docs/decisions.md)."""
+DETECT_BLOCK = WARP_THREADS
+"""Threads per block of contact detection (CUDA). The kernel takes 162 registers a thread, so blocks of 256
+fit one an SM (8 warps); through the body BVH also Warp's query stack in shared memory, 33.8 KB a block of
+256. Blocks of one warp fit 12 (docs/decisions.md)."""
 
 
 class Collider:
@@ -313,7 +313,7 @@ class Collider:
             ],
             outputs=[self.found],
             device=m.device,
-            block_dim=BVH_DETECT_BLOCK if m.device.is_cuda else WIDE_BLOCK,
+            block_dim=DETECT_BLOCK if m.device.is_cuda else WIDE_BLOCK,
         )
 
     def read_stats(self) -> tuple[int, int, float, bool]:
