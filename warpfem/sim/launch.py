@@ -23,8 +23,8 @@ def spread_block_dim(count: int, device) -> int:
     the memory, sets its time; blocks of one warp put work on every SM where the count allows. Below 256
     threads per SM every block of a warp is resident at once (an SM holds 32 blocks), so a single warp per
     block costs no occupancy; from 256 per SM on, the default. The CPU ignores it. Meant for launches whose
-    threads issue many loads or atomic adds of their own (elastic forces, the system's rows), not for tree
-    walks, whose threads read the same nodes and gain from sharing an SM's cache.
+    threads issue many loads or atomic adds of their own (elastic forces, the system's rows); contact
+    detection has a size of its own (``warpfem.sim.collision.DETECT_BLOCK``), set by its registers.
 
     Args:
         count: Threads of the launch.
