@@ -160,7 +160,7 @@ def test_a_query_bounded_by_the_lattice_finds_every_depth_inside_and_none_outsid
         outputs=[bound],
         device=device,
     )  # fmt: skip
-    visible, meshes = visible_surface(model)  # a lone body has no collider
+    visible, meshes = visible_surface(model)  # a lone body has no collider; the meshes must stay alive
     depth = wp.zeros(len(tet_ids), dtype=float, device=device)
     direction = wp.zeros(len(tet_ids), dtype=wp.vec3, device=device)
     wp.launch(

@@ -57,9 +57,9 @@ BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
 
 DETECT_BLOCK = WARP_THREADS
-"""Threads per block of contact detection (CUDA). The kernel takes 162 registers a thread, so blocks of 256
-fit one an SM (8 warps); through the body BVH also Warp's query stack in shared memory, 33.8 KB a block of
-256. Blocks of one warp fit 12 (docs/decisions.md)."""
+"""Threads per block of contact detection (CUDA). The kernel's registers (and, through the body BVH, Warp's
+query stack in shared memory, sized by the block) let an SM hold a single block of 256; blocks of one warp
+let it hold more warps to hide the walks' loads (docs/decisions.md)."""
 
 
 class Collider:
