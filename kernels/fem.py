@@ -1,17 +1,23 @@
-"""Corotational linear FEM on linear tetrahedra: elastic forces and the warped stiffness blocks.
+"""Corotational linear FEM on linear or quadratic tetrahedra: elastic forces and the warped stiffness blocks.
 
 For a tet with rest shape matrix ``Dm`` (columns X1-X0, X2-X0, X3-X0) the shape-function gradients are
 the rows of ``Dm^-1`` (g1, g2, g3) and ``g0 = -(g1 + g2 + g3)``. With the per-tet rotation ``R`` (polar
 part of ``F = Ds Dm^-1``) the small-strain tensor in the rotated frame is ``eps = sym(R^T F) - I``, the
 stress ``sigma = 2 mu eps + lambda tr(eps) I`` and the force on corner a is ``f_a = -V R sigma g_a``,
 which equals ``-R K_e (R^T x - X)`` (Mueller et al. 2002). The stiffness block coupling corners a and b is
-``K_ab = V (mu (g_a . g_b) I + mu g_b g_a^T + lambda g_a g_b^T)``, warped to ``R K_ab R^T``.
+``K_ab = V (mu (g_a . g_b) I + mu g_b g_a^T + lambda g_a g_b^T)``, warped to ``R K_ab R^T``. A quadratic tet
+(corners and edge midpoints) takes the same rotation from its corners and integrates its strain, linear
+over the tet, at four points.
 """
 
 import warp as wp
 
 from .embedding import deformation_gradient
 from .surface import add_rotated_gradients
+
+wp.set_module_options({"max_unroll": 4})
+"""Unroll the four corners' and four quadrature points' loops, not the ten nodes' (fully unrolled, a quadratic
+tet's 10 x 10 x 4 blocks take minutes to compile)."""
 
 
 @wp.func
@@ -85,6 +91,43 @@ def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float)
     return vol * (mu * wp.dot(ga, gb) * wp.identity(n=3, dtype=float) + mu * wp.outer(gb, ga) + lam * wp.outer(ga, gb))
 
 
+@wp.func
+def step_rotation(
+    F: wp.mat33,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    t: wp.vec4i,
+    e: int,
+    dt: float,
+    given_rotation: int,
+    predict: int,
+    predict_least: float,
+    rest_grad: wp.array(dtype=wp.vec3),
+    rotation_out: wp.array(dtype=wp.mat33),
+    grad_out: wp.array(dtype=wp.vec3),
+) -> wp.mat33:
+    """The rotation tet ``e`` (corners ``t``, deformation gradient ``F`` at ``x``) is linearised about this step.
+
+    See :func:`elastic_forces_and_stiffness`: read from ``rotation_out`` with ``given_rotation``, else the polar
+    part of ``F``, predicted on by the tet's spin with ``predict``, written to ``rotation_out``; the distance
+    gradients turned by the rotation at ``x`` are added to ``grad_out`` where it is not empty.
+    """
+    if given_rotation != 0:
+        return rotation_out[e]
+    R_here = rotation_of(F)
+    R = R_here
+    if predict != 0:
+        x0 = x[t[0]]
+        ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+        v0 = v[t[0]]
+        dv = wp.matrix_from_cols(v[t[1]] - v0, v[t[2]] - v0, v[t[3]] - v0)
+        R = spun(dv * wp.inverse(ds), dt, predict_least) * R_here
+    rotation_out[e] = R
+    if grad_out.shape[0] > 0:
+        add_rotated_gradients(t, R_here, rest_grad, grad_out)
+    return R
+
+
 @wp.kernel
 def elastic_forces_and_stiffness(
     # inputs: state
@@ -123,23 +166,9 @@ def elastic_forces_and_stiffness(
     """
     e = wp.tid()
     t = tets[e]
-    x0 = x[t[0]]
-    ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+    F = deformation_gradient(x, t, dm_inv[e])
+    R = step_rotation(F, x, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out)
     dmi = dm_inv[e]
-    F = ds * dmi
-    R = wp.mat33()
-    if given_rotation != 0:
-        R = rotation_out[e]
-    else:
-        R_here = rotation_of(F)
-        R = R_here
-        if predict != 0:
-            v0 = v[t[0]]
-            dv = wp.matrix_from_cols(v[t[1]] - v0, v[t[2]] - v0, v[t[3]] - v0)
-            R = spun(dv * wp.inverse(ds), dt, predict_least) * R_here
-        rotation_out[e] = R
-        if grad_out.shape[0] > 0:
-            add_rotated_gradients(t, R_here, rest_grad, grad_out)
 
     vol = rest_volume[e]
     mu = tet_mu[e]
@@ -159,6 +188,131 @@ def elastic_forces_and_stiffness(
                 gb = shape_gradient(dmi, b)
                 block = R * stiffness_block(ga, gb, vol, mu, lam) * wp.transpose(R)
                 wp.atomic_add(matrix_out, slot, scale * block)
+
+
+vec6i = wp.types.vector(length=6, dtype=wp.int32)
+"""A quadratic tet's edge nodes, on its edges (0,1), (0,2), (0,3), (1,2), (1,3), (2,3) in that order."""
+
+QUAD_A = wp.constant(0.5854101966249685)
+QUAD_B = wp.constant(0.1381966011250105)
+"""The four-point rule on a tet (exact to degree 2, weights V/4): point q has barycentric coordinate
+``QUAD_A`` at corner q and ``QUAD_B`` at the others."""
+
+
+@wp.func
+def edge_ends(k: int) -> wp.vec2i:
+    """The corners of edge ``k`` (0..5) of a tet, in :data:`vec6i`'s order."""
+    if k < 3:
+        return wp.vec2i(0, k + 1)
+    if k < 5:
+        return wp.vec2i(1, k - 1)
+    return wp.vec2i(2, 3)
+
+
+@wp.func
+def quadratic_gradient(dmi: wp.mat33, node: int, q: int) -> wp.vec3:
+    """Rest gradient (1/m) of the quadratic shape function of ``node`` (0-3 corners, 4-9 edges) at point ``q``.
+
+    Corner c: ``(4 l_c - 1) g_c``; edge (i, j): ``4 (l_i g_j + l_j g_i)``, with ``l`` the point's barycentric
+    coordinates and ``g`` the linear shape functions' gradients.
+    """
+    if node < 4:
+        lc = wp.where(node == q, QUAD_A, QUAD_B)
+        return (4.0 * lc - 1.0) * shape_gradient(dmi, node)
+    ends = edge_ends(node - 4)
+    li = wp.where(ends[0] == q, QUAD_A, QUAD_B)
+    lj = wp.where(ends[1] == q, QUAD_A, QUAD_B)
+    return 4.0 * (li * shape_gradient(dmi, ends[1]) + lj * shape_gradient(dmi, ends[0]))
+
+
+@wp.func
+def quadratic_node(t: wp.vec4i, edges: vec6i, node: int) -> int:
+    """Global index of local node ``node`` (0-3 the corners ``t``, 4-9 the ``edges``)."""
+    if node < 4:
+        return t[node]
+    return edges[node - 4]
+
+
+@wp.func
+def point_stress(
+    x: wp.array(dtype=wp.vec3), t: wp.vec4i, edges: vec6i, dmi: wp.mat33, R: wp.mat33, mu: float, lam: float, q: int
+) -> wp.mat33:
+    """``R sigma`` (Pa) at quadrature point ``q`` of a quadratic tet: the stress of ``sym(R^T F_q) - I``.
+
+    ``F_q`` sums the nodes' positions relative to corner 0 (the gradients sum to zero): absolute positions
+    would lose the float32 digits a small strain lives in.
+    """
+    x0 = x[t[0]]
+    Fq = wp.mat33()
+    for n in range(1, 10):
+        Fq += wp.outer(x[quadratic_node(t, edges, n)] - x0, quadratic_gradient(dmi, n, q))
+    RtF = wp.transpose(R) * Fq
+    ident = wp.identity(n=3, dtype=float)
+    eps = 0.5 * (RtF + wp.transpose(RtF)) - ident
+    return R * (2.0 * mu * eps + lam * wp.trace(eps) * ident)
+
+
+@wp.kernel
+def quadratic_forces_and_stiffness(
+    # inputs: state
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # inputs: model
+    tets: wp.array(dtype=wp.vec4i),
+    tet_edges: wp.array(dtype=vec6i),
+    dm_inv: wp.array(dtype=wp.mat33),
+    rest_volume: wp.array(dtype=float),
+    tet_mu: wp.array(dtype=float),
+    tet_lambda: wp.array(dtype=float),
+    tet_beta: wp.array(dtype=float),
+    node_slots: wp.array(dtype=wp.int32),
+    rest_grad: wp.array(dtype=wp.vec3),
+    # inputs: step
+    dt: float,
+    given_rotation: int,
+    predict: int,
+    predict_least: float,
+    # outputs
+    rotation_out: wp.array(dtype=wp.mat33),
+    force_out: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
+    grad_out: wp.array(dtype=wp.vec3),
+):
+    """:func:`elastic_forces_and_stiffness` for quadratic (10-node) tets.
+
+    One rotation per tet, that of its corners (as for a linear tet); the strain ``sym(R^T F_q) - I`` at each
+    of four quadrature points, ``F_q = sum_n x_n grad N_n(q)``; force ``f_n = -V/4 sum_q R sigma_q grad N_n(q)``
+    and blocks ``K_ab = V/4 sum_q K(grad N_a(q), grad N_b(q))``, warped and stored at ``node_slots[e*100 + a*10
+    + b]`` (-1 below the diagonal).
+    """
+    e = wp.tid()
+    t = tets[e]
+    edges = tet_edges[e]
+    dmi = dm_inv[e]
+    F = deformation_gradient(x, t, dmi)
+    R = step_rotation(F, x, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out)
+    w = 0.25 * rest_volume[e]
+    mu = tet_mu[e]
+    lam = tet_lambda[e]
+
+    P0 = point_stress(x, t, edges, dmi, R, mu, lam, 0)
+    P1 = point_stress(x, t, edges, dmi, R, mu, lam, 1)
+    P2 = point_stress(x, t, edges, dmi, R, mu, lam, 2)
+    P3 = point_stress(x, t, edges, dmi, R, mu, lam, 3)
+    for n in range(10):
+        f = P0 * quadratic_gradient(dmi, n, 0) + P1 * quadratic_gradient(dmi, n, 1)
+        f += P2 * quadratic_gradient(dmi, n, 2) + P3 * quadratic_gradient(dmi, n, 3)
+        wp.atomic_add(force_out, quadratic_node(t, edges, n), -w * f)
+
+    scale = dt * dt + dt * tet_beta[e]
+    for a in range(10):
+        for b in range(10):
+            slot = node_slots[e * 100 + a * 10 + b]
+            if slot >= 0:
+                K = wp.mat33()
+                for q in range(4):
+                    K += stiffness_block(quadratic_gradient(dmi, a, q), quadratic_gradient(dmi, b, q), w, mu, lam)
+                wp.atomic_add(matrix_out, slot, scale * (R * K * wp.transpose(R)))
 
 
 @wp.kernel

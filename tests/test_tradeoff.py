@@ -63,10 +63,11 @@ def test_sweep_rows_are_consistent(device, tmp_path):
 
 
 def test_presets_use_scene_keys():
-    keys = {"substeps", "cg_mode", "cg_iterations", "cg_tolerance", "faces", "maxh", "tets_across", "max_tets"}
+    keys = {"substeps", "cg_mode", "cg_iterations", "cg_tolerance", "elements", "faces", "maxh", "tets_across"}
     for preset in PRESETS.values():
-        assert set(preset) == keys
+        assert set(preset) == keys | {"max_tets"}
         assert preset["cg_mode"] in ("fixed", "tolerance")
+        assert preset["elements"] in ("linear", "quadratic")
 
 
 def test_command_rejects_a_file_as_out(tmp_path, capsys):

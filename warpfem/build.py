@@ -27,7 +27,7 @@ from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
 from warpfem.sim.drive import Handle, Motion, quat_of_matrix
 from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere
-from warpfem.sim.model import Model, ModelBuilder
+from warpfem.sim.model import Model, ModelBuilder, quadratic_nodes
 from warpfem.sim.solver import Solver
 
 
@@ -127,10 +127,12 @@ def add_prepared_body(
     prepared: PreparedBody,
     placed: tuple[np.ndarray, BodyGeometry],
     held: np.ndarray | None = None,
+    tet_edges: np.ndarray | None = None,
 ) -> None:
     """Add a preprocessed body, placed by :func:`placed_geometry`, with the materials of its scene object.
 
-    ``held``: a mask of tet vertices its handles hold (pinned, as those of its pin box).
+    ``held``: a mask of tet vertices its handles hold (pinned, as those of its pin box). ``tet_edges``: for
+    quadratic tets, each tet's edge nodes, placed after the corners (:func:`with_edge_nodes`).
     """
     tet_x, geometry = placed
     pinned = held
@@ -153,7 +155,16 @@ def add_prepared_body(
         embed_tet=prepared.embed_tet,
         embed_bary=prepared.embed_bary,
         self_collision=obj.self_collision,
+        tet_edges=tet_edges,
     )
+
+
+def with_edge_nodes(
+    prepared: PreparedBody, placed: tuple[np.ndarray, BodyGeometry]
+) -> tuple[tuple[np.ndarray, BodyGeometry], np.ndarray]:
+    """A placed body's nodes as quadratic tets (its tet vertices, then its edges' midpoints), each tet's edge nodes."""
+    nodes, tet_edges, _ = quadratic_nodes(placed[0], prepared.tets)
+    return (nodes, placed[1]), tet_edges
 
 
 def initial_velocity(
@@ -182,6 +193,7 @@ def add_body(
     surface_faces: np.ndarray | None = None,
     vertex_depth: np.ndarray | None = None,
     vertex_grad: np.ndarray | None = None,
+    quadratic: bool = False,
     **options: Any,
 ) -> int:
     """Add a tet mesh given in world coordinates (m), computing its geometry (:func:`body_geometry`).
@@ -198,6 +210,9 @@ def add_body(
         surface_faces: Outward boundary triangles (default: the tet mesh's boundary).
         vertex_depth: Distance to the surface at each vertex (m); computed when not given.
         vertex_grad: Outward unit gradient of that distance; computed when not given.
+        quadratic: Quadratic (10-node) tets: a node is added at each edge's midpoint, after ``vertices``; a
+            ``pinned`` mask or per-vertex ``velocity`` given for ``vertices`` extends to it (pinned where both
+            ends are, the mean velocity).
         **options: :meth:`ModelBuilder.add_body`'s other keywords (damping, ``velocity``, ``pinned``, the
             dense embedding, ``self_collision``).
 
@@ -205,6 +220,14 @@ def add_body(
         The body's index.
     """
     geometry = body_geometry(vertices, tets, collision_spacing, surface_faces, vertex_depth, vertex_grad)
+    if quadratic:
+        corners = len(vertices)
+        vertices, options["tet_edges"], ends = quadratic_nodes(vertices, tets)
+        for key, merge in (("pinned", np.logical_and), ("velocity", lambda a, b: 0.5 * (a + b))):
+            value = options.get(key)
+            if value is not None and np.ndim(value) >= 1 and len(value) == corners:
+                value = np.asarray(value)
+                options[key] = np.concatenate([value, merge(value[ends[:, 0]], value[ends[:, 1]])])
     return builder.add_body(name, vertices, tets, geometry, young, poisson, density, **options)
 
 

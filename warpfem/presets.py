@@ -12,6 +12,7 @@ PRESETS: dict[str, dict[str, object]] = {
         maxh=0.3,
         tets_across=0.0,
         max_tets=50000,
+        elements="linear",
     ),
     "default": dict(
         substeps=2,
@@ -20,8 +21,9 @@ PRESETS: dict[str, dict[str, object]] = {
         cg_tolerance=1e-3,
         faces=1000,
         maxh=0.2,
-        tets_across=4.0,
-        max_tets=6000,
+        tets_across=2.0,
+        max_tets=3000,
+        elements="quadratic",
     ),
     "high": dict(
         substeps=8,
@@ -30,10 +32,12 @@ PRESETS: dict[str, dict[str, object]] = {
         cg_tolerance=1e-5,
         faces=2000,
         maxh=0.15,
-        tets_across=8.0,
-        max_tets=30000,
+        tets_across=4.0,
+        max_tets=8000,
+        elements="quadratic",
     ),
 }
-"""Defaults for the scene's ``substeps``, the solver's ``cg_mode``, ``cg_iterations``, ``cg_tolerance`` and each
-object's ``faces``, ``maxh``, ``tets_across`` and ``max_tets``; keys the scene file sets itself win. Each is a
-measured point: its cost and its error on a dense cantilever through the whole pipeline are in docs/tradeoff.md."""
+"""Defaults for the scene's ``substeps``, the solver's ``cg_mode``, ``cg_iterations``, ``cg_tolerance`` and
+``elements``, and each object's ``faces``, ``maxh``, ``tets_across`` and ``max_tets``; keys the scene file sets
+itself win. Each is a measured point: its cost and its error on a dense cantilever through the whole pipeline
+are in docs/tradeoff.md."""

@@ -135,12 +135,11 @@ def _apply_preset(doc: dict[str, Any], origin: str) -> None:
     scene = doc.setdefault("scene", {})
     if isinstance(scene, dict):
         scene.setdefault("substeps", preset["substeps"])
-    for key in ("cg_mode", "cg_iterations", "cg_tolerance"):
+    for key in ("cg_mode", "cg_iterations", "cg_tolerance", "elements"):
         solver.setdefault(key, preset[key])
-    for obj in doc.get("object", []) if isinstance(doc.get("object"), list) else []:
-        if isinstance(obj, dict):
-            for key in ("faces", "maxh", "tets_across", "max_tets"):
-                obj.setdefault(key, preset[key])
+    for obj in (o for o in doc.get("object", []) if isinstance(o, dict)) if isinstance(doc.get("object"), list) else []:
+        for key in ("faces", "maxh", "tets_across", "max_tets"):
+            obj.setdefault(key, preset[key])
 
 
 @dataclass
@@ -155,6 +154,7 @@ class SolverConfig:
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
         rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
         rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
+        elements: ``"linear"`` (4-node) or ``"quadratic"`` (10-node) tets, which bend without locking.
         quality: A preset of :data:`PRESETS` whose values fill the keys the scene leaves unset, or None.
     """
 
@@ -163,6 +163,7 @@ class SolverConfig:
     cg_tolerance: float = 1e-4
     rotation_updates: int = 2
     rotation_tolerance: float = 0.01
+    elements: str = "linear"
     quality: str | None = None
 
     @property
@@ -174,6 +175,7 @@ class SolverConfig:
         """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
         err = _table(origin, "solver")
         _check_choice(err, "cg_mode", self.cg_mode, ("tolerance", "fixed"))
+        _check_choice(err, "elements", self.elements, ("linear", "quadratic"))
         _check_int(err, "cg_iterations", self.cg_iterations, 1)
         _check_range(err, "cg_tolerance", self.cg_tolerance, gt=0.0, lt=1.0)
         _check_int(err, "rotation_updates", self.rotation_updates, 0)

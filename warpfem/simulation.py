@@ -23,6 +23,7 @@ from warpfem.build import (
     prepare_scene,
     scene_samples,
     solver_of,
+    with_edge_nodes,
 )
 from warpfem.errors import InputError, SimulationError
 from warpfem.memory import check_fits, scene_estimate
@@ -193,11 +194,14 @@ class Simulation:
         samples = scene_samples(scene, prepared, folder)
         placed = [placed_geometry(*where) for where in zip(scene.objects, prepared, samples, strict=True)]
         check_fits(scene_estimate(scene, prepared, [geometry for _, geometry in placed]), dev.alias)
+        edges = [None] * len(placed)
+        if scene.solver.elements == "quadratic":
+            placed, edges = map(list, zip(*map(with_edge_nodes, prepared, placed), strict=True))
         held = held_masks(scene, [tet_x for tet_x, _ in placed])
         builder = ModelBuilder()
-        for obj, body, where in zip(scene.objects, prepared, placed, strict=True):
+        for obj, body, where, tet_edges in zip(scene.objects, prepared, placed, edges, strict=True):
             masks = [m for h, m in zip(scene.handles, held, strict=True) if h.object == obj.name]
-            add_prepared_body(builder, obj, body, where, np.any(masks, axis=0) if masks else None)
+            add_prepared_body(builder, obj, body, where, np.any(masks, axis=0) if masks else None, tet_edges)
         model = builder.finalize(dev)
         self._attach(model, solver_of(scene, model, cg_path, held), scene.substeps, scene.fps)
         self.seconds["build"] = time.perf_counter() - clock

@@ -25,6 +25,7 @@ def elastic_forces_and_stiffness(
 ) -> None:
     """Add every tet's corotational elastic force (N) and (dt^2 + dt beta) R K R^T to the outputs.
 
+    Linear or quadratic tets, as the model has.
     ``force_out`` and ``matrix_out`` are accumulated into (zero them first); ``rotation_out`` receives each
     tet's rotation at ``x``, or with ``given_rotation`` holds the rotations to linearise about; with
     velocities ``v`` (m/s) each rotation is predicted on by the tet's spin for ``dt`` where that turns more
@@ -36,19 +37,21 @@ def elastic_forces_and_stiffness(
     if grad_out is None:
         grad_out = wp.zeros(0, dtype=wp.vec3, device=model.device)
 
+    quadratic = model.quadratic
+    topology = [model.tets, model.tet_edges] if quadratic else [model.tets]
     wp.launch(
-        K.elastic_forces_and_stiffness,
+        K.quadratic_forces_and_stiffness if quadratic else K.elastic_forces_and_stiffness,
         dim=model.tet_count,
         inputs=[
             x,
             x if v is None else v,
-            model.tets,
+            *topology,
             model.dm_inv,
             model.rest_volume,
             model.tet_mu,
             model.tet_lambda,
             model.tet_beta,
-            model.tet_slots,
+            model.node_slots if quadratic else model.tet_slots,
             model.vertex_grad,
             dt,
             int(given_rotation),

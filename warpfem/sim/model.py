@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.errors import InputError
+from warpfem.kernels.fem import vec6i
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,11 @@ class Model:
     row_start: wp.array  # int32 (n+1), block CSR rows of the upper triangle (the matrix is symmetric)
     cols: wp.array  # int32 (nnz), block CSR columns (>= the row)
     diag_slot: wp.array  # int32 (n), the diagonal block of each row
-    tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e at e*16 + a*4 + b; -1 below the diagonal
+    tet_slots: (
+        wp.array
+    )  # int32 (16 q), slot of block (a, b) of tet e's corners at e*16 + a*4 + b; -1 below the diagonal
+    tet_edges: wp.array  # vec6i, each quadratic tet's edge nodes (see kernels.fem.vec6i); empty: linear tets
+    node_slots: wp.array  # int32 (100 q), quadratic tets: slot of block (a, b) of its 10 nodes; empty: linear tets
     dense_tet: wp.array  # int32, global tet of each dense vertex
     dense_bary: wp.array  # vec4, barycentric coordinates in that tet
     vertex_depth: wp.array  # float, signed depth of each tet vertex below its body's visible surface (m)
@@ -126,6 +131,11 @@ class Model:
         return self.dense_tet.shape[0]
 
     @property
+    def quadratic(self) -> bool:
+        """True if the tets are quadratic (10 nodes: corners and edge midpoints), False if linear."""
+        return self.tet_edges.shape[0] > 0
+
+    @property
     def nnz_blocks(self) -> int:
         """Number of 3x3 blocks stored for the system matrix (its upper triangle)."""
         return self.cols.shape[0]
@@ -154,24 +164,25 @@ def lame(young: float, poisson: float) -> tuple[float, float]:
     return mu, lam
 
 
-def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def block_pattern(elements: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sparsity pattern of the upper triangle (row <= column) of the symmetric 3x3-block matrix of a tet mesh.
 
     Storing one triangle halves the bytes a product reads (the product applies each off-diagonal block
     and its transpose) and the assembly's atomics.
 
     Args:
-        tets: (q, 4) vertex indices.
+        elements: (q, k) node indices of each tet (k = 4 corners, or 10 for quadratic tets).
         vertex_count: Number of vertices n (every vertex gets a diagonal block).
 
     Returns:
-        row_start (n+1), cols (nnz), diag_slot (n), tet_slots (16 q; -1 for the blocks below the diagonal,
-        whose transposes are the slots of the blocks above) as int32 arrays.
+        row_start (n+1), cols (nnz), diag_slot (n), slots (k*k q: block (a, b) of tet e at e*k*k + a*k + b;
+        -1 for the blocks below the diagonal, whose transposes are the slots of the blocks above) as int32 arrays.
     """
     n = np.int64(vertex_count)
-    t = tets.astype(np.int64)
-    rows = np.repeat(t[:, :, None], 4, axis=2).ravel()
-    cols = np.repeat(t[:, None, :], 4, axis=1).ravel()
+    t = elements.astype(np.int64)
+    k = t.shape[1]
+    rows = np.repeat(t[:, :, None], k, axis=2).ravel()
+    cols = np.repeat(t[:, None, :], k, axis=1).ravel()
     keys = rows * n + cols
     upper = rows <= cols
     diag = np.arange(n, dtype=np.int64) * (n + 1)
@@ -185,6 +196,44 @@ def block_pattern(tets: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.n
         np.searchsorted(unique, diag).astype(np.int32),
         np.where(upper, np.searchsorted(unique, keys), -1).astype(np.int32),
     )
+
+
+EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+"""A tet's edges as corner pairs, in the order of its edge nodes (``kernels.fem.vec6i``)."""
+
+
+def quadratic_nodes(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nodes of quadratic tets on a linear tet mesh: its vertices, then one node at each edge's midpoint.
+
+    Args:
+        vertices: (p, 3) tet vertices (m).
+        tets: (q, 4) tets.
+
+    Returns:
+        (p + e, 3) node positions, (q, 6) each tet's edge nodes in the order of :data:`EDGES`, and (e, 2) the
+        two vertices of each edge node's edge.
+    """
+    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
+    ends = np.sort(tets[:, np.array(EDGES)], axis=2).reshape(-1, 2)
+    unique, which = np.unique(ends, axis=0, return_inverse=True)
+    nodes = np.concatenate([vertices, 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]])])
+    return nodes, (len(vertices) + which.reshape(-1, 6)).astype(np.int32), unique.astype(np.int32)
+
+
+def lumped_mass(vertex_count: int, tets: np.ndarray, tet_mass: np.ndarray, tet_edges: np.ndarray | None) -> np.ndarray:
+    """Each node's lumped mass (kg) from each tet's mass ``tet_mass`` (kg).
+
+    Linear tets: a quarter per corner. Quadratic tets (``tet_edges`` given): the diagonal of the consistent
+    mass matrix scaled to the tet's mass (HRZ: 1/36 per corner, 4/27 per edge node; row sums would give the
+    corners negative masses).
+    """
+    mass = np.zeros(vertex_count)
+    if tet_edges is None:
+        np.add.at(mass, tets.ravel(), np.repeat(tet_mass / 4.0, 4))
+    else:
+        np.add.at(mass, tets.ravel(), np.repeat(tet_mass / 36.0, 4))
+        np.add.at(mass, tet_edges.ravel(), np.repeat(tet_mass * 4.0 / 27.0, 6))
+    return mass
 
 
 SKIN_WEIGHT = 1.0e-2
@@ -216,6 +265,34 @@ def _checked_tets(
         bad = int(np.argmin(volume))
         raise InputError(f"body '{name}': tet {bad} has zero or negative volume ({volume[bad]:.3g} m^3)")
     return vertices, tets, d, volume, size
+
+
+def _checked_edges(name: str, tets: np.ndarray, edges: np.ndarray, corners: int, nodes: int) -> np.ndarray:
+    """``edges`` checked against ``tets``: what :func:`quadratic_nodes` makes.
+
+    (q, 6) node indices past the ``corners`` that the tets use, one node of its own for each edge.
+
+    Raises:
+        InputError: Wrong shape, an index out of range, or edge nodes that do not match the tets' edges.
+    """
+    if edges.shape != (len(tets), 6):
+        raise InputError(f"body '{name}': tet_edges must have shape ({len(tets)}, 6), got {edges.shape}")
+    if tets.max() >= corners or edges.min() < corners or edges.max() >= nodes:
+        raise InputError(f"body '{name}': tet_edges must index the nodes after the {corners} tet corners")
+    ends = np.sort(tets[:, np.array(EDGES)], axis=2).reshape(-1, 2).astype(np.int64)
+    pairs = np.unique(np.column_stack([edges.ravel(), ends]), axis=0)
+    if len(np.unique(pairs[:, 0])) != len(pairs) or len(np.unique(pairs[:, 1:], axis=0)) != len(pairs):
+        raise InputError(f"body '{name}': tet_edges do not give each tet edge one node of its own")
+    return edges
+
+
+def _on_edges(values: np.ndarray, tets: np.ndarray, edges: np.ndarray, nodes: int) -> np.ndarray:
+    """Per-corner ``values`` extended to ``nodes`` nodes, each edge node the mean of its edge's two corners."""
+    out = np.zeros((nodes, *values.shape[1:]))
+    out[: len(values)] = values
+    ends = tets[:, np.array(EDGES)]
+    out[edges.ravel()] = 0.5 * (values[ends[..., 0]] + values[ends[..., 1]]).reshape(-1, *values.shape[1:])
+    return out
 
 
 class BodyArrays(Protocol):
@@ -266,6 +343,7 @@ class ModelBuilder:
         embed_tet: np.ndarray | None = None,
         embed_bary: np.ndarray | None = None,
         self_collision: bool = False,
+        tet_edges: np.ndarray | None = None,
     ) -> int:
         """Add a body in world coordinates.
 
@@ -285,6 +363,9 @@ class ModelBuilder:
             embed_tet: (n,) tet of each dense vertex (local index); None: no dense mesh.
             embed_bary: (n, 4) barycentric coordinates; required with ``embed_tet``.
             self_collision: Whether the body collides with itself.
+            tet_edges: For quadratic tets, (q, 6) each tet's edge nodes among ``vertices`` (made by
+                :func:`quadratic_nodes`, which puts them after the corners ``geometry`` describes); None: linear.
+                The elastic force is quadratic; contacts and the dense mesh follow the corners.
 
         Returns:
             The body's index.
@@ -294,26 +375,31 @@ class ModelBuilder:
         """
         vertices, tets, d, volume, size = _checked_tets(name, vertices, tets)
         mu, lam = lame(young, poisson)
-        mass = np.zeros(len(vertices))
-        np.add.at(mass, tets.ravel(), np.repeat(density * volume / 4.0, 4))
+        corner_mass = lumped_mass(len(vertices), tets, density * volume, None)
+        g = geometry
+        depth, grad = np.asarray(g.vertex_depth, np.float64), np.asarray(g.vertex_grad, np.float64).reshape(-1, 3)
+        if tet_edges is not None:
+            tet_edges = _checked_edges(name, tets, np.asarray(tet_edges, np.int32), len(depth), len(vertices))
+            nodes = len(vertices)
+            depth, grad = _on_edges(depth, tets, tet_edges, nodes), _on_edges(grad, tets, tet_edges, nodes)
+        mass = lumped_mass(len(vertices), tets, density * volume, tet_edges)
         free = mass > 0.0
         if pinned is not None:
             free &= ~np.asarray(pinned, dtype=bool)
-        g = geometry
         point_bary = np.asarray(g.point_bary, np.float64)
         embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
         embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
         if len(g.skin_tet):  # the static colliders' points, given: each holds as its tet's corners would
             skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
-            skin_mass = np.einsum("pk,pk->p", skin_bary, mass[tets[skin_tet]])
+            skin_mass = np.einsum("pk,pk->p", skin_bary, corner_mass[tets[skin_tet]])
         else:  # the dense vertices outside the tets, each an equal share of the body's mass
             skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
             skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
-            skin_mass = np.full(len(skin_tet), mass.sum() / max(len(embed_tet), 1))
+            skin_mass = np.full(len(skin_tet), corner_mass.sum() / max(len(embed_tet), 1))
         if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
-            point_mass = np.full(len(g.point_tet), mass.sum() / max(len(g.point_tet), 1))
+            point_mass = np.full(len(g.point_tet), corner_mass.sum() / max(len(g.point_tet), 1))
         else:
-            point_mass = np.einsum("pk,pk->p", point_bary, mass[tets[g.point_tet]])
+            point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[g.point_tet]])
         self._bodies.append(
             dict(
                 name=name,
@@ -334,8 +420,9 @@ class ModelBuilder:
                 skin_tet=skin_tet,
                 skin_bary=skin_bary,
                 skin_mass=skin_mass,
-                depth=np.asarray(g.vertex_depth, np.float64),
-                grad=np.asarray(g.vertex_grad, np.float64),
+                depth=depth,
+                grad=grad,
+                edges=np.zeros((0, 6), np.int32) if tet_edges is None else tet_edges,
                 size=size,
                 self_collision=bool(self_collision),
                 point_tet=np.asarray(g.point_tet, np.int32),
@@ -357,7 +444,19 @@ class ModelBuilder:
             raise InputError("a scene needs at least one body")
         device = wp.get_device(device)
         bodies, flat = self._flatten()
-        row_start, cols, diag_slot, tet_slots = block_pattern(flat["tets"], len(flat["x"]))
+        quadratic = [len(b["edges"]) > 0 for b in self._bodies]
+        if any(quadratic) and not all(quadratic):
+            raise InputError("a scene's bodies must all have linear tets or all quadratic tets")
+        q = len(flat["tets"])
+        if all(quadratic):
+            row_start, cols, diag_slot, node_slots = block_pattern(
+                np.hstack([flat["tets"], flat["edges"]]), len(flat["x"])
+            )
+            tet_slots = node_slots.reshape(q, 10, 10)[:, :4, :4].ravel()
+        else:
+            row_start, cols, diag_slot, tet_slots = block_pattern(flat["tets"], len(flat["x"]))
+            node_slots = np.zeros(0, np.int32)
+        edges = flat["edges"].astype(np.int32) if all(quadratic) else np.zeros((0, 6), np.int32)
 
         def arr(key: str, dtype, np_type=np.float32) -> wp.array:
             return wp.array(np.ascontiguousarray(flat[key].astype(np_type)), dtype=dtype, device=device)
@@ -383,7 +482,9 @@ class ModelBuilder:
             row_start=arr_of(row_start, wp.int32),
             cols=arr_of(cols, wp.int32),
             diag_slot=arr_of(diag_slot, wp.int32),
-            tet_slots=arr_of(tet_slots, wp.int32),
+            tet_slots=arr_of(np.ascontiguousarray(tet_slots), wp.int32),
+            tet_edges=arr_of(edges, vec6i),
+            node_slots=arr_of(node_slots, wp.int32),
             dense_tet=arr("embed_tet", wp.int32, i32),
             dense_bary=arr("embed_bary", wp.vec4),
             vertex_depth=arr("depth", float),
@@ -440,6 +541,7 @@ class ModelBuilder:
             f0 += len(flat)
             s0 += len(b["surface_faces"])
             add("tets", b["tets"] + v0)
+            add("edges", b["edges"] + v0)
             add("embed_tet", b["embed_tet"] + t0)
             add("skin_tet", b["skin_tet"] + t0)
             add("point_tet", b["point_tet"] + t0)
@@ -460,5 +562,6 @@ class ModelBuilder:
         flat["embed_bary"] = flat["embed_bary"].reshape(-1, 4)
         flat["skin_bary"] = flat["skin_bary"].reshape(-1, 4)
         flat["grad"] = flat["grad"].reshape(-1, 3)
+        flat["edges"] = flat["edges"].reshape(-1, 6)
         flat["tet_faces"] = flat["tet_faces"].reshape(-1, 3)
         return bodies, flat
