@@ -92,9 +92,25 @@ def stiffness_block(ga: wp.vec3, gb: wp.vec3, vol: float, mu: float, lam: float)
 
 
 @wp.func
+def edge_matrix(x: wp.array(dtype=wp.vec3), t: wp.vec4i) -> wp.mat33:
+    """``Ds``: the edges from corner 0 to corners 1-3 of the tet with corners ``t`` at ``x``, as columns (m)."""
+    o = x[t[0]]
+    return wp.matrix_from_cols(x[t[1]] - o, x[t[2]] - o, x[t[3]] - o)
+
+
+@wp.func
+def rotated_stress(R: wp.mat33, F: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """``R sigma`` (Pa): the linear stress of the strain ``sym(R^T F) - I`` in the frame turned by ``R``."""
+    RtF = wp.transpose(R) * F
+    ident = wp.identity(n=3, dtype=float)
+    eps = 0.5 * (RtF + wp.transpose(RtF)) - ident
+    return R * (2.0 * mu * eps + lam * wp.trace(eps) * ident)
+
+
+@wp.func
 def step_rotation(
+    ds: wp.mat33,
     F: wp.mat33,
-    x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     t: wp.vec4i,
     e: int,
@@ -106,19 +122,17 @@ def step_rotation(
     rotation_out: wp.array(dtype=wp.mat33),
     grad_out: wp.array(dtype=wp.vec3),
 ) -> wp.mat33:
-    """The rotation tet ``e`` (corners ``t``, deformation gradient ``F`` at ``x``) is linearised about this step.
+    """The rotation tet ``e`` (corners ``t``, edge matrix ``ds``, deformation gradient ``F``) is linearised about.
 
     See :func:`elastic_forces_and_stiffness`: read from ``rotation_out`` with ``given_rotation``, else the polar
     part of ``F``, predicted on by the tet's spin with ``predict``, written to ``rotation_out``; the distance
-    gradients turned by the rotation at ``x`` are added to ``grad_out`` where it is not empty.
+    gradients turned by the rotation at the tet's positions are added to ``grad_out`` where it is not empty.
     """
     if given_rotation != 0:
         return rotation_out[e]
     R_here = rotation_of(F)
     R = R_here
     if predict != 0:
-        x0 = x[t[0]]
-        ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
         v0 = v[t[0]]
         dv = wp.matrix_from_cols(v[t[1]] - v0, v[t[2]] - v0, v[t[3]] - v0)
         R = spun(dv * wp.inverse(ds), dt, predict_least) * R_here
@@ -166,17 +180,15 @@ def elastic_forces_and_stiffness(
     """
     e = wp.tid()
     t = tets[e]
-    F = deformation_gradient(x, t, dm_inv[e])
-    R = step_rotation(F, x, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out)
     dmi = dm_inv[e]
+    ds = edge_matrix(x, t)
+    F = ds * dmi
+    R = step_rotation(ds, F, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out)
 
     vol = rest_volume[e]
     mu = tet_mu[e]
     lam = tet_lambda[e]
-    RtF = wp.transpose(R) * F
-    eps = 0.5 * (RtF + wp.transpose(RtF)) - wp.identity(n=3, dtype=float)
-    sigma = 2.0 * mu * eps + lam * wp.trace(eps) * wp.identity(n=3, dtype=float)
-    P = R * sigma
+    P = rotated_stress(R, F, mu, lam)
 
     scale = dt * dt + dt * tet_beta[e]
     for a in range(4):
@@ -246,10 +258,7 @@ def point_stress(
     Fq = wp.mat33()
     for n in range(1, 10):
         Fq += wp.outer(x[quadratic_node(t, edges, n)] - x0, quadratic_gradient(dmi, n, q))
-    RtF = wp.transpose(R) * Fq
-    ident = wp.identity(n=3, dtype=float)
-    eps = 0.5 * (RtF + wp.transpose(RtF)) - ident
-    return R * (2.0 * mu * eps + lam * wp.trace(eps) * ident)
+    return rotated_stress(R, Fq, mu, lam)
 
 
 @wp.kernel
@@ -289,8 +298,10 @@ def quadratic_forces_and_stiffness(
     t = tets[e]
     edges = tet_edges[e]
     dmi = dm_inv[e]
-    F = deformation_gradient(x, t, dmi)
-    R = step_rotation(F, x, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out)
+    ds = edge_matrix(x, t)
+    R = step_rotation(
+        ds, ds * dmi, v, t, e, dt, given_rotation, predict, predict_least, rest_grad, rotation_out, grad_out
+    )
     w = 0.25 * rest_volume[e]
     mu = tet_mu[e]
     lam = tet_lambda[e]

@@ -5,7 +5,10 @@ A dense triangulated 1 x 0.1 x 0.1 m beam (E 1e7 Pa, nu 0.3 unless --poisson, 10
 dense tip sag compared with NGSolve's converged nonlinear answer (computed here unless --reference-sag).
 
     .venv/bin/python scripts/preset_beam.py [--presets preview default high] [--device cpu]
-        [--reference-sag 0.1447865891312432] [--json OUT.json]
+        [--elements linear quadratic] [--cache-dir DIR] [--reference-sag 0.1447865891312432] [--json OUT.json]
+
+``--elements`` runs each preset with each of those elements instead of its own; ``--json`` writes the rows
+with the device, driver, Warp version and commit.
 
 With --assets MESH..., prints instead what each preset makes of those meshes (tets and faces, sized by
 thickness and, as before, by the bounding box alone) without simulating.
@@ -57,6 +60,8 @@ def main() -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--poisson", type=float, default=0.3)
     parser.add_argument("--reference-sag", type=float, default=None, help="NGSolve's converged sag (m), if known")
+    parser.add_argument("--elements", nargs="+", choices=("linear", "quadratic"), default=[None])
+    parser.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: a new one)")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     parser.add_argument("--assets", nargs="+", type=Path, default=None, help="mesh files to prepare instead")
     args = parser.parse_args()
@@ -69,21 +74,29 @@ def main() -> int:
 
         reference = converged_sag(beam, nonlinear=True, rtol=1e-3, orders=(2, 3, 4)).sag
     print(f"NGSolve converged nonlinear sag: {1e3 * reference:.2f} mm (nu {beam.poisson})")
-    print("| preset | tets | coarse faces | ms/frame | sag mm | sag error |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| preset | elements | tets | coarse faces | ms/frame | sag mm | sag error |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     rows = []
     with tempfile.TemporaryDirectory() as work:
         mesh = write_beam(Path(work) / "beam.obj", beam)
+        cache = args.cache_dir or Path(work) / "cache"
         for preset in args.presets:
-            point = measure(preset, mesh, reference, Path(work) / "cache", beam, args.device)
-            rows.append(dataclasses.asdict(point))
-            print(
-                f"| {preset} | {point.tets} | {point.coarse_faces} | {point.ms_per_frame:.1f} |"
-                f" {1e3 * point.sag:.2f} | {100 * point.sag_error:+.1f} % |",
-                flush=True,
-            )
+            for elements in args.elements:
+                point = measure(preset, mesh, reference, cache, beam, args.device, elements)
+                rows.append(dataclasses.asdict(point))
+                print(
+                    f"| {preset} | {point.elements} | {point.tets} | {point.coarse_faces} | {point.ms_per_frame:.1f} |"
+                    f" {1e3 * point.sag:.2f} | {100 * point.sag_error:+.1f} % |",
+                    flush=True,
+                )
     if args.json:
-        args.json.write_text(json.dumps({"reference_sag": reference, "device": args.device, "rows": rows}, indent=1))
+        import warp as wp
+
+        sys.path.insert(0, str(Path(__file__).parent))
+        from bench import environment
+
+        run = environment(wp.get_device(args.device))
+        args.json.write_text(json.dumps({**run, "reference_sag": reference, "rows": rows}, indent=1))
     return 0
 
 

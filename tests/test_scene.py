@@ -157,6 +157,8 @@ ERRORS = [
     ("frames 0", "[scene]\nframes = 0\n" + OBJ, "scene.frames", ">= 1, got 0"),
     ("up axis X", '[scene]\nup_axis = "X"\n' + OBJ, "scene.up_axis", 'must be "Y" or "Z"'),
     ("cg_mode foo", '[solver]\ncg_mode = "foo"\n' + OBJ, "solver.cg_mode", '"tolerance" or "fixed"'),
+    ("elements cubic", '[solver]\nelements = "cubic"\n' + OBJ, "solver.elements", '"linear" or "quadratic"'),
+    ("elements 2", "[solver]\nelements = 2\n" + OBJ, "solver.elements", '"linear" or "quadratic", got 2'),
     ("cg_iterations 0", "[solver]\ncg_iterations = 0\n" + OBJ, "solver.cg_iterations", ">= 1"),
     ("cg_tolerance 1", "[solver]\ncg_tolerance = 1.0\n" + OBJ, "solver.cg_tolerance", "< 1"),
     ("cg_tolerance 0", "[solver]\ncg_tolerance = 0\n" + OBJ, "solver.cg_tolerance", "> 0"),

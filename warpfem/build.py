@@ -27,7 +27,7 @@ from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
 from warpfem.sim.drive import Handle, Motion, quat_of_matrix
 from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere
-from warpfem.sim.model import Model, ModelBuilder, quadratic_nodes
+from warpfem.sim.model import Model, ModelBuilder, on_edge_nodes, quadratic_nodes
 from warpfem.sim.solver import Solver
 
 
@@ -163,7 +163,7 @@ def with_edge_nodes(
     prepared: PreparedBody, placed: tuple[np.ndarray, BodyGeometry]
 ) -> tuple[tuple[np.ndarray, BodyGeometry], np.ndarray]:
     """A placed body's nodes as quadratic tets (its tet vertices, then its edges' midpoints), each tet's edge nodes."""
-    nodes, tet_edges, _ = quadratic_nodes(placed[0], prepared.tets)
+    nodes, tet_edges = quadratic_nodes(placed[0], prepared.tets)
     return (nodes, placed[1]), tet_edges
 
 
@@ -222,12 +222,12 @@ def add_body(
     geometry = body_geometry(vertices, tets, collision_spacing, surface_faces, vertex_depth, vertex_grad)
     if quadratic:
         corners = len(vertices)
-        vertices, options["tet_edges"], ends = quadratic_nodes(vertices, tets)
-        for key, merge in (("pinned", np.logical_and), ("velocity", lambda a, b: 0.5 * (a + b))):
+        vertices, edges = quadratic_nodes(vertices, tets)
+        options["tet_edges"] = edges
+        for key, merge in (("pinned", np.logical_and), ("velocity", None)):
             value = options.get(key)
             if value is not None and np.ndim(value) >= 1 and len(value) == corners:
-                value = np.asarray(value)
-                options[key] = np.concatenate([value, merge(value[ends[:, 0]], value[ends[:, 1]])])
+                options[key] = on_edge_nodes(value, tets, edges, len(vertices), merge)
     return builder.add_body(name, vertices, tets, geometry, young, poisson, density, **options)
 
 

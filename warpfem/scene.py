@@ -97,12 +97,7 @@ def _check_range(
 ) -> None:
     """Check a finite number against the bounds given (``gt``: >, ``ge``: >=, ``lt``: <, ``le``: <=)."""
     _check_float(err, key, value)
-    checks = [
-        (">", gt, operator.gt),
-        (">=", ge, operator.ge),
-        ("<", lt, operator.lt),
-        ("<=", le, operator.le),
-    ]
+    checks = [(">", gt, operator.gt), (">=", ge, operator.ge), ("<", lt, operator.lt), ("<=", le, operator.le)]
     checks = [(op, bound, holds) for op, bound, holds in checks if bound is not None]
     if not all(holds(value, bound) for _, bound, holds in checks):
         bounds = " and ".join(f"{op} {bound:g}" for op, bound, _ in checks)
@@ -137,9 +132,10 @@ def _apply_preset(doc: dict[str, Any], origin: str) -> None:
         scene.setdefault("substeps", preset["substeps"])
     for key in ("cg_mode", "cg_iterations", "cg_tolerance", "elements"):
         solver.setdefault(key, preset[key])
-    for obj in (o for o in doc.get("object", []) if isinstance(o, dict)) if isinstance(doc.get("object"), list) else []:
-        for key in ("faces", "maxh", "tets_across", "max_tets"):
-            obj.setdefault(key, preset[key])
+    for obj in doc.get("object", []) if isinstance(doc.get("object"), list) else []:
+        if isinstance(obj, dict):
+            for key in ("faces", "maxh", "tets_across", "max_tets"):
+                obj.setdefault(key, preset[key])
 
 
 @dataclass

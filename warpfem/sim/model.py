@@ -85,9 +85,7 @@ class Model:
     row_start: wp.array  # int32 (n+1), block CSR rows of the upper triangle (the matrix is symmetric)
     cols: wp.array  # int32 (nnz), block CSR columns (>= the row)
     diag_slot: wp.array  # int32 (n), the diagonal block of each row
-    tet_slots: (
-        wp.array
-    )  # int32 (16 q), slot of block (a, b) of tet e's corners at e*16 + a*4 + b; -1 below the diagonal
+    tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e's corners at e*16 + a*4 + b; -1 below
     tet_edges: wp.array  # vec6i, each quadratic tet's edge nodes (see kernels.fem.vec6i); empty: linear tets
     node_slots: wp.array  # int32 (100 q), quadratic tets: slot of block (a, b) of its 10 nodes; empty: linear tets
     dense_tet: wp.array  # int32, global tet of each dense vertex
@@ -202,7 +200,12 @@ EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 """A tet's edges as corner pairs, in the order of its edge nodes (``kernels.fem.vec6i``)."""
 
 
-def quadratic_nodes(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _edge_ends(tets: np.ndarray) -> np.ndarray:
+    """(6 q, 2) the two corners of each tet's edges in the order of :data:`EDGES`, the smaller first."""
+    return np.sort(np.asarray(tets, np.int64)[:, np.array(EDGES)], axis=2).reshape(-1, 2)
+
+
+def quadratic_nodes(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The nodes of quadratic tets on a linear tet mesh: its vertices, then one node at each edge's midpoint.
 
     Args:
@@ -210,14 +213,27 @@ def quadratic_nodes(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray,
         tets: (q, 4) tets.
 
     Returns:
-        (p + e, 3) node positions, (q, 6) each tet's edge nodes in the order of :data:`EDGES`, and (e, 2) the
-        two vertices of each edge node's edge.
+        (p + e, 3) node positions and (q, 6) each tet's edge nodes, in the order of :data:`EDGES`.
     """
-    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
-    ends = np.sort(tets[:, np.array(EDGES)], axis=2).reshape(-1, 2)
-    unique, which = np.unique(ends, axis=0, return_inverse=True)
-    nodes = np.concatenate([vertices, 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]])])
-    return nodes, (len(vertices) + which.reshape(-1, 6)).astype(np.int32), unique.astype(np.int32)
+    vertices = np.asarray(vertices, np.float64)
+    unique, which = np.unique(_edge_ends(tets), axis=0, return_inverse=True)
+    edges = (len(vertices) + which.reshape(-1, 6)).astype(np.int32)
+    return on_edge_nodes(vertices, tets, edges, len(vertices) + len(unique)), edges
+
+
+def on_edge_nodes(values: np.ndarray, tets: np.ndarray, edges: np.ndarray, nodes: int, merge=None) -> np.ndarray:
+    """Per-vertex ``values`` of a tet mesh extended to the ``nodes`` nodes of its quadratic tets.
+
+    Each edge node (``edges``, as :func:`quadratic_nodes` numbers them) takes ``merge`` of its edge's two
+    corners' values: their mean by default (``np.logical_and``: true where both are).
+    """
+    values = np.asarray(values)
+    merge = merge or (lambda a, b: 0.5 * (a + b))
+    ends = _edge_ends(tets)
+    out = np.zeros((nodes, *values.shape[1:]), dtype=merge(values[:1], values[:1]).dtype)
+    out[: len(values)] = values
+    out[np.asarray(edges).ravel()] = merge(values[ends[:, 0]], values[ends[:, 1]])
+    return out
 
 
 def lumped_mass(vertex_count: int, tets: np.ndarray, tet_mass: np.ndarray, tet_edges: np.ndarray | None) -> np.ndarray:
@@ -279,20 +295,10 @@ def _checked_edges(name: str, tets: np.ndarray, edges: np.ndarray, corners: int,
         raise InputError(f"body '{name}': tet_edges must have shape ({len(tets)}, 6), got {edges.shape}")
     if tets.max() >= corners or edges.min() < corners or edges.max() >= nodes:
         raise InputError(f"body '{name}': tet_edges must index the nodes after the {corners} tet corners")
-    ends = np.sort(tets[:, np.array(EDGES)], axis=2).reshape(-1, 2).astype(np.int64)
-    pairs = np.unique(np.column_stack([edges.ravel(), ends]), axis=0)
+    pairs = np.unique(np.column_stack([edges.ravel(), _edge_ends(tets)]), axis=0)
     if len(np.unique(pairs[:, 0])) != len(pairs) or len(np.unique(pairs[:, 1:], axis=0)) != len(pairs):
         raise InputError(f"body '{name}': tet_edges do not give each tet edge one node of its own")
     return edges
-
-
-def _on_edges(values: np.ndarray, tets: np.ndarray, edges: np.ndarray, nodes: int) -> np.ndarray:
-    """Per-corner ``values`` extended to ``nodes`` nodes, each edge node the mean of its edge's two corners."""
-    out = np.zeros((nodes, *values.shape[1:]))
-    out[: len(values)] = values
-    ends = tets[:, np.array(EDGES)]
-    out[edges.ravel()] = 0.5 * (values[ends[..., 0]] + values[ends[..., 1]]).reshape(-1, *values.shape[1:])
-    return out
 
 
 class BodyArrays(Protocol):
@@ -381,8 +387,8 @@ class ModelBuilder:
         if tet_edges is not None:
             tet_edges = _checked_edges(name, tets, np.asarray(tet_edges, np.int32), len(depth), len(vertices))
             nodes = len(vertices)
-            depth, grad = _on_edges(depth, tets, tet_edges, nodes), _on_edges(grad, tets, tet_edges, nodes)
-        mass = lumped_mass(len(vertices), tets, density * volume, tet_edges)
+            depth, grad = on_edge_nodes(depth, tets, tet_edges, nodes), on_edge_nodes(grad, tets, tet_edges, nodes)
+        mass = corner_mass if tet_edges is None else lumped_mass(len(vertices), tets, density * volume, tet_edges)
         free = mass > 0.0
         if pinned is not None:
             free &= ~np.asarray(pinned, dtype=bool)
@@ -448,15 +454,13 @@ class ModelBuilder:
         if any(quadratic) and not all(quadratic):
             raise InputError("a scene's bodies must all have linear tets or all quadratic tets")
         q = len(flat["tets"])
+        edges = flat["edges"].astype(np.int32)
         if all(quadratic):
-            row_start, cols, diag_slot, node_slots = block_pattern(
-                np.hstack([flat["tets"], flat["edges"]]), len(flat["x"])
-            )
+            row_start, cols, diag_slot, node_slots = block_pattern(np.hstack([flat["tets"], edges]), len(flat["x"]))
             tet_slots = node_slots.reshape(q, 10, 10)[:, :4, :4].ravel()
         else:
             row_start, cols, diag_slot, tet_slots = block_pattern(flat["tets"], len(flat["x"]))
             node_slots = np.zeros(0, np.int32)
-        edges = flat["edges"].astype(np.int32) if all(quadratic) else np.zeros((0, 6), np.int32)
 
         def arr(key: str, dtype, np_type=np.float32) -> wp.array:
             return wp.array(np.ascontiguousarray(flat[key].astype(np_type)), dtype=dtype, device=device)

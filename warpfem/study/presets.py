@@ -38,6 +38,7 @@ class PresetPoint:
         ms_per_frame: Mean wall time per output frame after the first (ms).
         sag: Settled tip sag of the dense mesh (m, downwards).
         sag_error: ``sag / reference - 1`` (negative: too stiff).
+        elements: The tets' elements, ``"linear"`` or ``"quadratic"``.
     """
 
     preset: str
@@ -46,6 +47,7 @@ class PresetPoint:
     ms_per_frame: float
     sag: float
     sag_error: float
+    elements: str = "linear"
 
 
 def beam_surface(beam: Cantilever, spacing: float = DENSE_SPACING) -> tuple[np.ndarray, np.ndarray]:
@@ -68,15 +70,18 @@ def write_beam(path: Path, beam: Cantilever, spacing: float = DENSE_SPACING) -> 
     return Path(path)
 
 
-def beam_scene(mesh: Path, preset: str, beam: Cantilever, seconds: float = SETTLE_SECONDS):
-    """The scene: the beam from ``mesh`` with ``quality = preset``, held still at x <= 0, no ground."""
+def beam_scene(mesh: Path, preset: str, beam: Cantilever, seconds: float = SETTLE_SECONDS, elements: str | None = None):
+    """The scene: the beam from ``mesh`` with ``quality = preset``, held still at x <= 0, no ground.
+
+    ``elements``: ``[solver] elements`` instead of the preset's.
+    """
     from warpfem.scene import Scene
 
     fps = 60.0
     margin = beam.length  # the handle's box reaches well past the beam except at its clamped end
     doc = {
         "scene": {"frames": round(seconds * fps), "fps": fps, "gravity": [0.0, -beam.gravity, 0.0]},
-        "solver": {"quality": preset},
+        "solver": {"quality": preset} | ({} if elements is None else {"elements": elements}),
         "ground": {"enabled": False},
         "object": [
             {
@@ -113,17 +118,18 @@ def measure(
     cache_dir: Path,
     beam: Cantilever | None = None,
     device: str = "cpu",
+    elements: str | None = None,
 ) -> PresetPoint:
     """Prepare and simulate the beam at ``preset``; score its settled dense tip sag against ``reference_sag`` (m).
 
     ``cache_dir`` is the preprocessing cache (the body is prepared once, for its stats, then read back);
-    ``beam``: default :class:`~warpfem.study.reference.Cantilever`.
+    ``beam``: default :class:`~warpfem.study.reference.Cantilever`; ``elements``: instead of the preset's.
     """
     from warpfem.build import prepare_scene
     from warpfem.simulation import Simulation
 
     beam = beam or Cantilever()
-    scene = beam_scene(mesh, preset, beam)
+    scene = beam_scene(mesh, preset, beam, elements=elements)
     stats = prepare_scene(scene, cache_dir)[0].stats
     sim = Simulation(scene, device=device, cache_dir=cache_dir)
     rest = np.asarray(sim.dense_points("beam"), dtype=np.float64)
@@ -134,4 +140,5 @@ def measure(
         seconds.append(time.perf_counter() - start)
     sag = tip_sag(rest, np.asarray(sim.dense_points("beam"), dtype=np.float64), beam)
     ms = 1e3 * float(np.mean(seconds[1:]))
-    return PresetPoint(preset, int(stats["tets"]), int(stats["coarse_faces"]), ms, sag, sag / reference_sag - 1.0)
+    tets, faces = int(stats["tets"]), int(stats["coarse_faces"])
+    return PresetPoint(preset, tets, faces, ms, sag, sag / reference_sag - 1.0, scene.solver.elements)
