@@ -535,3 +535,145 @@ def advance_positions(
     dv_out[i] = vi - v[i]
     if not (wp.isfinite(xi) and wp.isfinite(vi)):
         wp.atomic_min(bad_vertex_out, 0, i)
+
+
+@wp.kernel
+def mark_touched_vertices(
+    free: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    diag_slot: wp.array(dtype=wp.int32),
+    matrix_base: wp.array(dtype=wp.mat33),
+    late: wp.array(dtype=wp.int32),
+    vertex_body: wp.array(dtype=wp.int32),
+    dt: float,
+    touched_out: wp.array(dtype=wp.int32),
+):
+    """Marks the body of a vertex that something outside the body acts on this step.
+
+    That is a pin or handle, or a contact: the vertex's diagonal block of the system without elasticity is
+    more than its damped mass, or a late static contact marked it.
+    """
+    i = wp.tid()
+    d = (1.0 + dt * alpha[i]) * mass[i]
+    extra = matrix_base[diag_slot[i]] - d * wp.identity(n=3, dtype=float)
+    most = float(0.0)
+    for r in range(3):
+        for c in range(3):
+            most = wp.max(most, wp.abs(extra[r, c]))
+    marked = late.shape[0] > 0 and late[i] != 0
+    if free[i] == 0 or most > 1.0e-5 * d or marked:
+        touched_out[vertex_body[i]] = 1
+
+
+@wp.kernel
+def mark_touched_points(
+    late: wp.array(dtype=wp.int32),
+    point_tet: wp.array(dtype=wp.int32),
+    tet_body: wp.array(dtype=wp.int32),
+    touched_out: wp.array(dtype=wp.int32),
+):
+    """Marks the body of each skin point a late static contact acted on."""
+    s = wp.tid()
+    if late[s] != 0:
+        touched_out[tet_body[point_tet[s]]] = 1
+
+
+@wp.kernel
+def mark_touched_pairs(
+    count: wp.array(dtype=wp.int32),
+    verts_a: wp.array(dtype=wp.vec4i),
+    verts_b: wp.array(dtype=wp.vec4i),
+    vertex_body: wp.array(dtype=wp.int32),
+    touched_out: wp.array(dtype=wp.int32),
+):
+    """Marks both bodies of each live contact pair."""
+    k = wp.tid()
+    if k < count[0]:
+        touched_out[vertex_body[verts_a[k][0]]] = 1
+        touched_out[vertex_body[verts_b[k][0]]] = 1
+
+
+@wp.kernel
+def rigid_sums(
+    x: wp.array(dtype=wp.vec3),
+    v_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rhs_base: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    vertex_body: wp.array(dtype=wp.int32),
+    body_first: wp.array(dtype=wp.int32),
+    touched: wp.array(dtype=wp.int32),
+    dt: float,
+    weight_out: wp.array(dtype=float),
+    moment_out: wp.array(dtype=wp.vec3),
+    force_out: wp.array(dtype=wp.vec3),
+    torque_out: wp.array(dtype=wp.vec3),
+    second_out: wp.array(dtype=wp.mat33),
+    momentum_out: wp.array(dtype=wp.vec3),
+    spin_out: wp.array(dtype=wp.vec3),
+):
+    """Per untouched body, the sums its rigid correction needs.
+
+    With positions ``y`` taken from the body's first vertex: damped masses d, d y, the residual
+    r = rhs_base - d v of the system without elasticity, y x r, d y y^T, and the momentum d v and its moment
+    y x d v at the step's start (``v_start``).
+    """
+    i = wp.tid()
+    b = vertex_body[i]
+    if touched[b] != 0:
+        return
+    d = (1.0 + dt * alpha[i]) * mass[i]
+    y = x[i] - x[body_first[b]]
+    r = rhs_base[i] - d * v[i]
+    p = d * v_start[i]
+    wp.atomic_add(weight_out, b, d)
+    wp.atomic_add(moment_out, b, d * y)
+    wp.atomic_add(force_out, b, r)
+    wp.atomic_add(torque_out, b, wp.cross(y, r))
+    wp.atomic_add(second_out, b, d * wp.outer(y, y))
+    wp.atomic_add(momentum_out, b, p)
+    wp.atomic_add(spin_out, b, wp.cross(y, p))
+
+
+@wp.kernel
+def rigid_correct(
+    x: wp.array(dtype=wp.vec3),
+    vertex_body: wp.array(dtype=wp.int32),
+    body_first: wp.array(dtype=wp.int32),
+    touched: wp.array(dtype=wp.int32),
+    weight: wp.array(dtype=float),
+    moment: wp.array(dtype=wp.vec3),
+    force: wp.array(dtype=wp.vec3),
+    torque: wp.array(dtype=wp.vec3),
+    second: wp.array(dtype=wp.mat33),
+    momentum: wp.array(dtype=wp.vec3),
+    spin: wp.array(dtype=wp.vec3),
+    dt: float,
+    turn_limit: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Moves an untouched body's velocities by the rigid motion that zeroes its residual's force and torque.
+
+    The torque about the centre of mass is zeroed only while the body turns less than ``turn_limit`` (rad) a
+    step: a step's velocities turn a body along the chord of its rotation, whose moment falls short of its
+    angular momentum as the turn grows, so no torque balance holds for a fast spin. The body's momentum
+    then changes by exactly the impulse of gravity and damping.
+    """
+    i = wp.tid()
+    b = vertex_body[i]
+    if touched[b] != 0:
+        return
+    total = weight[b]
+    c = moment[b] / total
+    ident = wp.identity(n=3, dtype=float)
+    s = second[b]
+    inertia = (wp.trace(s) * ident - s) - total * (wp.dot(c, c) * ident - wp.outer(c, c))
+    turn = wp.vec3()
+    if wp.determinant(inertia) > 0.0:
+        inverse = wp.inverse(inertia)
+        if wp.length(inverse * (spin[b] - wp.cross(c, momentum[b]))) * dt < turn_limit:
+            turn = inverse * (torque[b] - wp.cross(c, force[b]))
+    y = x[i] - x[body_first[b]]
+    v_out[i] = v_out[i] + force[b] / total + wp.cross(turn, y - c)

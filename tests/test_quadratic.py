@@ -157,15 +157,9 @@ def _quadratic_energy(x, v, mass, vertices, tets, edges, young, poisson):
 @pytest.mark.parametrize("young", (1e3, 1e9))
 @pytest.mark.parametrize("poisson", (0.0, 0.49))
 @pytest.mark.parametrize("dt", (1 / 1000, 1 / 24))
-def test_material_and_time_step_extremes(request, device, young, poisson, dt):
-    """A cube released stretched 30 % and squeezed 20 %, in free flight, gains no energy and keeps its shape."""
-    if device.startswith("cuda") and (young, poisson, dt) == (1e9, 0.49, 1 / 24):
-        request.applymarker(
-            pytest.mark.xfail(
-                reason="on an H100 this case went from 1e6 J to 3.2e7 J at its third step (the CPU "
-                "passes); not yet understood, see docs/decisions.md"
-            )
-        )
+def test_material_and_time_step_extremes(device, young, poisson, dt):
+    """A cube released stretched 30 % and squeezed 20 %, in free flight, gains no energy in any step and keeps
+    its shape. The CG statistics are read after every step, as a run reads them after each frame."""
     V, T = box_tet_mesh((0, 0, 0), (0.2, 0.2, 0.2), (2, 2, 2))
     b = ModelBuilder()
     add_body(b, "cube", V, T, young, poisson, 1000.0, quadratic=True)
@@ -181,8 +175,11 @@ def test_material_and_time_step_extremes(request, device, young, poisson, dt):
         x, v = s0.x.numpy().astype(np.float64), s0.v.numpy().astype(np.float64)
         energies.append(_quadratic_energy(x, v, mass, rest, T, edges, young, poisson))
         solver.step(s0, s1, dt)
+        solver.read_cg_stats()
         s0, s1 = s1, s0
     assert solver.first_bad_vertex() is None
     assert np.isfinite(energies).all()
-    assert max(energies) <= energies[0] * (1 + 1e-2) + 1e-9, energies
+    allowed = 1e-2 * energies[0] + 1e-6
+    assert max(energies) <= energies[0] + allowed, energies
+    assert np.diff(energies).max() <= allowed, energies
     assert np.ptp(s0.x.numpy(), axis=0).max() < 2.0  # nothing flew apart

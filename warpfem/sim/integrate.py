@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
+from warpfem.sim.contacts import Coupling
 from warpfem.sim.drive import Motion, quat_of_matrix
 from warpfem.sim.launch import spread_block_dim
 from warpfem.sim.model import Model, State
@@ -424,3 +425,122 @@ def advance_positions(
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )
+
+
+FLOAT32_EPS = 6.0e-8
+"""Float32's unit roundoff."""
+
+RIGID_TURN_LIMIT = 0.05
+"""A body turning faster than this a step (rad) keeps the torque its solve left (see ``rigid_correct``)."""
+
+RIGID_GATE = 1.0e-3
+"""Where the float32 rounding of a body's stiffness blocks, as a share of its vertices' mass, exceeds this
+(:meth:`RigidCorrection.needed`), each step corrects its momentum: below it the rounding is out of reach."""
+
+
+class RigidCorrection:
+    """Keeps the momentum of bodies nothing outside acts on exactly what gravity and damping make it.
+
+    At E dt^2 / (rho h^2) around 1e7 (a 1 GPa body at 24 steps a second), float32 rounding of the stiffness
+    blocks exceeds the mass terms, so the system's rigid motions are lost in it: CG stalls, and the motion it
+    returns along them is noise that can feed energy in. Elastic forces are internal and change no momentum,
+    so after a solve each body without pins, handles or contacts this step takes the rigid motion that zeroes
+    the force and torque of its residual without the elastic terms (``rhs_base``, needed; mass and damping
+    only, nothing large). Bodies in contact are left as the solve answered.
+    """
+
+    def __init__(self, model: Model, rhs_base: wp.array, matrix_base: wp.array, late: tuple[wp.array, wp.array]):
+        """Allocates the per-body sums; takes each body's stiffness rate from ``model``.
+
+        ``late``: the solver's flags of the tet vertices and skin points that late static contacts acted on
+        (each empty, or one per vertex or skin point).
+        """
+        self.model, self.rhs_base, self.matrix_base, self.late = model, rhs_base, matrix_base, late
+        dev, nb = model.device, len(model.bodies)
+        self.body_first = wp.array([b.vertex_start for b in model.bodies], dtype=wp.int32, device=dev)
+        self.touched = wp.zeros(nb, dtype=wp.int32, device=dev)
+        self.weight = wp.zeros(nb, dtype=float, device=dev)
+        self.moment = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.force = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.torque = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.second = wp.zeros(nb, dtype=wp.mat33, device=dev)
+        self.momentum = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.spin = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.rate = _stiffness_rate(model)
+        self._needed: dict[float, bool] = {}
+
+    def needed(self, dt: float) -> bool:
+        """Whether some body's stiffness rounding at step ``dt`` (s) exceeds :data:`RIGID_GATE` of its mass."""
+        if dt not in self._needed:
+            self._needed[dt] = bool(np.any(FLOAT32_EPS * dt * dt * self.rate > RIGID_GATE))
+        return self._needed[dt]
+
+    def apply(self, x: wp.array, v_start: wp.array, v: wp.array, dt: float, coupling: Coupling | None) -> None:
+        """Corrects ``v`` (the solve's answer, m/s) of each untouched body; ``x``, ``v_start``: the step's start."""
+        model, dev = self.model, self.model.device
+        n = model.vertex_count
+        block = spread_block_dim(n, dev)
+        sums = [self.weight, self.moment, self.force, self.torque, self.second, self.momentum, self.spin]
+        for a in (self.touched, *sums):
+            a.zero_()
+        wp.launch(
+            K.mark_touched_vertices,
+            dim=n,
+            inputs=[model.free, model.mass, model.alpha, model.diag_slot, self.matrix_base, self.late[0],
+                    model.vertex_body, dt],
+            outputs=[self.touched],
+            device=dev,
+            block_dim=block,
+        )  # fmt: skip
+        if self.late[1].shape[0]:
+            wp.launch(
+                K.mark_touched_points,
+                dim=self.late[1].shape[0],
+                inputs=[self.late[1], model.skin_tet, model.tet_body],
+                outputs=[self.touched],
+                device=dev,
+                block_dim=spread_block_dim(self.late[1].shape[0], dev),
+            )
+        if coupling is not None and coupling.matrix.shape[0]:
+            wp.launch(
+                K.mark_touched_pairs,
+                dim=coupling.matrix.shape[0],
+                inputs=[coupling.count, coupling.verts_a, coupling.verts_b, model.vertex_body],
+                outputs=[self.touched],
+                device=dev,
+                block_dim=spread_block_dim(coupling.matrix.shape[0], dev),
+            )
+        per_vertex = [model.mass, model.alpha, model.vertex_body, self.body_first, self.touched]
+        wp.launch(
+            K.rigid_sums,
+            dim=n,
+            inputs=[x, v_start, v, self.rhs_base, *per_vertex, dt],
+            outputs=sums,
+            device=dev,
+            block_dim=block,
+        )
+        wp.launch(
+            K.rigid_correct,
+            dim=n,
+            inputs=[x, model.vertex_body, self.body_first, self.touched, *sums, dt, RIGID_TURN_LIMIT],
+            outputs=[v],
+            device=dev,
+            block_dim=block,
+        )
+
+
+def _stiffness_rate(model: Model) -> np.ndarray:
+    """Per body, the largest (lambda + 2 mu) V |grad N|^2 / m over its tets and corners (1/s^2).
+
+    That is a tet's stiffness block over its corner's mass; times dt^2, their ratio in the system.
+    """
+    tets = model.tets.numpy()
+    g = model.dm_inv.numpy()  # rows: the gradients of barycentric coordinates 1-3
+    grads = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)  # (q, 4, 3)
+    modulus = model.tet_lambda.numpy() + 2.0 * model.tet_mu.numpy()
+    block = modulus[:, None] * model.rest_volume.numpy()[:, None] * np.sum(grads * grads, axis=2)
+    mass = np.maximum(model.mass.numpy()[tets], 1e-30)
+    per_tet = np.max(block / mass, axis=1)
+    rate = np.zeros(len(model.bodies))
+    np.maximum.at(rate, model.tet_body.numpy(), per_tet)
+    return rate

@@ -17,7 +17,7 @@ from warpfem.sim import fem, integrate
 from warpfem.sim.cg import CGSolver, CGStats
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
 from warpfem.sim.drive import Drive, Handle
-from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
+from warpfem.sim.integrate import Box, Ground, MeshCollider, RigidCorrection, Sphere, StaticColliders
 from warpfem.sim.model import Model, State
 
 DEFAULT_GROUND = Ground()
@@ -136,6 +136,8 @@ class Solver:
             wp.zeros(model.skin_tet.shape[0] if static else 0, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
+        self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base, self.late) if apart else None
+        """Momentum of bodies nothing outside acts on, kept exact where float32 loses it (with ``apart`` only)."""
         # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
@@ -214,7 +216,7 @@ class Solver:
                 self.drive.pose(state_in.x, dt)
             self._assemble(state_in, state_out, dt)
             self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
-            self._advance(state_in, state_out, dt)
+            self._finish(state_in, state_out, dt)
             if self.rotation_updates:
                 self._update_rotations(state_in, state_out, dt, 1)
             self._late_passes(state_in, state_out, dt)
@@ -258,6 +260,16 @@ class Solver:
             self.rhs, self.diag_inv,
         )  # fmt: skip
 
+    def _finish(self, state_in: State, state_out: State, dt: float) -> None:
+        """After a solve: the rigid correction where needed, then the positions.
+
+        (:class:`~warpfem.sim.integrate.RigidCorrection`.)
+        """
+        if self.rigid is not None and self.rigid.needed(dt):
+            coupling = self.collider.coupling if self.collider is not None else None
+            self.rigid.apply(state_in.x, state_in.v, state_out.v, dt, coupling)
+        self._advance(state_in, state_out, dt)
+
     def _advance(self, state_in: State, state_out: State, dt: float) -> None:
         integrate.advance_positions(
             self.model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
@@ -279,7 +291,7 @@ class Solver:
         )  # fmt: skip
         self._add_elastic(dt)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
-        self._advance(state_in, state_out, dt)
+        self._finish(state_in, state_out, dt)
         if k < self.rotation_updates:
             self._update_rotations(state_in, state_out, dt, k + 1)
 
@@ -301,7 +313,7 @@ class Solver:
     def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
-        self._advance(state_in, state_out, dt)
+        self._finish(state_in, state_out, dt)
 
     @property
     def rotation_updates(self) -> int:
