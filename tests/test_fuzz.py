@@ -114,3 +114,13 @@ def test_truncated_or_damaged_meshes_load_or_fail_in_one_line(folder, suffix, cu
         assert "\n" not in str(err) and str(path) in str(err)
     else:
         assert len(surface.faces) > 0 and len(surface.vertices) >= 4
+
+
+def test_a_ply_cut_inside_its_header_is_a_one_line_error(tmp_path):
+    """A PLY file that ends before its header does (a truncated download) is refused in one line, at once:
+    meshio, the fallback reader, would wait forever for the header's last line."""
+    path = tmp_path / "cut.ply"
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n")
+    with pytest.raises(InputError, match="end_header") as err:
+        load_surface(path)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)

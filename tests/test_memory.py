@@ -61,3 +61,23 @@ def test_a_mesh_obstacle_is_counted_at_least_as_warp_allocates_it():
         gc.enable()
     need = memory.estimate([], [], [], False, obstacle_meshes=[(len(vertices), len(faces))]).parts["obstacles"]
     assert colliders.meshes and kept <= need <= 1.75 * kept, (kept, need)
+
+
+@pytest.mark.parametrize("quadratic", (False, True))
+def test_the_estimate_counts_the_nodes_and_blocks_the_model_allocates(quadratic):
+    """Tet vertices (with quadratic tets, the edge nodes too) and stored matrix blocks, counted by the estimate
+    from the tets alone, are what the built model holds."""
+    from warpfem.build import add_body
+    from warpfem.prep.shapes import box_tet_mesh
+    from warpfem.sim.model import ModelBuilder
+
+    V, T = box_tet_mesh((0, 0, 0), (0.4, 0.2, 0.1), (4, 2, 1))
+    b = ModelBuilder()
+    add_body(b, "box", V, T, 1e6, 0.3, 1000.0, quadratic=quadratic)
+    model = b.finalize("cpu")
+    parts = memory.estimate([T], [0], [0], False, quadratic=quadratic).parts
+    assert parts["tet vertices"] == memory.VERTEX_BYTES * model.vertex_count
+    gather = memory.BLOCK_BYTES + memory.GATHER_BLOCK_BYTES
+    assert parts["matrix"] == gather * model.nnz_blocks
+    extra = memory.QUADRATIC_TET_BYTES if quadratic else 0
+    assert parts["tets"] == (memory.TET_BYTES + extra) * len(T)

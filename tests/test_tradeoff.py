@@ -32,6 +32,8 @@ def test_bad_setting_is_input_error():
         Setting(cells=0)
     with pytest.raises(InputError, match="rotation_updates"):
         Setting(rotation_updates=-1)
+    with pytest.raises(InputError, match="elements"):
+        Setting(elements="cubic")
 
 
 SCENE = BeamScene(beam=Cantilever(young=1e7), seconds=0.25, dense_cells=2)
@@ -43,6 +45,7 @@ def test_sweep_rows_are_consistent(device, tmp_path):
         run_setting(SCENE, Setting("a", cells=1, substeps=1, cg_mode="fixed", cg_iterations=5), device),
         run_setting(SCENE, Setting("b", cells=2, substeps=4, cg_tolerance=1e-6, cg_iterations=2000), device),
         run_setting(SCENE, Setting("c", cells=1, substeps=1, cg_tolerance=1e-6, rotation_updates=0), device),
+        run_setting(SCENE, Setting("d", cells=1, substeps=4, cg_tolerance=1e-6, elements="quadratic"), device),
     ]
     assert runs[0].tets == 60 and runs[1].tets == 480
     assert runs[0].cg_iterations_per_step == 5
@@ -54,8 +57,10 @@ def test_sweep_rows_are_consistent(device, tmp_path):
     write_csv(tmp_path / "t.csv", rows)
     with open(tmp_path / "t.csv") as f:
         table = list(csv.DictReader(f))
-    assert [r["knob"] for r in table] == ["a", "b", "c"]
-    assert [r["rotation_updates"] for r in table] == ["default", "default", "0"]
+    assert [r["knob"] for r in table] == ["a", "b", "c", "d"]
+    assert [r["rotation_updates"] for r in table] == ["default", "default", "0", "default"]
+    assert [r["elements"] for r in table] == ["linear", "linear", "linear", "quadratic"]
+    assert runs[3].tets == 60 and runs[3].setting.label.endswith(", quadratic")
     assert runs[2].setting.label == "cells 1, 1 substeps, CG tol 1e-06, 0 rotation updates"
     assert float(table[1]["trajectory_error_m"]) == pytest.approx(rows[1].trajectory_error, rel=1e-3, abs=1e-9)
     plot(tmp_path / "t.png", rows, "test")

@@ -34,6 +34,9 @@ TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
 16 matrix slots, rotation."""
 
+QUADRATIC_TET_BYTES = 424
+"""More bytes per quadratic tet: its 6 edge nodes and the matrix slots of its 10 x 10 node blocks."""
+
 BLOCK_BYTES = 115
 """Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table, and
 the elastic and other blocks kept apart for rotation updates."""
@@ -112,15 +115,30 @@ def format_bytes(size: int | float) -> str:
     return f"{size:.1f} TB"
 
 
-def matrix_blocks(tets: np.ndarray) -> int:
-    """Stored blocks of the 3x3-block stiffness matrix of a tet mesh (its upper triangle): one per vertex and edge."""
-    tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
-    if len(tets) == 0:
+def matrix_blocks(elements: np.ndarray) -> int:
+    """Stored blocks of the 3x3-block stiffness matrix of a mesh of (q, k)-node elements (its upper triangle).
+
+    One per node and one per pair of nodes that share an element.
+    """
+    elements = np.asarray(elements, dtype=np.int64)
+    if elements.size == 0:
         return 0
-    pairs = tets[:, [0, 0, 0, 1, 1, 2]], tets[:, [1, 2, 3, 2, 3, 3]]
-    lo, hi = np.minimum(*pairs).ravel(), np.maximum(*pairs).ravel()
-    edges = np.unique(lo * (int(tets.max()) + 1) + hi).size
-    return int(np.unique(tets).size) + edges
+    k = elements.shape[1]
+    a, b = np.triu_indices(k, 1)
+    lo = np.minimum(elements[:, a], elements[:, b]).ravel()
+    hi = np.maximum(elements[:, a], elements[:, b]).ravel()
+    pairs = np.unique(lo * (int(elements.max()) + 1) + hi).size
+    return int(np.unique(elements).size) + pairs
+
+
+def quadratic_elements(tets: np.ndarray) -> np.ndarray:
+    """The (q, 10) nodes of quadratic tets on a (q, 4) tet mesh: its corners, then a node per distinct edge."""
+    tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    a, b = np.triu_indices(4, 1)
+    ends = np.sort(np.stack([tets[:, a], tets[:, b]], axis=2), axis=2).reshape(-1, 2)
+    _, which = np.unique(ends, axis=0, return_inverse=True)
+    first = int(tets.max()) + 1 if len(tets) else 0
+    return np.concatenate([tets, first + which.reshape(-1, 6)], axis=1)
 
 
 def estimate(
@@ -132,6 +150,7 @@ def estimate(
     surface_faces: Sequence[int] = (),
     obstacle_meshes: Sequence[tuple[int, int]] = (),
     dense_meshes: Sequence[tuple[int, int]] = (),
+    quadratic: bool = False,
 ) -> Estimate:
     """Estimate the device memory of a scene from its preprocessed bodies.
 
@@ -147,6 +166,8 @@ def estimate(
         obstacle_meshes: ``(vertices, triangles)`` of each mesh obstacle.
         dense_meshes: ``(vertices, triangles)`` of each distinct dense surface (copies of one prepared body
             share one), which the collider keeps as a ``wp.Mesh`` for the depth of contacts.
+        quadratic: Quadratic (10-node) tets: a node on each edge, which the solver counts as a vertex, and
+            100 blocks' slots and 6 edge nodes per tet.
 
     Returns:
         The estimate by part.
@@ -155,10 +176,11 @@ def estimate(
     from warpfem.sim.cg import GATHER_MAX_ROWS
 
     q = sum(len(t) for t in tets)
-    n = sum(int(np.unique(t).size) for t in tets)
-    blocks = sum(matrix_blocks(t) for t in tets)
+    elements = [quadratic_elements(t) if quadratic else np.asarray(t).reshape(-1, 4) for t in tets]
+    n = sum(int(np.unique(e).size) for e in elements)
+    blocks = sum(matrix_blocks(e) for e in elements)
     parts = {
-        "tets": TET_BYTES * q
+        "tets": (TET_BYTES + (QUADRATIC_TET_BYTES if quadratic else 0)) * q
         + TET_FACE_BYTES * sum(tet_face_refs)
         + LATTICE_POINT_BYTES * LATTICE_POINTS * sum(surface_faces),
         "tet vertices": VERTEX_BYTES * n,
@@ -186,7 +208,9 @@ def scene_estimate(scene: Scene, prepared: Sequence[PreparedBody], geometry: Seq
     dense = [len(p.dense_vertices) for p in prepared]
     shapes = {id(p): (len(p.dense_vertices), len(p.dense_faces)) for p in prepared}
     faces = [len(g.face_depth) for g in geometry]
-    return estimate([p.tets for p in prepared], dense, points, collider, refs, faces, meshes, list(shapes.values()))
+    quadratic = scene.solver.elements == "quadratic"
+    tets = [p.tets for p in prepared]
+    return estimate(tets, dense, points, collider, refs, faces, meshes, list(shapes.values()), quadratic)
 
 
 def _mesh_size(scene: Scene, index: int) -> tuple[int, int]:

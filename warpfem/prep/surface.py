@@ -235,6 +235,18 @@ def _read_file(path: Path, prim: str | None = None) -> tuple[np.ndarray, np.ndar
     return vertices, faces.reshape(-1, 3)
 
 
+PLY_HEADER_BYTES = 1 << 20
+"""The most bytes a PLY header may take before its ``end_header`` line."""
+
+
+def _check_ply_header(path: Path) -> None:
+    """Raise ValueError unless the PLY file's header ends (an ``end_header`` line) within its first bytes."""
+    with open(path, "rb") as stream:
+        head = stream.read(PLY_HEADER_BYTES)
+    if not any(line.strip() == b"end_header" for line in head.splitlines()):
+        raise ValueError("PLY header has no end_header line (truncated file?)")
+
+
 def _read_trimesh_or_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a PLY, STL or OFF through trimesh, or through meshio where trimesh fails or finds no faces.
 
@@ -242,6 +254,8 @@ def _read_trimesh_or_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """
     import trimesh
 
+    if path.suffix.lower() == ".ply":
+        _check_ply_header(path)  # meshio, the fallback, loops forever on a header that never ends
     error: Exception | None = None
     vertices, faces = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     try:

@@ -28,6 +28,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from warpfem.errors import InputError
+from warpfem.presets import PRESETS
 from warpfem.study.reference import Cantilever
 
 FPS = 60.0
@@ -51,6 +52,7 @@ class Setting:
         cg_tolerance: Relative residual to stop at (tolerance mode only).
         rotation_updates: Solves of a step re-linearised about the rotations its last solve reached
             (``[solver] rotation_updates``; 0: one linear solve per step; None: the solver's default).
+        elements: ``"linear"`` (4-node) or ``"quadratic"`` (10-node) tets (``[solver] elements``).
     """
 
     knob: str = "baseline"
@@ -60,6 +62,7 @@ class Setting:
     cg_iterations: int = 200
     cg_tolerance: float = 1e-4
     rotation_updates: int | None = None
+    elements: str = "linear"
 
     def __post_init__(self) -> None:
         if self.cells < 1 or self.substeps < 1 or self.cg_iterations < 1:
@@ -70,6 +73,8 @@ class Setting:
             raise InputError(f"cg_mode must be 'fixed' or 'tolerance', got {self.cg_mode!r}")
         if self.cg_mode == "tolerance" and not 0.0 < self.cg_tolerance < 1.0:
             raise InputError(f"cg_tolerance must be in (0, 1), got {self.cg_tolerance}")
+        if self.elements not in ("linear", "quadratic"):
+            raise InputError(f"elements must be 'linear' or 'quadratic', got {self.elements!r}")
 
     @property
     def dt(self) -> float:
@@ -78,11 +83,12 @@ class Setting:
 
     @property
     def label(self) -> str:
-        """A short description, e.g. ``cells 2, 4 substeps, CG tol 1e-04``."""
+        """A short description, e.g. ``cells 2, 4 substeps, CG tol 1e-04`` (``, quadratic`` for 10-node tets)."""
         cg = f"CG {self.cg_iterations} it" if self.cg_mode == "fixed" else f"CG tol {self.cg_tolerance:.0e}"
         n = self.rotation_updates
         updates = "" if n is None else f", {n} rotation update{'' if n == 1 else 's'}"
-        return f"cells {self.cells}, {self.substeps} substeps, {cg}{updates}"
+        quadratic = ", quadratic" if self.elements == "quadratic" else ""
+        return f"cells {self.cells}, {self.substeps} substeps, {cg}{updates}{quadratic}"
 
 
 @dataclass(frozen=True)
@@ -129,7 +135,7 @@ class Run:
 
     Attributes:
         setting: The setting.
-        tets: Tets of the coarse mesh.
+        tets: Tets of the coarse mesh (of 4 or 10 nodes, as the setting's ``elements``).
         coarse_faces: Boundary triangles of the coarse mesh.
         ms_per_frame: Mean wall time per output frame after the first (ms): steps, dense mapping, read-back.
         cg_iterations_per_step: Mean CG iterations per step.
@@ -175,6 +181,7 @@ def run_setting(scene: BeamScene, setting: Setting, device: str | None = None) -
         pinned=vertices[:, 0] < 1e-9 * beam.length,
         embed_tet=dense_tet,
         embed_bary=dense_bary,
+        quadratic=setting.elements == "quadratic",
     )
     model = builder.finalize(device)
     solver = Solver(
@@ -260,6 +267,7 @@ def quick_settings() -> tuple[list[Setting], Setting]:
     settings += [Setting("cells", cells=c) for c in (1, 3)]
     settings += [Setting("substeps", substeps=s) for s in (1, 2, 8)]
     settings += [Setting("rotation_updates", rotation_updates=r) for r in (0, 1)]
+    settings += [Setting("elements", cells=c, elements="quadratic") for c in (1, 2)]
     settings += [
         Setting("combined", cells=1, substeps=1, cg_mode="fixed", cg_iterations=10),
         Setting("combined", cells=1, substeps=2, cg_tolerance=1e-2),
@@ -267,7 +275,13 @@ def quick_settings() -> tuple[list[Setting], Setting]:
         Setting("combined", cells=3, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
     ]
     reference = Setting(
-        "reference", cells=4, substeps=16, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=5000, rotation_updates=8
+        "reference",
+        cells=3,
+        substeps=16,
+        cg_tolerance=TIGHTEST_TOLERANCE,
+        cg_iterations=5000,
+        rotation_updates=8,
+        elements="quadratic",
     )
     return settings, reference
 
@@ -280,12 +294,19 @@ def full_settings() -> tuple[list[Setting], Setting]:
         Setting("cg_tolerance", cg_tolerance=t, cg_iterations=2000) for t in (1e-1, 3e-2, 1e-2, 1e-3, 1e-5, 1e-6)
     ]
     settings += [Setting("rotation_updates", substeps=n, rotation_updates=r) for n in (1, 4) for r in (0, 1, 4)]
+    settings += [Setting("elements", cells=c, elements="quadratic") for c in (1, 2, 3, 4)]
     for cells in (1, 2, 3, 4, 6):
         for substeps in (1, 2, 4, 8, 16):
             for tol in (1e-2, 1e-4):
                 settings.append(Setting("cells x substeps", cells=cells, substeps=substeps, cg_tolerance=tol))
     reference = Setting(
-        "reference", cells=8, substeps=32, cg_tolerance=TIGHTEST_TOLERANCE, cg_iterations=10000, rotation_updates=8
+        "reference",
+        cells=6,
+        substeps=32,
+        cg_tolerance=TIGHTEST_TOLERANCE,
+        cg_iterations=10000,
+        rotation_updates=8,
+        elements="quadratic",
     )
     return settings, reference
 
@@ -493,6 +514,7 @@ CSV_FIELDS = (
     "cg_iterations",
     "cg_tolerance",
     "rotation_updates",
+    "elements",
     "ms_per_frame",
     "cg_iterations_per_step",
     "trajectory_error_m",
@@ -521,6 +543,7 @@ def write_csv(path: Path, rows: list[Row]) -> None:
                     s.cg_iterations,
                     f"{s.cg_tolerance:.0e}" if s.cg_mode == "tolerance" else "",
                     "default" if s.rotation_updates is None else s.rotation_updates,
+                    s.elements,
                     f"{r.run.ms_per_frame:.4g}",
                     f"{r.run.cg_iterations_per_step:.4g}",
                     f"{r.trajectory_error:.4g}",
@@ -575,10 +598,21 @@ def plot(path: Path, rows: list[Row], title: str) -> None:
     plt.close(fig)
 
 
+PRESET_CELLS = {"preview": 1, "default": 2, "high": 4}
+"""The beam's cells across its thickness standing in for each preset's ``tets_across`` (preview, which sizes by
+``faces``/``maxh``, by one cell)."""
+
 PRESET_SETTINGS: dict[str, Setting] = {
-    "preview": Setting("preset preview", cells=1, substeps=1, cg_mode="fixed", cg_iterations=10),
-    "default": Setting("preset default", cells=4, substeps=2, cg_tolerance=1e-3, cg_iterations=200),
-    "high": Setting("preset high", cells=8, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
+    name: Setting(
+        f"preset {name}",
+        cells=PRESET_CELLS[name],
+        substeps=int(p["substeps"]),
+        cg_mode=str(p["cg_mode"]),
+        cg_iterations=int(p["cg_iterations"]),
+        cg_tolerance=float(p["cg_tolerance"]),
+        elements=str(p["elements"]),
+    )
+    for name, p in PRESETS.items()
 }
-"""The measured-scene counterpart of each preset: the beam's ``cells`` across its thickness stand in for the
-preset's ``tets_across`` (preview, which sizes by ``faces``/``maxh``, by one cell)."""
+"""The measured-scene counterpart of each preset (:data:`warpfem.presets.PRESETS`): its step, CG and elements on
+the beam at :data:`PRESET_CELLS`."""
