@@ -17,7 +17,7 @@ PRESETS: dict[str, dict[str, object]] = {
     "default": dict(
         substeps=2,
         cg_mode="tolerance",
-        cg_iterations=200,
+        cg_iterations=400,
         cg_tolerance=1e-3,
         faces=1000,
         maxh=0.2,
