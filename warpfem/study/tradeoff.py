@@ -274,16 +274,7 @@ def quick_settings() -> tuple[list[Setting], Setting]:
         Setting("combined", cells=3, substeps=2, cg_tolerance=1e-3),
         Setting("combined", cells=3, substeps=8, cg_tolerance=1e-5, cg_iterations=1000),
     ]
-    reference = Setting(
-        "reference",
-        cells=3,
-        substeps=16,
-        cg_tolerance=TIGHTEST_TOLERANCE,
-        cg_iterations=5000,
-        rotation_updates=8,
-        elements="quadratic",
-    )
-    return settings, reference
+    return settings, converged(cells=3, substeps=16, cg_iterations=5000)
 
 
 def full_settings() -> tuple[list[Setting], Setting]:
@@ -299,16 +290,20 @@ def full_settings() -> tuple[list[Setting], Setting]:
         for substeps in (1, 2, 4, 8, 16):
             for tol in (1e-2, 1e-4):
                 settings.append(Setting("cells x substeps", cells=cells, substeps=substeps, cg_tolerance=tol))
-    reference = Setting(
+    return settings, converged(cells=6, substeps=32, cg_iterations=10000)
+
+
+def converged(cells: int, substeps: int, cg_iterations: int) -> Setting:
+    """A converged run's setting: quadratic tets, CG to :data:`TIGHTEST_TOLERANCE`, 8 rotation updates."""
+    return Setting(
         "reference",
-        cells=6,
-        substeps=32,
+        cells=cells,
+        substeps=substeps,
         cg_tolerance=TIGHTEST_TOLERANCE,
-        cg_iterations=10000,
+        cg_iterations=cg_iterations,
         rotation_updates=8,
         elements="quadratic",
     )
-    return settings, reference
 
 
 def sweep(
