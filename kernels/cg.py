@@ -402,13 +402,6 @@ def cg_advance(
 
 
 @wp.kernel
-def fold_residual(residual_max: wp.array(dtype=float), earlier_out: wp.array(dtype=float)):
-    """Single thread: moves the largest residual so far into ``earlier_out`` and starts ``residual_max`` over."""
-    earlier_out[0] = wp.max(earlier_out[0], residual_max[0])
-    residual_max[0] = 0.0
-
-
-@wp.kernel
 def cg_finish(
     gamma: wp.array(dtype=float),
     bz: wp.array(dtype=float),

@@ -195,9 +195,6 @@ class CGSolver:
         self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.counts = wp.zeros(3, dtype=wp.int32, device=self.device)  # solves, iterations, stopped short
         self.residual_max = wp.zeros(1, dtype=float, device=self.device)
-        """The largest final residual of the solves since :meth:`start_step` (the rotation updates' guard)."""
-        self.earlier_residual = wp.zeros(1, dtype=float, device=self.device)
-        """The largest of earlier steps since the statistics were last read."""
         # the grid solve's side sums (three, and gamma per iteration where held) and barriers with their sums
         # (kernels.grid.grid_total): three to start, then two per iteration (one where held, plus one)
         self.totals = wp.zeros(3 + self.capacity, dtype=float, device=self.device)
@@ -442,12 +439,6 @@ class CGSolver:
         for launch in after:
             launch.launch()
 
-    def start_step(self) -> None:
-        """Start a step: ``residual_max`` then covers its solves alone (one launch, capturable)."""
-        wp.launch(
-            K.fold_residual, dim=1, inputs=[self.residual_max], outputs=[self.earlier_residual], device=self.device
-        )
-
     def read_stats(self) -> CGStats:
         """Return and reset the statistics of the solves so far (one host synchronisation).
 
@@ -461,9 +452,7 @@ class CGSolver:
                 f"CG grid barrier timed out ({self.grid_blocks} blocks not all resident): use mode='launches'"
             )
         solves, iterations, short = (int(c) for c in self.counts.numpy())
-        residual = max(float(self.residual_max.numpy()[0]), float(self.earlier_residual.numpy()[0]))
-        stats = CGStats(solves, iterations, residual, short)
+        stats = CGStats(solves, iterations, float(self.residual_max.numpy()[0]), short)
         self.counts.zero_()
         self.residual_max.zero_()
-        self.earlier_residual.zero_()
         return stats

@@ -70,7 +70,7 @@ def turn_rotations(
     """Replace each tet's ``rotation`` by its rotation at ``x`` where they differ by more than ``tolerance`` (rad).
 
     ``changed_out[0]`` becomes 1 where one was replaced (zero it first); nothing is replaced once one of
-    ``cg``'s solves of this step stopped short of its tolerance. One launch for all bodies.
+    ``cg``'s solves since its statistics were last read stopped short of its tolerance. One launch for all bodies.
     """
     wp.launch(
         K.turn_rotations,

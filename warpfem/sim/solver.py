@@ -212,7 +212,6 @@ class Solver:
             self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix_base, cleared=True)
 
         def solve() -> None:
-            self.cg.start_step()
             if self.drive is not None:
                 self.drive.pose(state_in.x, dt)
             self._assemble(state_in, state_out, dt)
