@@ -63,7 +63,10 @@ class Solver:
             again from that answer (a solve only where some did; 0: never). One linear solve moves each vertex
             along the tangent of its rotation, which stretches a fast-turning body and adds energy; these
             updates converge to implicit Euler with the elastic force at the step's end, which does not.
-            Either count may be lowered after construction, not raised.
+            Once a solve stops short of its tolerance, the updates pause until CG's statistics are next read
+            (:meth:`read_cg_stats`; a ``Simulation`` reads them after every frame): rotations read off an
+            unconverged answer steer the next solve wrong. A loop that never reads them runs without updates
+            after its first short solve. Either count may be lowered after construction, not raised.
         rotation_tolerance: See ``rotation_updates`` (rad, >= 0).
         handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
             or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
