@@ -474,6 +474,29 @@ def _sized(
     return sizing.faces, sizing.maxh, stats | {"thickness_relative": sizing.thickness}
 
 
+BUDGET_SLACK = 1.25
+"""A body sized by thickness whose tets exceed its budget by more than this factor is sized once more."""
+
+
+def _climb(attempt: _Attempt, maxh: float, deadline: float):
+    """Climb the retry ladder to a valid tet mesh: ``_tet_mesh``'s result, the rung's index and the failures."""
+    name, failures = attempt.dense.source, []
+    for index, rung in enumerate(LADDER):
+        if index > 0 and time.perf_counter() >= deadline:  # the first rung always runs, within what is left
+            raise InputError(
+                f"{name}: no valid tet mesh at {attempt.faces} faces within the time budget; rungs 1-{index} failed:"
+                f" {' '.join(failures)}; rungs {index + 1}-{len(LADDER)} not tried (a larger budget tries them)"
+            )
+        attempt.say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
+        try:
+            return (*_tet_mesh(attempt, rung, maxh), index, failures)
+        except InputError as err:
+            reason = str(err).removeprefix(f"{name}: ")
+            failures.append(f"{index + 1}) {reason}")
+            attempt.say(f"{name}: rung {index + 1} failed: {reason}")
+    raise InputError(f"{name}: no valid tet mesh at {attempt.faces} faces, every rung failed: {' '.join(failures)}")
+
+
 def _build(
     dense: Surface,
     faces: int,
@@ -505,26 +528,20 @@ def _build(
     clean = dense_pairs == 0 and not dense.overlapping
     volume = signed_volume(unit.vertices, unit.faces)
     clock = time.perf_counter()
-    faces, maxh, sized = _sized(unit, faces, maxh, *sizing, say)
+    sized_faces, sized_maxh, sized = _sized(unit, faces, maxh, *sizing, say)
     seconds["sizing"] = time.perf_counter() - clock
-    attempt = _Attempt(unit, faces, timeout_s, say, volume, clean, {}, seconds, deadline)
-    failures = []
-    for index, rung in enumerate(LADDER):
-        if index > 0 and time.perf_counter() >= deadline:  # the first rung always runs, within what is left
-            raise InputError(
-                f"{name}: no valid tet mesh at {faces} faces within the time budget; rungs 1-{index} failed:"
-                f" {' '.join(failures)}; rungs {index + 1}-{len(LADDER)} not tried (a larger budget tries them)"
-            )
-        say(f"{name}: rung {index + 1}/{len(LADDER)}: {rung.label}")
-        try:
-            coarse_v, coarse_f, tet_v, tets, quality = _tet_mesh(attempt, rung, maxh)
-            break
-        except InputError as err:
-            reason = str(err).removeprefix(f"{name}: ")
-            failures.append(f"{index + 1}) {reason}")
-            say(f"{name}: rung {index + 1} failed: {reason}")
-    else:
-        raise InputError(f"{name}: no valid tet mesh at {faces} faces, every rung failed: {' '.join(failures)}")
+    attempt = _Attempt(unit, sized_faces, timeout_s, say, volume, clean, {}, seconds, deadline)
+    coarse_v, coarse_f, tet_v, tets, quality, index, failures = _climb(attempt, sized_maxh, deadline)
+    across, max_tets = sizing
+    if across and len(tets) > BUDGET_SLACK * max_tets and time.perf_counter() < deadline:
+        # Netgen filled the body more densely than the sizing estimated: size once more for a budget scaled
+        # down by the square root of the overrun (a full correction overshoots: fewer faces make fewer tets too)
+        say(f"{name}: {len(tets)} tets for a budget of {max_tets}: sizing again")
+        budget = max(1, round(max_tets * (max_tets / len(tets)) ** 0.5))
+        sized_faces, sized_maxh, resized = _sized(unit, faces, maxh, across, budget, say)
+        sized = resized | {"max_tets": max_tets, "sized_twice": 1}
+        attempt = _Attempt(unit, sized_faces, timeout_s, say, volume, clean, {}, seconds, deadline)
+        coarse_v, coarse_f, tet_v, tets, quality, index, failures = _climb(attempt, sized_maxh, deadline)
 
     boundary = coarse_f.copy()  # tetrahedralize keeps the surface points first, so these index tet_v
     clock = time.perf_counter()
