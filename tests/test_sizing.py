@@ -75,8 +75,8 @@ def test_tet_budget_bounds_a_thin_featured_body():
 
 
 def test_a_body_over_its_tet_budget_is_sized_again(asset):
-    """The armadillo at 2 tets across and a budget of 3,000 (the default preset) made 5,044 tets, since Netgen
-    fills its cage more densely than the volume estimate; sized once more, it ends within the budget."""
+    """Netgen fills the armadillo's cage more densely than the sizing's volume estimate, so at 2 tets across and
+    a budget of 3,000 (the default preset) the first sizing overshoots; sized once more, it ends within it."""
     body = prepare(asset("armadillo.off"), faces=1000, maxh=0.2, cache_dir=None, across=2, max_tets=3000)
     assert body.stats["sized_twice"] == 1
     assert 1000 < body.stats["tets"] <= 1.25 * 3000

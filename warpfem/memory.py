@@ -132,13 +132,17 @@ def matrix_blocks(elements: np.ndarray) -> int:
 
 
 def quadratic_elements(tets: np.ndarray) -> np.ndarray:
-    """The (q, 10) nodes of quadratic tets on a (q, 4) tet mesh: its corners, then a node per distinct edge."""
+    """The (q, 10) nodes of quadratic tets on a (q, 4) tet mesh: its corners, then its edge nodes.
+
+    The edge nodes are numbered as the model numbers them (:func:`warpfem.sim.model.quadratic_nodes`).
+    """
+    from warpfem.sim.model import quadratic_nodes
+
     tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
-    a, b = np.triu_indices(4, 1)
-    ends = np.sort(np.stack([tets[:, a], tets[:, b]], axis=2), axis=2).reshape(-1, 2)
-    _, which = np.unique(ends, axis=0, return_inverse=True)
-    first = int(tets.max()) + 1 if len(tets) else 0
-    return np.concatenate([tets, first + which.reshape(-1, 6)], axis=1)
+    if len(tets) == 0:
+        return np.zeros((0, 10), dtype=np.int64)
+    _, edges = quadratic_nodes(np.zeros((int(tets.max()) + 1, 3)), tets)
+    return np.concatenate([tets, edges], axis=1)
 
 
 def estimate(
