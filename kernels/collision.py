@@ -89,10 +89,10 @@ def near_tet(
 
 @wp.kernel
 def collision_points(
-    tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    point_tet: wp.array(dtype=wp.int32),
+    point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     point_body: wp.array(dtype=wp.int32),
     points_out: wp.array(dtype=wp.vec3),
@@ -105,7 +105,7 @@ def collision_points(
     stored body after body), attempted only when above the value already there (:func:`kernels.grid.warp_max_at`).
     """
     i = wp.tid()
-    t = tets[point_tet[i]]
+    t = cells[point_cell[i]]
     w = point_bary[i]
     points_out[i] = interpolate(x, t, w)
     u = interpolate(v, t, w)
@@ -704,7 +704,8 @@ def contact_forces(
     # inputs: model and state
     v: wp.array(dtype=wp.vec3),
     tets: wp.array(dtype=wp.vec4i),
-    point_tet: wp.array(dtype=wp.int32),
+    cells: wp.array(dtype=wp.vec4i),
+    point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     point_stiffness: wp.array(dtype=float),
     friction: wp.array(dtype=float),
@@ -724,7 +725,7 @@ def contact_forces(
     point_contact_out: wp.array(dtype=wp.int32),
     late_count_out: wp.array(dtype=wp.int32),
 ):
-    """Penalty force a d g on the point's tet corners (by its weights), the reaction on the contact tet's.
+    """Penalty force a d g on the point's cell nodes (by its weights), the reaction on the contact tet's corners.
 
     The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`store_contact`),
     after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
@@ -755,7 +756,7 @@ def contact_forces(
     f = a * contact_depth[i] * g
     if late != 0:
         f = dt * f
-    tp = tets[point_tet[p]]
+    tp = cells[point_cell[p]]
     w_p = point_bary[p]
     tt = tets[contact_tet[i]]
     w_t = contact_bary[i]

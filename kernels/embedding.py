@@ -71,12 +71,12 @@ def interpolate(field: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.vec4) -> wp
 
 @wp.kernel
 def map_dense(
-    tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     positions: wp.array(dtype=wp.vec3),
-    dense_tet: wp.array(dtype=wp.int32),
+    dense_cell: wp.array(dtype=wp.int32),
     dense_bary: wp.array(dtype=wp.vec4),
     dense_out: wp.array(dtype=wp.vec3),
 ):
-    """Dense point i = sum_k bary[i][k] * positions[tets[dense_tet[i]][k]] (extrapolates outside the tet)."""
+    """Dense point i = sum_k bary[i][k] * positions[cells[dense_cell[i]][k]] (extrapolates outside the cell)."""
     i = wp.tid()
-    dense_out[i] = interpolate(positions, tets[dense_tet[i]], dense_bary[i])
+    dense_out[i] = interpolate(positions, cells[dense_cell[i]], dense_bary[i])

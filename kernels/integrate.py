@@ -317,15 +317,15 @@ def build_system(
 @wp.func
 def add_symmetric(
     matrix_out: wp.array(dtype=wp.mat33),
-    tet_slots: wp.array(dtype=wp.int32),
+    cell_slots: wp.array(dtype=wp.int32),
     e: int,
     w: wp.vec4,
     block: wp.mat33,
 ):
-    """Add ``w_a w_b block`` to every stored block (a, b) of tet ``e`` (a symmetric term of one embedded point)."""
+    """Add ``w_a w_b block`` to every stored block (a, b) of cell ``e`` (a symmetric term of one embedded point)."""
     for a in range(4):
         for b in range(4):
-            slot = tet_slots[e * 16 + a * 4 + b]
+            slot = cell_slots[e * 16 + a * 4 + b]
             if slot >= 0:
                 wp.atomic_add(matrix_out, slot, (w[a] * w[b]) * block)
 
@@ -334,12 +334,12 @@ def add_symmetric(
 def skin_colliders(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
-    tet_slots: wp.array(dtype=wp.int32),
-    skin_tet: wp.array(dtype=wp.int32),
+    cells: wp.array(dtype=wp.vec4i),
+    cell_slots: wp.array(dtype=wp.int32),
+    skin_cell: wp.array(dtype=wp.int32),
     skin_bary: wp.array(dtype=wp.vec4),
     skin_mass: wp.array(dtype=float),
-    tet_body: wp.array(dtype=wp.int32),
+    cell_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
     colliders: Colliders,
@@ -349,25 +349,25 @@ def skin_colliders(
 ):
     """The static colliders acting on the skin: dense vertices that lie outside the coarse tets.
 
-    The same :func:`static_contact` as a vertex gets, at a point embedded in a tet (``x_p = sum w_k x_k``):
-    its force goes to the corners by the weights ``w`` and its matrix term ``S`` to the tet's blocks as
+    The same :func:`static_contact` as a vertex gets, at a point embedded in a cell (``x_p = sum w_k x_k``):
+    its force goes to the cell's nodes by the weights ``w`` and its matrix term ``S`` to their blocks as
     ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
     negative; the term stays symmetric positive semi-definite).
     """
     i = wp.tid()
-    e = skin_tet[i]
-    t = tets[e]
+    e = skin_cell[i]
+    t = cells[e]
     w = skin_bary[i]
     xp = interpolate(x, t, w)
     vp = interpolate(v, t, w)
-    body = tet_body[e]
+    body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
     for o in range(colliders.kind.shape[0]):
         f, s = static_contact(colliders, o, xp, vp, v_body, skin_mass[i], dt)
         if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
-            add_symmetric(matrix_out, tet_slots, e, w, s)
+            add_symmetric(matrix_out, cell_slots, e, w, s)
 
 
 @wp.func
@@ -435,13 +435,13 @@ def late_skin_contacts(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     v_new: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
-    tet_slots: wp.array(dtype=wp.int32),
+    cells: wp.array(dtype=wp.vec4i),
+    cell_slots: wp.array(dtype=wp.int32),
     free: wp.array(dtype=wp.int32),
-    skin_tet: wp.array(dtype=wp.int32),
+    skin_cell: wp.array(dtype=wp.int32),
     skin_bary: wp.array(dtype=wp.vec4),
     skin_mass: wp.array(dtype=float),
-    tet_body: wp.array(dtype=wp.int32),
+    cell_body: wp.array(dtype=wp.int32),
     body_momentum: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
     colliders: Colliders,
@@ -453,16 +453,16 @@ def late_skin_contacts(
 ):
     """:func:`late_contact` on each skin point not yet given one this step.
 
-    Its force goes to the right-hand side of its tet's free corners by the weights, ``w_a w_b S`` to the
-    tet's blocks; it is marked and counted as in :func:`late_vertex_contacts`.
+    Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
+    cell's blocks; it is marked and counted as in :func:`late_vertex_contacts`.
     """
     i = wp.tid()
     if late_out[i] != 0:
         return
-    e = skin_tet[i]
-    t = tets[e]
+    e = skin_cell[i]
+    t = cells[e]
     w = skin_bary[i]
-    body = tet_body[e]
+    body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
     for o in range(colliders.kind.shape[0]):
         f, s = late_contact(
@@ -479,7 +479,7 @@ def late_skin_contacts(
             for c in range(4):
                 if free[t[c]] != 0:
                     wp.atomic_add(rhs_out, t[c], dt * w[c] * f)
-            add_symmetric(matrix_out, tet_slots, e, w, s)
+            add_symmetric(matrix_out, cell_slots, e, w, s)
             late_out[i] = 1
             wp.atomic_add(count_out, 0, 1)
 
@@ -569,14 +569,14 @@ def mark_touched_vertices(
 @wp.kernel
 def mark_touched_points(
     late: wp.array(dtype=wp.int32),
-    point_tet: wp.array(dtype=wp.int32),
-    tet_body: wp.array(dtype=wp.int32),
+    point_cell: wp.array(dtype=wp.int32),
+    cell_body: wp.array(dtype=wp.int32),
     touched_out: wp.array(dtype=wp.int32),
 ):
     """Marks the body of each skin point a late static contact acted on."""
     s = wp.tid()
     if late[s] != 0:
-        touched_out[tet_body[point_tet[s]]] = 1
+        touched_out[cell_body[point_cell[s]]] = 1
 
 
 @wp.kernel

@@ -452,7 +452,7 @@ def test_top_speed_per_body_matches_numpy(device):
     c.rotate_gradients(wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device))
     c.prepare(xs, vs)
     c.respond(xs, vs, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix))
-    tets = model.tets.numpy()[model.point_tet.numpy()]
+    tets = model.cells.numpy()[model.point_cell.numpy()]
     bary = model.point_bary.numpy()
     speed = np.linalg.norm(np.einsum("pk,pkj->pj", bary, v[tets]), axis=1)
     body = model.point_body.numpy()

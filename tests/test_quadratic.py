@@ -183,3 +183,55 @@ def test_material_and_time_step_extremes(device, young, poisson, dt):
     assert max(energies) <= energies[0] + allowed, energies
     assert np.diff(energies).max() <= allowed, energies
     assert np.ptp(s0.x.numpy(), axis=0).max() < 2.0  # nothing flew apart
+
+
+def test_sub_tets_tile_the_tet_and_hold_each_point_with_weights_that_reproduce_it():
+    """The eight sub-tets of a quadratic tet fill it (positive volumes, an eighth each); a point inside gets
+    non-negative weights in its sub-tet, and they give back its position."""
+    from warpfem.sim.cells import SUB_TETS, shortest_diagonals, sub_cells
+
+    rng = np.random.default_rng(5)
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.2, 0.9, 0.1], [0.1, 0.2, 1.2]])
+    nodes = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in EDGES]])
+    edges_of = nodes[SUB_TETS[:, :, 1:]] - nodes[SUB_TETS[:, :, :1]]
+    volumes = np.linalg.det(edges_of) / 6
+    whole = np.linalg.det(corners[1:] - corners[0]) / 6
+    np.testing.assert_allclose(volumes, whole / 8, rtol=1e-12)
+    assert shortest_diagonals(corners, np.array([[0, 1, 2, 3]]))[0] == 1  # the midpoints of edges 0-2 and 1-3
+    bary = rng.dirichlet(np.ones(4), size=2000)
+    for diagonal in range(3):
+        cell, weights = sub_cells(np.zeros(2000, np.int32), bary, np.array([diagonal]))
+        assert weights.min() > -1e-12 and cell.min() >= 0 and cell.max() < 8
+        back = np.einsum("nk,nkd->nd", weights, nodes[SUB_TETS[diagonal][cell]])
+        np.testing.assert_allclose(back, bary @ corners, atol=1e-12)
+
+
+def test_dense_points_follow_the_quadratic_field_four_times_closer_than_the_corners(device):
+    """Tet nodes moved by a quadratic field u(X), which quadratic tets represent exactly: the dense points the
+    model maps (its own kernel) lie within a quarter of the error of the corners' linear interpolation
+    (NumPy) of the analytic u at the points' rest positions, nearly every one closer than the corners put it."""
+    import warp as wp
+
+    from warpfem.prep.embedding import embed
+    from warpfem.prep.tetmesh import boundary_faces
+    from warpfem.sim.embedding import map_dense
+
+    V, T = box_tet_mesh((0, 0, 0), (1.0, 0.2, 0.2), (6, 2, 2))
+    rng = np.random.default_rng(6)
+    dense = rng.uniform((0.0, 0.0, 0.0), (1.0, 0.2, 0.2), size=(3000, 3))
+    tet, bary = embed(dense, V, T, boundary_faces(T))
+    b = ModelBuilder()
+    add_body(b, "bar", V, T, 1e6, 0.3, 1000.0, quadratic=True, embed_tet=tet, embed_bary=bary)
+    model = b.finalize(device)
+
+    def bent(x):
+        return x + np.column_stack([0.1 * x[:, 1] * x[:, 0], -0.4 * x[:, 0] ** 2, 0.3 * x[:, 1] * x[:, 2]])
+
+    nodes = bent(model.rest_x.numpy().astype(np.float64))
+    out = wp.zeros(len(dense), dtype=wp.vec3, device=device)
+    map_dense(model.cells, wp.array(nodes, dtype=wp.vec3, device=device), model.dense_cell, model.dense_bary, out)
+    exact = bent(dense)
+    corners = np.einsum("nk,nkd->nd", bary, nodes[T[tet]])
+    ours, linear = np.linalg.norm(out.numpy() - exact, axis=1), np.linalg.norm(corners - exact, axis=1)
+    assert ours.max() < 0.26 * linear.max()
+    assert (ours <= linear + 1e-6).mean() > 0.95

@@ -34,8 +34,9 @@ TET_BYTES = 176
 """Device bytes per tet: indices, inverse rest matrix, volume, Lame and damping, body, surface bits,
 16 matrix slots, rotation."""
 
-QUADRATIC_TET_BYTES = 424
-"""More bytes per quadratic tet: its 6 edge nodes and the matrix slots of its 10 x 10 node blocks."""
+QUADRATIC_TET_BYTES = 1096
+"""More bytes per quadratic tet: its 6 edge nodes, the matrix slots of its 10 x 10 node blocks, and its 8 sub-tets
+(nodes, 4 x 4 slots and body each: ``warpfem.sim.cells``)."""
 
 BLOCK_BYTES = 115
 """Device bytes per stored 3x3 matrix block: the float block, its int32 column, its share of CG's chunk table, and

@@ -367,7 +367,7 @@ class Simulation:
     def map_dense(self) -> wp.array:
         """Map every dense mesh from the current state on the device; returns the flat (V, 3) device array."""
         m = self.model
-        map_dense(m.tets, self.states[0].x, m.dense_tet, m.dense_bary, self.dense)
+        map_dense(m.cells, self.states[0].x, m.dense_cell, m.dense_bary, self.dense)
         return self.dense
 
     def dense_points(self, name: str | None = None) -> np.ndarray | list[np.ndarray]:

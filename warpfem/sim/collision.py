@@ -73,7 +73,7 @@ class Collider:
     def __init__(self, model, settings: CollisionSettings) -> None:
         self.model = model
         dev = model.device
-        n_points = model.point_tet.shape[0]
+        n_points = model.point_cell.shape[0]
         self.capacity = max(64, int(settings.contacts_per_point * n_points))
         self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
@@ -155,7 +155,7 @@ class Collider:
         wp.launch(
             K.collision_points,
             dim=self.points.shape[0],
-            inputs=[m.tets, x, v, m.point_tet, m.point_bary, m.point_body],
+            inputs=[m.cells, x, v, m.point_cell, m.point_bary, m.point_body],
             outputs=[self.points, self.point_velocity, self.speed_max],
             device=m.device,
         )
@@ -211,7 +211,8 @@ class Collider:
                 self.contact_depth,
                 v,
                 m.tets,
-                m.point_tet,
+                m.cells,
+                m.point_cell,
                 m.point_bary,
                 self.point_stiffness,
                 self.friction,

@@ -297,7 +297,7 @@ def skin_colliders(
 
     A launch over the skin points (dense vertices outside the coarse tets), none where there are none.
     """
-    count = model.skin_tet.shape[0]
+    count = model.skin_cell.shape[0]
     if count == 0 or colliders.kind.shape[0] == 0:
         return
     wp.launch(
@@ -306,12 +306,12 @@ def skin_colliders(
         inputs=[
             state.x,
             state.v,
-            model.tets,
-            model.tet_slots,
-            model.skin_tet,
+            model.cells,
+            model.cell_slots,
+            model.skin_cell,
             model.skin_bary,
             model.skin_mass,
-            model.tet_body,
+            model.cell_body,
             momentum,
             model.body_mass,
             colliders.arrays,
@@ -349,12 +349,12 @@ def late_contacts(
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )  # fmt: skip
-    if model.skin_tet.shape[0]:
+    if model.skin_cell.shape[0]:
         wp.launch(
             K.late_skin_contacts,
-            dim=model.skin_tet.shape[0],
-            inputs=[state.x, state.v, v_new, model.tets, model.tet_slots, model.free, model.skin_tet, model.skin_bary,
-                    model.skin_mass, model.tet_body, momentum, model.body_mass, c.arrays, dt],
+            dim=model.skin_cell.shape[0],
+            inputs=[state.x, state.v, v_new, model.cells, model.cell_slots, model.free, model.skin_cell,
+                    model.skin_bary, model.skin_mass, model.cell_body, momentum, model.body_mass, c.arrays, dt],
             outputs=[late[1], count_out, matrix_out, rhs_out],
             device=model.device,
         )  # fmt: skip
@@ -496,7 +496,7 @@ class RigidCorrection:
             wp.launch(
                 K.mark_touched_points,
                 dim=self.late[1].shape[0],
-                inputs=[self.late[1], model.skin_tet, model.tet_body],
+                inputs=[self.late[1], model.skin_cell, model.cell_body],
                 outputs=[self.touched],
                 device=dev,
                 block_dim=spread_block_dim(self.late[1].shape[0], dev),

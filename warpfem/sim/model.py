@@ -16,6 +16,7 @@ import warp as wp
 
 from warpfem.errors import InputError
 from warpfem.kernels.fem import vec6i
+from warpfem.sim.cells import CELLS_PER_QUADRATIC_TET, EDGES, cell_arrays, shortest_diagonals, sub_cells
 
 
 @dataclass(frozen=True)
@@ -88,8 +89,11 @@ class Model:
     tet_slots: wp.array  # int32 (16 q), slot of block (a, b) of tet e's corners at e*16 + a*4 + b; -1 below
     tet_edges: wp.array  # vec6i, each quadratic tet's edge nodes (see kernels.fem.vec6i); empty: linear tets
     node_slots: wp.array  # int32 (100 q), quadratic tets: slot of block (a, b) of its 10 nodes; empty: linear tets
-    dense_tet: wp.array  # int32, global tet of each dense vertex
-    dense_bary: wp.array  # vec4, barycentric coordinates in that tet
+    cells: wp.array  # vec4i, what embedded points interpolate over: the tets, or quadratic tets' sub-tets (sim.cells)
+    cell_slots: wp.array  # int32 (16 per cell), slot of block (a, b) of a cell's nodes, as tet_slots
+    cell_body: wp.array  # int32, body of each cell
+    dense_cell: wp.array  # int32, global cell of each dense vertex
+    dense_bary: wp.array  # vec4, barycentric coordinates in that cell
     vertex_depth: wp.array  # float, signed depth of each tet vertex below its body's visible surface (m)
     vertex_grad: wp.array  # vec3, outward unit gradient of that distance at rest
     tet_body: wp.array  # int32, body of each tet
@@ -100,12 +104,12 @@ class Model:
     tet_face_ids: wp.array  # int32, the global index of each of those faces
     face_depth: wp.array  # float (LATTICE_POINTS per face), depth of the visible surface below its lattice (m)
     body_self: wp.array  # int32, 1 where a body collides with itself
-    point_tet: wp.array  # int32, global tet of each collision point
+    point_cell: wp.array  # int32, global cell of each collision point
     point_bary: wp.array  # vec4, its barycentric weights there
     point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
     point_body: wp.array  # int32
     point_mass: wp.array  # float, mass a collision point stands for (kg): a share, or the interpolated lumped mass
-    skin_tet: wp.array  # int32, global tet of each skin point (static colliders): a dense surface sample
+    skin_cell: wp.array  # int32, global cell of each skin point (static colliders): a dense surface sample
     skin_bary: wp.array  # vec4, its barycentric weights there (extrapolated outside the tets)
     skin_mass: wp.array  # float, the mass its penalty stands for (kg): a share, or its tet corners' interpolated
     tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
@@ -126,7 +130,7 @@ class Model:
     @property
     def dense_count(self) -> int:
         """Number of dense (embedded) vertices over all bodies."""
-        return self.dense_tet.shape[0]
+        return self.dense_cell.shape[0]
 
     @property
     def quadratic(self) -> bool:
@@ -196,8 +200,19 @@ def block_pattern(elements: np.ndarray, vertex_count: int) -> tuple[np.ndarray, 
     )
 
 
-EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-"""A tet's edges as corner pairs, in the order of its edge nodes (``kernels.fem.vec6i``)."""
+def _pattern(tets: np.ndarray, edges: np.ndarray | None, nodes: int) -> dict[str, np.ndarray]:
+    """The block pattern of linear tets (``edges`` None) or quadratic ones, and each tet's slots in it.
+
+    Keys: ``row_start``, ``cols``, ``diag_slot``, ``tet_slots`` (the corners' 4 x 4 blocks) and ``node_slots``
+    (the 10 x 10 node blocks of quadratic tets; empty for linear ones).
+    """
+    if edges is None:
+        row_start, cols, diag_slot, tet_slots = block_pattern(tets, nodes)
+        node_slots = np.zeros(0, np.int32)
+    else:
+        row_start, cols, diag_slot, node_slots = block_pattern(np.hstack([tets, edges]), nodes)
+        tet_slots = node_slots.reshape(len(tets), 10, 10)[:, :4, :4].ravel()
+    return dict(row_start=row_start, cols=cols, diag_slot=diag_slot, tet_slots=tet_slots, node_slots=node_slots)
 
 
 def _edge_ends(tets: np.ndarray) -> np.ndarray:
@@ -371,7 +386,8 @@ class ModelBuilder:
             self_collision: Whether the body collides with itself.
             tet_edges: For quadratic tets, (q, 6) each tet's edge nodes among ``vertices`` (made by
                 :func:`quadratic_nodes`, which puts them after the corners ``geometry`` describes); None: linear.
-                The elastic force is quadratic; contacts and the dense mesh follow the corners.
+                The elastic force is quadratic; the dense mesh and the collision and skin points follow each
+                tet's sub-tets (:mod:`warpfem.sim.cells`).
 
         Returns:
             The body's index.
@@ -402,10 +418,18 @@ class ModelBuilder:
             skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
             skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
             skin_mass = np.full(len(skin_tet), corner_mass.sum() / max(len(embed_tet), 1))
+        point_tet = np.asarray(g.point_tet, np.int32)
         if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
-            point_mass = np.full(len(g.point_tet), corner_mass.sum() / max(len(g.point_tet), 1))
+            point_mass = np.full(len(point_tet), corner_mass.sum() / max(len(point_tet), 1))
         else:
-            point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[g.point_tet]])
+            point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[point_tet]])
+        embed_cell, skin_cell, point_cell = embed_tet, skin_tet, point_tet  # linear tets are their own cells
+        diagonal = np.zeros(0, np.int8)
+        if tet_edges is not None:  # every embedded point in its sub-tet
+            diagonal = shortest_diagonals(vertices, tets)
+            embed_cell, embed_bary = sub_cells(embed_tet, embed_bary, diagonal)
+            skin_cell, skin_bary = sub_cells(skin_tet, skin_bary, diagonal)
+            point_cell, point_bary = sub_cells(point_tet, point_bary, diagonal)
         self._bodies.append(
             dict(
                 name=name,
@@ -421,17 +445,18 @@ class ModelBuilder:
                 free=free.astype(np.int32),
                 v=np.broadcast_to(np.asarray(velocity, dtype=np.float64), (len(vertices), 3)).copy(),
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
-                embed_tet=embed_tet,
+                embed_cell=embed_cell,
                 embed_bary=embed_bary,
-                skin_tet=skin_tet,
+                skin_cell=skin_cell,
                 skin_bary=skin_bary,
                 skin_mass=skin_mass,
                 depth=depth,
                 grad=grad,
                 edges=np.zeros((0, 6), np.int32) if tet_edges is None else tet_edges,
+                diagonal=diagonal,
                 size=size,
                 self_collision=bool(self_collision),
-                point_tet=np.asarray(g.point_tet, np.int32),
+                point_cell=point_cell,
                 point_bary=point_bary,
                 point_anchor=np.asarray(g.point_anchor, np.int32),
                 point_mass=point_mass,
@@ -453,14 +478,8 @@ class ModelBuilder:
         quadratic = [len(b["edges"]) > 0 for b in self._bodies]
         if any(quadratic) and not all(quadratic):
             raise InputError("a scene's bodies must all have linear tets or all quadratic tets")
-        q = len(flat["tets"])
         edges = flat["edges"].astype(np.int32)
-        if all(quadratic):
-            row_start, cols, diag_slot, node_slots = block_pattern(np.hstack([flat["tets"], edges]), len(flat["x"]))
-            tet_slots = node_slots.reshape(q, 10, 10)[:, :4, :4].ravel()
-        else:
-            row_start, cols, diag_slot, tet_slots = block_pattern(flat["tets"], len(flat["x"]))
-            node_slots = np.zeros(0, np.int32)
+        pattern = _pattern(flat["tets"], edges if all(quadratic) else None, len(flat["x"]))
 
         def arr(key: str, dtype, np_type=np.float32) -> wp.array:
             return wp.array(np.ascontiguousarray(flat[key].astype(np_type)), dtype=dtype, device=device)
@@ -468,13 +487,25 @@ class ModelBuilder:
         def arr_of(data: np.ndarray, dtype) -> wp.array:
             return wp.array(np.ascontiguousarray(data), dtype=dtype, device=device)
 
+        tets, tet_slots, tet_body = (
+            arr("tets", wp.vec4i, np.int32),
+            arr_of(pattern["tet_slots"], wp.int32),
+            arr("tet_body", wp.int32, np.int32),
+        )
+        cells, cell_slots, cell_body = tets, tet_slots, tet_body  # linear tets are their own cells
+        if all(quadratic):
+            node_cells, node_cell_slots, node_cell_body = cell_arrays(
+                flat["tets"], edges, flat["diagonal"], pattern["node_slots"], flat["tet_body"]
+            )
+            cells, cell_slots = arr_of(node_cells, wp.vec4i), arr_of(node_cell_slots, wp.int32)
+            cell_body = arr_of(node_cell_body.astype(np.int32), wp.int32)
         i32 = np.int32
         return Model(
             device=device,
             bodies=bodies,
             rest_x=arr("x", wp.vec3),
             initial_v=arr("v", wp.vec3),
-            tets=arr("tets", wp.vec4i, i32),
+            tets=tets,
             dm_inv=arr("dm_inv", wp.mat33),
             rest_volume=arr("volume", float),
             tet_mu=arr("mu", float),
@@ -483,17 +514,20 @@ class ModelBuilder:
             mass=arr("mass", float),
             alpha=arr("alpha", float),
             free=arr("free", wp.int32, i32),
-            row_start=arr_of(row_start, wp.int32),
-            cols=arr_of(cols, wp.int32),
-            diag_slot=arr_of(diag_slot, wp.int32),
-            tet_slots=arr_of(np.ascontiguousarray(tet_slots), wp.int32),
+            row_start=arr_of(pattern["row_start"], wp.int32),
+            cols=arr_of(pattern["cols"], wp.int32),
+            diag_slot=arr_of(pattern["diag_slot"], wp.int32),
+            tet_slots=tet_slots,
             tet_edges=arr_of(edges, vec6i),
-            node_slots=arr_of(node_slots, wp.int32),
-            dense_tet=arr("embed_tet", wp.int32, i32),
+            node_slots=arr_of(pattern["node_slots"], wp.int32),
+            cells=cells,
+            cell_slots=cell_slots,
+            cell_body=cell_body,
+            dense_cell=arr("embed_cell", wp.int32, i32),
             dense_bary=arr("embed_bary", wp.vec4),
             vertex_depth=arr("depth", float),
             vertex_grad=arr("grad", wp.vec3),
-            tet_body=arr("tet_body", wp.int32, i32),
+            tet_body=tet_body,
             vertex_body=arr("vertex_body", wp.int32, i32),
             body_mass=arr_of(np.array([b["mass"].sum() for b in self._bodies], np.float32), float),
             tet_face_start=arr("tet_face_start", wp.int32, i32),
@@ -501,12 +535,12 @@ class ModelBuilder:
             tet_face_ids=arr("tet_face_ids", wp.int32, i32),
             face_depth=arr("face_depth", float),
             body_self=arr_of(np.array([b["self_collision"] for b in self._bodies], i32), wp.int32),
-            point_tet=arr("point_tet", wp.int32, i32),
+            point_cell=arr("point_cell", wp.int32, i32),
             point_bary=arr("point_bary", wp.vec4),
             point_anchor=arr("point_anchor", wp.vec3i, i32),
             point_body=arr("point_body", wp.int32, i32),
             point_mass=arr("point_mass", float),
-            skin_tet=arr("skin_tet", wp.int32, i32),
+            skin_cell=arr("skin_cell", wp.int32, i32),
             skin_bary=arr("skin_bary", wp.vec4),
             skin_mass=arr("skin_mass", float),
             tree_node_start=arr("node_start", wp.int32, i32),
@@ -524,6 +558,7 @@ class ModelBuilder:
             per.setdefault(key, []).append(value)
 
         for index, b in enumerate(self._bodies):
+            c0 = t0 * (CELLS_PER_QUADRATIC_TET if len(b["edges"]) else 1)
             for key in ("x", "v", "dm_inv", "volume", "mu", "lam", "beta", "mass", "alpha", "free"):
                 add(key, b[key])
             for key in (
@@ -546,18 +581,19 @@ class ModelBuilder:
             s0 += len(b["surface_faces"])
             add("tets", b["tets"] + v0)
             add("edges", b["edges"] + v0)
-            add("embed_tet", b["embed_tet"] + t0)
-            add("skin_tet", b["skin_tet"] + t0)
-            add("point_tet", b["point_tet"] + t0)
+            add("diagonal", b["diagonal"])
+            add("embed_cell", b["embed_cell"] + c0)
+            add("skin_cell", b["skin_cell"] + c0)
+            add("point_cell", b["point_cell"] + c0)
             add("point_anchor", np.where(b["point_anchor"] >= 0, b["point_anchor"] + v0, -1))
-            add("point_body", np.full(len(b["point_tet"]), index))
+            add("point_body", np.full(len(b["point_cell"]), index))
             add("tet_body", np.full(len(b["tets"]), index))
             add("vertex_body", np.full(len(b["x"]), index))
             add("leaf_tets", np.where(b["leaf_tets"] >= 0, b["leaf_tets"] + t0, -1))
             leaves += len(b["leaf_tets"])
             add("leaf_start", np.array([leaves]))
             add("node_start", np.array([2 * leaves - index - 1]))
-            n_x, n_t, n_d = len(b["x"]), len(b["tets"]), len(b["embed_tet"])
+            n_x, n_t, n_d = len(b["x"]), len(b["tets"]), len(b["embed_cell"])
             bodies.append(Body(b["name"], v0, n_x, t0, n_t, d0, n_d, b["dense_faces"], b["size"]))
             v0, t0, d0 = v0 + n_x, t0 + n_t, d0 + n_d
         flat = {key: np.concatenate(values) for key, values in per.items()}

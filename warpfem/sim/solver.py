@@ -136,7 +136,7 @@ class Solver:
         """Late contacts the k-th pass added (the condition of its solve)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
-            wp.zeros(model.skin_tet.shape[0] if static else 0, dtype=wp.int32, device=dev),
+            wp.zeros(model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
         self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base, self.late) if apart else None

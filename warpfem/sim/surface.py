@@ -27,7 +27,9 @@ def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
     """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it)."""
     dev = model.device
     rest, tets = model.rest_x.numpy().astype(np.float64), model.tets.numpy()
-    dense_tet, dense_bary = model.dense_tet.numpy(), model.dense_bary.numpy().astype(np.float64)
+    cells, dense_cell = model.cells.numpy(), model.dense_cell.numpy()
+    dense_bary = model.dense_bary.numpy().astype(np.float64)
+    per_tet = len(cells) // len(tets)
     meshes: list[wp.Mesh] = []
     first: dict[bytes, tuple[int, np.ndarray]] = {}  # shape -> (its mesh, the first such body's rest tet vertices)
     mesh_of, to_mesh, origin, scale, reach = [], [], [], [], []
@@ -39,10 +41,10 @@ def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
         if len(b.dense_faces) == 0 or b.dense_count == 0:
             mesh_of.append(0)
         else:
-            key = _shape_key(body_tets, b.dense_faces, dense_tet[embed] - b.tet_start, dense_bary[embed])
+            key = _shape_key(body_tets, b.dense_faces, dense_cell[embed] - per_tet * b.tet_start, dense_bary[embed])
             copy = _similarity(first[key][1], x, b.size) if key in first else None
             if copy is None:
-                dense = np.einsum("nk,nkd->nd", dense_bary[embed], x[body_tets[dense_tet[embed] - b.tet_start]])
+                dense = np.einsum("nk,nkd->nd", dense_bary[embed], rest[cells[dense_cell[embed]]])
                 points = wp.array(dense.astype(np.float32), dtype=wp.vec3, device=dev)
                 faces = wp.array(np.asarray(b.dense_faces, np.int32).reshape(-1), dtype=wp.int32, device=dev)
                 meshes.append(wp.Mesh(points=points, indices=faces))
