@@ -81,7 +81,9 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
     """Which dense vertices of each object collide (:func:`~warpfem.prep.geometry.surface_samples`).
 
     Chosen in the mesh's own coordinates, once per distinct mesh and spacing: a pile of one mesh pays once;
-    read from the preprocessing cache ``cache_dir`` where it holds them (None: computed, not stored).
+    read from the preprocessing cache ``cache_dir`` where it holds them (None: computed, not stored). With
+    quadratic tets every dense vertex is a skin point: an unlocked body dents between skin points where it
+    lands, and a refined skin lets those dents through the ground (docs/decisions.md).
     """
     done: dict[tuple[int, float], SurfaceSamples] = {}
     samples = []
@@ -91,6 +93,8 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
         key = (id(body), spacing)
         if key not in done:
             done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir)
+            if scene.solver.elements == "quadratic":
+                done[key] = SurfaceSamples(done[key].collision, np.arange(len(body.dense_vertices)))
         samples.append(done[key])
     return samples
 

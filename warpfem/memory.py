@@ -47,9 +47,9 @@ GATHER_BLOCK_BYTES = 18
 counted there on the CPU too, an upper bound): the entries (column and slot, about 1.9 per stored block: the
 block and its mirror) and their longer chunk table."""
 
-DENSE_BYTES = 56
-"""Device bytes per dense vertex at most: embedding tet and barycentric weights, mapped position, and where it
-lies outside the tets, its skin point's tet, weights and mass."""
+DENSE_BYTES = 60
+"""Device bytes per dense vertex at most: embedding cell and barycentric weights, mapped position, and where it is
+a skin point, the skin point's cell, weights, mass and late-contact mark."""
 
 POINT_BYTES = 40
 """Model bytes per collision point: tet, weights, anchors, body, mass (allocated even without collisions)."""
