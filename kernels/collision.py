@@ -24,7 +24,7 @@ the contact is a spring along ``g`` between the point and its image in ``t``: ro
 import warp as wp
 
 from .distance import LATTICE, LATTICE_POINTS
-from .embedding import interpolate
+from .embedding import in_cell, interpolate, tet_weights
 from .grid import warp_max_at
 from .integrate import FRICTION_SPEED_EPS
 from .surface import (
@@ -199,13 +199,6 @@ def refit_trees(
 
 
 @wp.func
-def tet_weights(q: wp.vec3, inverse: wp.mat33, origin: wp.vec3) -> wp.vec4:
-    """Barycentric weights of ``q`` in a tet, from its inverse edge matrix and first corner."""
-    b = inverse * (q - origin)
-    return wp.vec4(1.0 - b[0] - b[1] - b[2], b[0], b[1], b[2])
-
-
-@wp.func
 def leaf_holds(
     q: wp.vec3,
     leaf: wp.vec4i,
@@ -228,7 +221,7 @@ def leaf_holds(
 
 @wp.struct
 class Found:
-    """The contacts detection finds: per contact the point, the tet, its weights there, the way out, the depth (m).
+    """The contacts detection finds: per contact the point, the cell, its weights there, the way out, the depth (m).
 
     ``count[0]`` counts every contact found; those past the buffers' length are dropped (the host sees the
     count above it). ``deepest[0]`` keeps the largest depth.
@@ -236,7 +229,7 @@ class Found:
 
     count: wp.array(dtype=wp.int32)
     point: wp.array(dtype=wp.int32)
-    tet: wp.array(dtype=wp.int32)
+    cell: wp.array(dtype=wp.int32)
     bary: wp.array(dtype=wp.vec4)
     normal: wp.array(dtype=wp.vec3)
     depth: wp.array(dtype=float)
@@ -354,7 +347,7 @@ def store_contact(
     found_out: Found,
     late: int,
 ) -> bool:
-    """Records point p's contact with tet e (weights w) if its depth ``d`` is positive; returns whether it did.
+    """Records point p's contact with cell e (nodes t, weights w) if its depth ``d`` is positive; returns if it did.
 
     A ``late`` contact is found at the positions a solve predicts (``v`` its answer): it records the depth
     at the step's start that the linearised contact implies, ``d + dt g . u`` (negative where the point was
@@ -371,7 +364,7 @@ def store_contact(
     slot = wp.atomic_add(found_out.count, 0, 1)
     if slot < found_out.point.shape[0]:
         found_out.point[slot] = p
-        found_out.tet[slot] = e
+        found_out.cell[slot] = e
         found_out.bary[slot] = w
         found_out.normal[slot] = n
         found_out.depth[slot] = kept
@@ -383,6 +376,8 @@ def answer_pending(
     p: int,
     e: int,
     w: wp.vec4,
+    c: int,
+    mu: wp.vec4,
     d: float,
     g: wp.vec3,
     bound: float,
@@ -390,20 +385,22 @@ def answer_pending(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     point_velocity: wp.array(dtype=wp.vec3),
     dt: float,
     found_out: Found,
     late: int,
 ):
-    """Records point p's contact with tet e, near a dense surface, if it lies below that surface.
+    """Records point p's contact with tet e (weights w), near a dense surface, if it lies below that surface.
 
-    The depth and direction are :func:`kernels.surface.visible_depth`'s (the lattice's ``d``, ``g`` where
-    no surface is in reach; ``bound`` bounds the depth from above).
+    The contact is kept in cell c at weights mu (:func:`in_cell`). The depth and direction are
+    :func:`kernels.surface.visible_depth`'s (the lattice's ``d``, ``g`` where no surface is in reach; ``bound``
+    bounds the depth from above).
     """
     t = tets[e]
     dv, gv = visible_depth(surface, x, e, t, w, d, g, bound)
     store_contact(
-        p, e, t, w, dv, gv, v, point_velocity, dt, found_out, late,
+        p, c, cells[c], mu, dv, gv, v, point_velocity, dt, found_out, late,
     )  # fmt: skip
 
 
@@ -457,6 +454,7 @@ def walk_tree(
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
@@ -480,8 +478,8 @@ def walk_tree(
     those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
     levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
     hold the point in leaf order; the first that gives a positive depth answers. Returns the tet (-1 if none)
-    that leaves the answer to the body's dense surface (:func:`depth_in_tet`), the point's weights in it and
-    the lattice's depth and direction there, for :func:`answer_pending`.
+    that leaves the answer to the body's dense surface (:func:`depth_in_tet`), the point's weights in it, its
+    cell and weights there (:func:`in_cell`), and the lattice's depth and direction, for :func:`answer_pending`.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -497,6 +495,8 @@ def walk_tree(
     found = bool(False)
     pending = int(-1)
     pending_w = wp.vec4()
+    pending_c = int(-1)
+    pending_mu = wp.vec4()
     pending_d = float(0.0)
     pending_g = wp.vec3()
     pending_bound = float(0.0)
@@ -521,14 +521,16 @@ def walk_tree(
                     inside = inside & (inside - 1)
                     e = leaf[k]
                     t = tets[e]
-                    w = tet_weights(q, tet_inverse[e], tet_origin[e])
+                    c, mu, w = in_cell(
+                        q, e, t, tet_weights(q, tet_inverse[e], tet_origin[e]), x, cells, surface.rest_x, surface.dm_inv
+                    )
                     status, d, g, bound = depth_in_tet(
                         p, q, e, t, w, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth,
                         surface, point_velocity, point_anchor, row_start, cols, depth, grad,
                     )  # fmt: skip
                     if status == 1:
                         found = store_contact(
-                            p, e, t, w, d, g, v, point_velocity, dt, found_out, late,
+                            p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
                         )  # fmt: skip
                     elif status == 3:
                         found = True
@@ -536,6 +538,8 @@ def walk_tree(
                         found = True
                         pending = e
                         pending_w = w
+                        pending_c = c
+                        pending_mu = mu
                         pending_d = d
                         pending_g = g
                         pending_bound = bound
@@ -544,7 +548,7 @@ def walk_tree(
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
                 mask = group_holds(q, node_lower, node_upper, ns + base, 8)
-    return pending, pending_w, pending_d, pending_g, pending_bound
+    return pending, pending_w, pending_c, pending_mu, pending_d, pending_g, pending_bound
 
 
 @wp.kernel
@@ -560,6 +564,7 @@ def detect_contacts(
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
@@ -606,14 +611,14 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        e, w, d, g, bound = walk_tree(
-            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+        e, w, c, mu, d, g, bound = walk_tree(
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets, cells,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
             point_anchor, row_start, cols, depth, grad, found_out, late,
         )  # fmt: skip
         if e >= 0:
             answer_pending(
-                p, e, w, d, g, bound, surface, x, v, tets, point_velocity, dt, found_out, late,
+                p, e, w, c, mu, d, g, bound, surface, x, v, tets, cells, point_velocity, dt, found_out, late,
             )  # fmt: skip
 
 
@@ -631,6 +636,7 @@ def detect_contacts_direct(
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
@@ -672,14 +678,14 @@ def detect_contacts_direct(
             candidate += 1
             same = body == body_p
             if candidate % lanes == lane and (self_ok or not same):
-                e, w, d, g, bound = walk_tree(
+                e, w, c, mu, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    cells, tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad, found_out, late,
                 )  # fmt: skip
                 if e >= 0:
                     answer_pending(
-                        p, e, w, d, g, bound, surface, x, v, tets, point_velocity, dt, found_out, late,
+                        p, e, w, c, mu, d, g, bound, surface, x, v, tets, cells, point_velocity, dt, found_out, late,
                     )  # fmt: skip
 
 
@@ -697,13 +703,12 @@ def contact_forces(
     # inputs: contacts
     count: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.int32),
-    contact_tet: wp.array(dtype=wp.int32),
+    contact_cell: wp.array(dtype=wp.int32),
     contact_bary: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
     contact_depth: wp.array(dtype=float),
     # inputs: model and state
     v: wp.array(dtype=wp.vec3),
-    tets: wp.array(dtype=wp.vec4i),
     cells: wp.array(dtype=wp.vec4i),
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
@@ -725,7 +730,7 @@ def contact_forces(
     point_contact_out: wp.array(dtype=wp.int32),
     late_count_out: wp.array(dtype=wp.int32),
 ):
-    """Penalty force a d g on the point's cell nodes (by its weights), the reaction on the contact tet's corners.
+    """Penalty force a d g on the point's cell nodes (by its weights), the reaction on the contact cell's.
 
     The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`store_contact`),
     after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
@@ -758,7 +763,7 @@ def contact_forces(
         f = dt * f
     tp = cells[point_cell[p]]
     w_p = point_bary[p]
-    tt = tets[contact_tet[i]]
+    tt = cells[contact_cell[i]]
     w_t = contact_bary[i]
     u = relative(v, tp, w_p, tt, w_t)
     ut = u - wp.dot(u, g) * g

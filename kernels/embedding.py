@@ -1,4 +1,6 @@
-"""Embedding of dense surface points in a tet mesh: point location (preprocessing) and the per-frame map.
+"""Embedding of dense surface points in a tet mesh: point location and the per-frame map.
+
+Points are located in the tets while preprocessing, and in a quadratic tet's cells while contacts are found.
 
 A point p in tet t with corners (a, b, c, d) has barycentric coordinates (1 - l0 - l1 - l2, l0, l1, l2)
 with l = Dm^-1 (p - a), Dm = [b-a, c-a, d-a]. It lies in the tet when all four are >= 0.
@@ -67,6 +69,53 @@ def locate_points(
 def interpolate(field: wp.array(dtype=wp.vec3), tet: wp.vec4i, w: wp.vec4) -> wp.vec3:
     """sum_k w[k] * field[tet[k]]: a per-vertex field at a point with barycentric weights w in the tet."""
     return w[0] * field[tet[0]] + w[1] * field[tet[1]] + w[2] * field[tet[2]] + w[3] * field[tet[3]]
+
+
+@wp.func
+def tet_weights(q: wp.vec3, inverse: wp.mat33, origin: wp.vec3) -> wp.vec4:
+    """Barycentric weights of ``q`` in a tet, from its inverse edge matrix and first corner."""
+    b = inverse * (q - origin)
+    return wp.vec4(1.0 - b[0] - b[1] - b[2], b[0], b[1], b[2])
+
+
+@wp.func
+def in_cell(
+    q: wp.vec3,
+    e: int,
+    t: wp.vec4i,
+    w: wp.vec4,
+    x: wp.array(dtype=wp.vec3),
+    cells: wp.array(dtype=wp.vec4i),
+    rest_x: wp.array(dtype=wp.vec3),
+    dm_inv: wp.array(dtype=wp.mat33),
+):
+    """The cell of tet ``e`` (corners ``t``) that holds ``q`` (weights ``w`` in the tet), and where ``q`` is.
+
+    Returns ``(c, mu, lam)``: the cell, ``q``'s weights in it at the current positions (which the contact's
+    force and Jacobian use), and the tet weights of the material point there at rest (which its depth uses).
+    Linear tets are their own cells (all three are ``e`` and ``w``); of a quadratic tet's eight sub-tets, the
+    one ``q`` lies least far outside of, since the curved tet's sub-tets, not its corners, place its nodes'
+    material (and its dense surface).
+    """
+    if cells.shape[0] == dm_inv.shape[0]:
+        return e, w, w
+    best_c = e * 8
+    best_mu = w
+    best = float(-1.0e30)
+    for s in range(8):
+        c = e * 8 + s
+        n = cells[c]
+        o = x[n[0]]
+        edges = wp.matrix_from_cols(x[n[1]] - o, x[n[2]] - o, x[n[3]] - o)
+        if wp.determinant(edges) != 0.0:
+            mu = tet_weights(q, wp.inverse(edges), o)
+            if wp.min(mu) > best:
+                best = wp.min(mu)
+                best_c = c
+                best_mu = mu
+    rest = interpolate(rest_x, cells[best_c], best_mu)
+    b = dm_inv[e] * (rest - rest_x[t[0]])
+    return best_c, best_mu, wp.vec4(1.0 - b[0] - b[1] - b[2], b[0], b[1], b[2])
 
 
 @wp.kernel

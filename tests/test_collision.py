@@ -255,7 +255,7 @@ def test_overlapped_captured_step_matches_a_serial_direct_one(device):
     def prepared_and_found():
         n = int(c.count.numpy()[0])
         assert n > 0
-        contacts = set(zip(c.contact_point.numpy()[:n].tolist(), c.contact_tet.numpy()[:n].tolist(), strict=True))
+        contacts = set(zip(c.contact_point.numpy()[:n].tolist(), c.contact_cell.numpy()[:n].tolist(), strict=True))
         buffers = [c.points, c.point_velocity, c.tet_inverse, c.tet_origin, c.node_lower, c.node_upper]
         return [a.numpy().copy() for a in buffers], contacts
 
@@ -402,7 +402,7 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
     n = int(c.count.numpy()[0])
     assert 0 < n <= c.capacity
     found = set(c.contact_point.numpy()[:n].tolist())
-    contact_body = model.tet_body.numpy()[c.contact_tet.numpy()[:n]]
+    contact_body = model.tet_body.numpy()[c.contact_cell.numpy()[:n]]
     pairs = list(zip(c.contact_point.numpy()[:n].tolist(), contact_body.tolist(), strict=True))
     assert len(pairs) == len(set(pairs))  # at most one contact per point and body
 
@@ -429,7 +429,7 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
                 expected.add(int(p))
                 break
     assert found == expected
-    contact_tets, contact_points = c.contact_tet.numpy()[:n], c.contact_point.numpy()[:n]
+    contact_tets, contact_points = c.contact_cell.numpy()[:n], c.contact_point.numpy()[:n]
     assert np.any((tet_body[contact_tets] == 2) & (point_body[contact_points] == 2))  # self contacts were tested
 
 

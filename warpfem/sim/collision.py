@@ -83,7 +83,7 @@ class Collider:
         pass's first): ``count`` and ``first``, views of it."""
         self.count, self.first = self.counts[0:1], self.counts[1:2]
         self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
-        self.contact_tet = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
+        self.contact_cell = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
         self.contact_normal = wp.zeros(self.capacity, dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
@@ -91,7 +91,7 @@ class Collider:
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
         self.found = K.Found()
         """The buffers above as detection's one output."""
-        self.found.count, self.found.point, self.found.tet = self.count, self.contact_point, self.contact_tet
+        self.found.count, self.found.point, self.found.cell = self.count, self.contact_point, self.contact_cell
         self.found.bary, self.found.normal = self.contact_bary, self.contact_normal
         self.found.depth, self.found.deepest = self.contact_depth, self.depth_max
         self.coupling = Coupling(
@@ -205,12 +205,11 @@ class Collider:
             inputs=[
                 self.count,
                 self.contact_point,
-                self.contact_tet,
+                self.contact_cell,
                 self.contact_bary,
                 self.contact_normal,
                 self.contact_depth,
                 v,
-                m.tets,
                 m.cells,
                 m.point_cell,
                 m.point_bary,
@@ -292,6 +291,7 @@ class Collider:
                 v,
                 dt,
                 m.tets,
+                m.cells,
                 self.tet_inverse,
                 self.tet_origin,
                 m.tet_face_start,
