@@ -1,24 +1,20 @@
 """Body-body and self collisions: collision points against tets, penalty response from the distance field.
 
-Depth and direction: in a tet touching the body's surface (a corner on it), the point's depth below the
-body's dense surface at rest, where its weights in the tet put it, and the way out to the nearest point
-of that surface, carried to the tet's current shape (:func:`kernels.surface.visible_depth`); where no
-dense surface is in reach, the point's distance below the plane of the surface face it came in through
-(of the faces around the tet's corners, the one it was outside of a step ago, relative to the tet; else
-the nearest), corrected by how far that face lies outside the visible surface, along that face's current
-outward normal. In a tet deep inside, the paper's interpolated distance field and rotated gradients.
-Both are depths below the visible (dense) surface, so contacts start where the visible surfaces meet, not
-at the coarse cage around them.
+Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below
+the body's dense surface at rest and the way out to that surface's nearest point, carried to the tet's
+current shape (:func:`kernels.surface.visible_depth`); where no dense surface is in reach, the distance
+below the plane of the surface face the point came in through (the one it was outside of a step ago,
+relative to the tet; else the nearest), corrected by how far that face lies outside the visible surface,
+along its current outward normal. Deep inside, the paper's interpolated distance field and rotated
+gradients. Both are depths below the visible surface: contacts start where the visible surfaces meet.
 
-Collision points are samples of each body's dense surface (embedded in a tet with barycentric weights,
-like every dense vertex), or, for a bare tet mesh, its surface vertices plus optional samples on its
-surface triangles, so thin parts whose vertices never enter another body are still caught. A point ``p``
-inside tet ``t`` of another body (or of its own body, outside ``t``'s one-ring) gets the penalty force
-``f = a d g`` with depth ``d`` and direction ``g`` as above (Kondo & Kanai, after Fisher & Lin); the
-reaction ``-f`` goes to ``t``'s corners by the barycentric weights, so momentum is conserved. Implicitly,
-the contact is a spring along ``g`` between the point and its image in ``t``: row ``J`` of the constraint
-``g . (x_p - x_t(b))`` adds ``dt^2 a J^T J`` to the system matrix, applied matrix-free in the CG product
-(the contacts are handed to CG as coupled pairs of embedded points).
+Collision points are samples of each body's dense surface, embedded like every dense vertex (in a cell: a
+tet, or a quadratic tet's sub-tet), or for a bare tet mesh its surface vertices plus optional samples on its
+triangles. A point ``p`` inside tet ``t`` of another body (or of its own, outside ``t``'s one-ring) gets the
+penalty force ``f = a d g`` (Kondo & Kanai, after Fisher & Lin); the reaction ``-f`` goes to the nodes of
+the cell of ``t`` that holds ``p``, by its weights there, so momentum is conserved. Implicitly the contact is
+a spring along ``g`` between the point and its image: the row ``J`` of ``g . (x_p - x_t)`` adds
+``dt^2 a J^T J`` to the system matrix, applied matrix-free in CG's product (pairs of embedded points).
 """
 
 import warp as wp
@@ -221,10 +217,9 @@ def leaf_holds(
 
 @wp.struct
 class Found:
-    """The contacts detection finds: per contact the point, the cell, its weights there, the way out, the depth (m).
+    """The contacts found: per contact the point, the cell, its weights there, the way out, the depth (m).
 
-    ``count[0]`` counts every contact found; those past the buffers' length are dropped (the host sees the
-    count above it). ``deepest[0]`` keeps the largest depth.
+    ``count[0]`` counts every contact found (past the buffers' length dropped); ``deepest[0]``: the largest depth.
     """
 
     count: wp.array(dtype=wp.int32)
@@ -374,34 +369,51 @@ def store_contact(
 @wp.func
 def answer_pending(
     p: int,
+    q: wp.vec3,
     e: int,
     w: wp.vec4,
-    c: int,
-    mu: wp.vec4,
+    same: bool,
+    status: int,
     d: float,
     g: wp.vec3,
     bound: float,
-    surface: VisibleSurface,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
+    dt: float,
     tets: wp.array(dtype=wp.vec4i),
     cells: wp.array(dtype=wp.vec4i),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
     point_velocity: wp.array(dtype=wp.vec3),
-    dt: float,
+    point_anchor: wp.array(dtype=wp.vec3i),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
     found_out: Found,
     late: int,
 ):
-    """Records point p's contact with tet e (weights w), near a dense surface, if it lies below that surface.
+    """Records point p's contact with tet e (at q, weights w) as :func:`walk_tree` answered it.
 
-    The contact is kept in cell c at weights mu (:func:`in_cell`). The depth and direction are
-    :func:`kernels.surface.visible_depth`'s (the lattice's ``d``, ``g`` where no surface is in reach; ``bound``
-    bounds the depth from above).
+    Status 1: ``d``, ``g``; 2: :func:`kernels.surface.visible_depth`'s; 3: none. It goes to the cell holding
+    the point (:func:`in_cell`); in a quadratic tet the answer is asked again at the material point there.
     """
     t = tets[e]
-    dv, gv = visible_depth(surface, x, e, t, w, d, g, bound)
-    store_contact(
-        p, c, cells[c], mu, dv, gv, v, point_velocity, dt, found_out, late,
-    )  # fmt: skip
+    c, mu, lam = in_cell(q, e, t, w, x, cells, surface.rest_x, surface.dm_inv)
+    if c != e:
+        status, d, g, bound = depth_in_tet(
+            p, q, e, t, lam, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+            point_velocity, point_anchor, row_start, cols, depth, grad,
+        )  # fmt: skip
+    if status == 2:
+        d, g = visible_depth(surface, x, e, t, lam, d, g, bound)
+    if status == 1 or status == 2:
+        store_contact(
+            p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
+        )  # fmt: skip
 
 
 @wp.func
@@ -454,7 +466,6 @@ def walk_tree(
     v: wp.array(dtype=wp.vec3),
     dt: float,
     tets: wp.array(dtype=wp.vec4i),
-    cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
     tet_face_start: wp.array(dtype=wp.int32),
@@ -468,8 +479,6 @@ def walk_tree(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    found_out: Found,
-    late: int,
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
 
@@ -477,9 +486,9 @@ def walk_tree(
     that holds the point are tested together (one round trip to memory instead of one per node), the bits of
     those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
     levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
-    hold the point in leaf order; the first that gives a positive depth answers. Returns the tet (-1 if none)
-    that leaves the answer to the body's dense surface (:func:`depth_in_tet`), the point's weights in it, its
-    cell and weights there (:func:`in_cell`), and the lattice's depth and direction, for :func:`answer_pending`.
+    hold the point in leaf order; the first that answers (:func:`depth_in_tet` gives a positive depth, or
+    status 2 or 3) ends the walk. Returns that tet (-1 if none), the point's weights in it and the answer, for
+    :func:`answer_pending` to record after the walk, which keeps the walk's registers few.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -495,8 +504,7 @@ def walk_tree(
     found = bool(False)
     pending = int(-1)
     pending_w = wp.vec4()
-    pending_c = int(-1)
-    pending_mu = wp.vec4()
+    pending_status = int(0)
     pending_d = float(0.0)
     pending_g = wp.vec3()
     pending_bound = float(0.0)
@@ -521,25 +529,16 @@ def walk_tree(
                     inside = inside & (inside - 1)
                     e = leaf[k]
                     t = tets[e]
-                    c, mu, w = in_cell(
-                        q, e, t, tet_weights(q, tet_inverse[e], tet_origin[e]), x, cells, surface.rest_x, surface.dm_inv
-                    )
+                    w = tet_weights(q, tet_inverse[e], tet_origin[e])
                     status, d, g, bound = depth_in_tet(
                         p, q, e, t, w, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth,
                         surface, point_velocity, point_anchor, row_start, cols, depth, grad,
                     )  # fmt: skip
-                    if status == 1:
-                        found = store_contact(
-                            p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
-                        )  # fmt: skip
-                    elif status == 3:
-                        found = True
-                    elif status == 2:
+                    if status >= 2 or (status == 1 and d > 0.0 and wp.length(g) > 0.0):
                         found = True
                         pending = e
                         pending_w = w
-                        pending_c = c
-                        pending_mu = mu
+                        pending_status = status
                         pending_d = d
                         pending_g = g
                         pending_bound = bound
@@ -548,7 +547,7 @@ def walk_tree(
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
                 mask = group_holds(q, node_lower, node_upper, ns + base, 8)
-    return pending, pending_w, pending_c, pending_mu, pending_d, pending_g, pending_bound
+    return pending, pending_w, pending_status, pending_d, pending_g, pending_bound
 
 
 @wp.kernel
@@ -611,14 +610,16 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        e, w, c, mu, d, g, bound = walk_tree(
-            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets, cells,
+        e, w, status, d, g, bound = walk_tree(
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
-            point_anchor, row_start, cols, depth, grad, found_out, late,
+            point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
         if e >= 0:
             answer_pending(
-                p, e, w, c, mu, d, g, bound, surface, x, v, tets, cells, point_velocity, dt, found_out, late,
+                p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
+                tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth, grad,
+                found_out, late,
             )  # fmt: skip
 
 
@@ -678,14 +679,16 @@ def detect_contacts_direct(
             candidate += 1
             same = body == body_p
             if candidate % lanes == lane and (self_ok or not same):
-                e, w, c, mu, d, g, bound = walk_tree(
+                e, w, status, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    cells, tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
-                    point_velocity, point_anchor, row_start, cols, depth, grad, found_out, late,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    point_velocity, point_anchor, row_start, cols, depth, grad,
                 )  # fmt: skip
                 if e >= 0:
                     answer_pending(
-                        p, e, w, c, mu, d, g, bound, surface, x, v, tets, cells, point_velocity, dt, found_out, late,
+                        p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
+                        tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth,
+                        grad, found_out, late,
                     )  # fmt: skip
 
 
