@@ -235,3 +235,26 @@ def test_dense_points_follow_the_quadratic_field_four_times_closer_than_the_corn
     ours, linear = np.linalg.norm(out.numpy() - exact, axis=1), np.linalg.norm(corners - exact, axis=1)
     assert ours.max() < 0.26 * linear.max()
     assert (ours <= linear + 1e-6).mean() > 0.95
+
+
+def test_each_sub_tet_adds_its_blocks_where_the_matrix_stores_them(device):
+    """A skin point's term in a quadratic tet goes to its sub-tet's 4 x 4 node blocks: each cell slot is the
+    stored block (row <= column) of its two nodes in the CSR pattern, -1 below the diagonal, and the cells'
+    nodes are their tets' nodes."""
+    V, T = box_tet_mesh((0, 0, 0), (1.0, 0.2, 0.2), (3, 1, 1))
+    b = ModelBuilder()
+    add_body(b, "bar", V, T, 1e6, 0.3, 1000.0, quadratic=True)
+    model = b.finalize(device)
+    row_start, cols = model.row_start.numpy(), model.cols.numpy()
+    cells, slots = model.cells.numpy(), model.cell_slots.numpy().reshape(-1, 4, 4)
+    nodes = np.hstack([model.tets.numpy(), model.tet_edges.numpy()])
+    assert len(cells) == 8 * len(nodes)
+    for c, cell in enumerate(cells):
+        assert set(cell) <= set(nodes[c // 8])
+        for a in range(4):
+            for k in range(4):
+                i, j = cell[a], cell[k]
+                if i > j:
+                    assert slots[c, a, k] == -1
+                else:
+                    assert cols[slots[c, a, k]] == j and row_start[i] <= slots[c, a, k] < row_start[i + 1]
