@@ -273,6 +273,54 @@ barycentric weight is below minus this lies outside the tets, a skin point the s
 (inside the tets, where the weights are convex, the corners' own contacts already keep it out of the ground)."""
 
 
+def _embedded_points(
+    g: BodyArrays,
+    tets: np.ndarray,
+    corner_mass: np.ndarray,
+    embed_tet: np.ndarray | None,
+    embed_bary: np.ndarray | None,
+    quadratic_at: np.ndarray | None,
+) -> dict[str, np.ndarray]:
+    """A body's embedded points (dense vertices, skin and collision points) in its cells, and their masses.
+
+    ``quadratic_at``: for quadratic tets, the vertices whose shortest octahedron diagonals cut each tet into its
+    sub-tets (:mod:`warpfem.sim.cells`); None: linear tets, their own cells.
+    """
+    point_bary = np.asarray(g.point_bary, np.float64)
+    embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
+    embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
+    if len(g.skin_tet):  # the static colliders' points, given: each holds as its tet's corners would
+        skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
+        skin_mass = np.einsum("pk,pk->p", skin_bary, corner_mass[tets[skin_tet]])
+    else:  # the dense vertices outside the tets, each an equal share of the body's mass
+        skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
+        skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
+        skin_mass = np.full(len(skin_tet), corner_mass.sum() / max(len(embed_tet), 1))
+    point_tet = np.asarray(g.point_tet, np.int32)
+    if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
+        point_mass = np.full(len(point_tet), corner_mass.sum() / max(len(point_tet), 1))
+    else:
+        point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[point_tet]])
+    embed_cell, skin_cell, point_cell = embed_tet, skin_tet, point_tet  # linear tets are their own cells
+    diagonal = np.zeros(0, np.int8)
+    if quadratic_at is not None:  # every embedded point in its sub-tet
+        diagonal = shortest_diagonals(quadratic_at, tets)
+        embed_cell, embed_bary = sub_cells(embed_tet, embed_bary, diagonal)
+        skin_cell, skin_bary = sub_cells(skin_tet, skin_bary, diagonal)
+        point_cell, point_bary = sub_cells(point_tet, point_bary, diagonal)
+    return dict(
+        embed_cell=embed_cell,
+        embed_bary=embed_bary,
+        skin_cell=skin_cell,
+        skin_bary=skin_bary,
+        skin_mass=skin_mass,
+        point_cell=point_cell,
+        point_bary=point_bary,
+        point_mass=point_mass,
+        diagonal=diagonal,
+    )
+
+
 def _checked_tets(
     name: str, vertices: np.ndarray, tets: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -408,28 +456,9 @@ class ModelBuilder:
         free = mass > 0.0
         if pinned is not None:
             free &= ~np.asarray(pinned, dtype=bool)
-        point_bary = np.asarray(g.point_bary, np.float64)
-        embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
-        embed_bary = np.zeros((0, 4)) if len(embed_tet) == 0 else np.asarray(embed_bary, np.float64).reshape(-1, 4)
-        if len(g.skin_tet):  # the static colliders' points, given: each holds as its tet's corners would
-            skin_tet, skin_bary = np.asarray(g.skin_tet, np.int32), np.asarray(g.skin_bary, np.float64)
-            skin_mass = np.einsum("pk,pk->p", skin_bary, corner_mass[tets[skin_tet]])
-        else:  # the dense vertices outside the tets, each an equal share of the body's mass
-            skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
-            skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
-            skin_mass = np.full(len(skin_tet), corner_mass.sum() / max(len(embed_tet), 1))
-        point_tet = np.asarray(g.point_tet, np.int32)
-        if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
-            point_mass = np.full(len(point_tet), corner_mass.sum() / max(len(point_tet), 1))
-        else:
-            point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[point_tet]])
-        embed_cell, skin_cell, point_cell = embed_tet, skin_tet, point_tet  # linear tets are their own cells
-        diagonal = np.zeros(0, np.int8)
-        if tet_edges is not None:  # every embedded point in its sub-tet
-            diagonal = shortest_diagonals(vertices, tets)
-            embed_cell, embed_bary = sub_cells(embed_tet, embed_bary, diagonal)
-            skin_cell, skin_bary = sub_cells(skin_tet, skin_bary, diagonal)
-            point_cell, point_bary = sub_cells(point_tet, point_bary, diagonal)
+        embedded = _embedded_points(
+            g, tets, corner_mass, embed_tet, embed_bary, vertices if tet_edges is not None else None
+        )
         self._bodies.append(
             dict(
                 name=name,
@@ -445,26 +474,18 @@ class ModelBuilder:
                 free=free.astype(np.int32),
                 v=np.broadcast_to(np.asarray(velocity, dtype=np.float64), (len(vertices), 3)).copy(),
                 dense_faces=np.zeros((0, 3), np.int32) if dense_faces is None else np.asarray(dense_faces, np.int32),
-                embed_cell=embed_cell,
-                embed_bary=embed_bary,
-                skin_cell=skin_cell,
-                skin_bary=skin_bary,
-                skin_mass=skin_mass,
                 depth=depth,
                 grad=grad,
                 edges=np.zeros((0, 6), np.int32) if tet_edges is None else tet_edges,
-                diagonal=diagonal,
                 size=size,
                 self_collision=bool(self_collision),
-                point_cell=point_cell,
-                point_bary=point_bary,
                 point_anchor=np.asarray(g.point_anchor, np.int32),
-                point_mass=point_mass,
                 tet_extent=np.abs(d).max(axis=(1, 2)),
                 surface_faces=np.asarray(g.surface_faces, np.int32),
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
                 face_depth=np.asarray(g.face_depth, np.float64).reshape(-1),
                 leaf_tets=np.asarray(g.leaf_tets, np.int32).reshape(-1, 4),
+                **embedded,
             )
         )
         return len(self._bodies) - 1
