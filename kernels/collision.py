@@ -403,7 +403,7 @@ def answer_pending(
     """
     t = tets[e]
     c, mu, lam = in_cell(q, e, t, w, x, cells, surface.rest_x, surface.dm_inv)
-    if c != e:
+    if cells.shape[0] != tets.shape[0]:
         status, d, g, bound = depth_in_tet(
             p, q, e, t, lam, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
             point_velocity, point_anchor, row_start, cols, depth, grad,

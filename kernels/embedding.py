@@ -8,6 +8,9 @@ with l = Dm^-1 (p - a), Dm = [b-a, c-a, d-a]. It lies in the tet when all four a
 
 import warp as wp
 
+CELLS_PER_QUADRATIC_TET = wp.constant(8)
+"""Sub-tets a quadratic tet is cut into (``warpfem.sim.cells``): cell ``8 e + s`` is sub-tet ``s`` of tet ``e``."""
+
 
 @wp.func
 def deformation_gradient(x: wp.array(dtype=wp.vec3), t: wp.vec4i, dm_inv: wp.mat33) -> wp.mat33:
@@ -99,23 +102,23 @@ def in_cell(
     """
     if cells.shape[0] == dm_inv.shape[0]:
         return e, w, w
-    best_c = e * 8
+    best_c = e * CELLS_PER_QUADRATIC_TET
     best_mu = w
     best = float(-1.0e30)
-    for s in range(8):
-        c = e * 8 + s
+    for s in range(CELLS_PER_QUADRATIC_TET):
+        c = e * CELLS_PER_QUADRATIC_TET + s
         n = cells[c]
         o = x[n[0]]
         edges = wp.matrix_from_cols(x[n[1]] - o, x[n[2]] - o, x[n[3]] - o)
         if wp.determinant(edges) != 0.0:
             mu = tet_weights(q, wp.inverse(edges), o)
-            if wp.min(mu) > best:
-                best = wp.min(mu)
+            score = wp.min(mu)
+            if score > best:
+                best = score
                 best_c = c
                 best_mu = mu
     rest = interpolate(rest_x, cells[best_c], best_mu)
-    b = dm_inv[e] * (rest - rest_x[t[0]])
-    return best_c, best_mu, wp.vec4(1.0 - b[0] - b[1] - b[2], b[0], b[1], b[2])
+    return best_c, best_mu, tet_weights(rest, dm_inv[e], rest_x[t[0]])
 
 
 @wp.kernel

@@ -270,7 +270,7 @@ def test_an_armadillo_rests_on_the_ground_with_its_visible_surface(device, asset
     """A 1 m armadillo (500 coarse faces, scene defaults otherwise) dropped from 0.24 m onto the ground: its
     lowest dense point is never more than 0.1 % of its size below the ground, landing included (measured
     on the dense mesh alone). Quadratic tets, softer without locking, dent where they land and topple: within
-    0.2 % at the default 4 substeps (every dense vertex a skin point; a refined skin let 0.3 % through)."""
+    0.2 % at the default 4 substeps."""
     doc = {
         "scene": {"frames": 60},
         "solver": {"elements": elements},

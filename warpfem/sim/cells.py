@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from warpfem.kernels.embedding import CELLS_PER_QUADRATIC_TET
+
 EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 """A tet's edges as corner pairs, in the order of its edge nodes (``kernels.fem.vec6i``)."""
 
@@ -26,8 +28,6 @@ SUB_TETS = np.array(
 """(3, 8, 4) a quadratic tet's sub-tets as its local nodes (0-3 the corners, 4 + k the node of edge
 ``EDGES[k]``), for each choice of the octahedron's diagonal; each positively oriented where the tet is, an
 eighth of its volume."""
-
-CELLS_PER_QUADRATIC_TET = SUB_TETS.shape[1]
 
 
 def _node_weights() -> np.ndarray:
