@@ -411,10 +411,13 @@ def late_vertex_contacts(
     count_out: wp.array(dtype=wp.int32),
     matrix_out: wp.array(dtype=wp.mat33),
     rhs_out: wp.array(dtype=wp.vec3),
+    matrix_base_out: wp.array(dtype=wp.mat33),
+    rhs_base_out: wp.array(dtype=wp.vec3),
 ):
     """:func:`late_contact` on each free tet vertex inside the visible surface not yet given one this step.
 
-    Adds to its right-hand side and diagonal block, marks it in ``late_out`` and counts it in ``count_out[0]``.
+    Adds to its right-hand side and diagonal block (and to the system without elasticity, where
+    ``rhs_base_out`` is not empty), marks it in ``late_out`` and counts it in ``count_out[0]``.
     """
     i = wp.tid()
     if free[i] == 0 or vertex_depth[i] < 0.0 or late_out[i] != 0:
@@ -426,6 +429,9 @@ def late_vertex_contacts(
         if wp.trace(s) > 0.0:
             rhs_out[i] = rhs_out[i] + dt * f
             matrix_out[diag_slot[i]] = matrix_out[diag_slot[i]] + s
+            if rhs_base_out.shape[0] > 0:
+                rhs_base_out[i] = rhs_base_out[i] + dt * f
+                matrix_base_out[diag_slot[i]] = matrix_base_out[diag_slot[i]] + s
             late_out[i] = 1
             wp.atomic_add(count_out, 0, 1)
 
@@ -450,11 +456,14 @@ def late_skin_contacts(
     count_out: wp.array(dtype=wp.int32),
     matrix_out: wp.array(dtype=wp.mat33),
     rhs_out: wp.array(dtype=wp.vec3),
+    matrix_base_out: wp.array(dtype=wp.mat33),
+    rhs_base_out: wp.array(dtype=wp.vec3),
 ):
     """:func:`late_contact` on each skin point not yet given one this step.
 
     Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
-    cell's blocks; it is marked and counted as in :func:`late_vertex_contacts`.
+    cell's blocks (and to the system without elasticity, as :func:`late_vertex_contacts`); it is marked and
+    counted as there.
     """
     i = wp.tid()
     if late_out[i] != 0:
@@ -479,7 +488,11 @@ def late_skin_contacts(
             for c in range(4):
                 if free[t[c]] != 0:
                     wp.atomic_add(rhs_out, t[c], dt * w[c] * f)
+                    if rhs_base_out.shape[0] > 0:
+                        wp.atomic_add(rhs_base_out, t[c], dt * w[c] * f)
             add_symmetric(matrix_out, cell_slots, e, w, s)
+            if rhs_base_out.shape[0] > 0:
+                add_symmetric(matrix_base_out, cell_slots, e, w, s)
             late_out[i] = 1
             wp.atomic_add(count_out, 0, 1)
 
@@ -539,44 +552,12 @@ def advance_positions(
 
 @wp.kernel
 def mark_touched_vertices(
-    free: wp.array(dtype=wp.int32),
-    mass: wp.array(dtype=float),
-    alpha: wp.array(dtype=float),
-    diag_slot: wp.array(dtype=wp.int32),
-    matrix_base: wp.array(dtype=wp.mat33),
-    late: wp.array(dtype=wp.int32),
-    vertex_body: wp.array(dtype=wp.int32),
-    dt: float,
-    touched_out: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.int32), vertex_body: wp.array(dtype=wp.int32), touched_out: wp.array(dtype=wp.int32)
 ):
-    """Marks the body of a vertex that something outside the body acts on this step.
-
-    That is a pin or handle, or a contact: the vertex's diagonal block of the system without elasticity is
-    more than its damped mass, or a late static contact marked it.
-    """
+    """Marks the body of a held vertex (a pin or handle)."""
     i = wp.tid()
-    d = (1.0 + dt * alpha[i]) * mass[i]
-    extra = matrix_base[diag_slot[i]] - d * wp.identity(n=3, dtype=float)
-    most = float(0.0)
-    for r in range(3):
-        for c in range(3):
-            most = wp.max(most, wp.abs(extra[r, c]))
-    marked = late.shape[0] > 0 and late[i] != 0
-    if free[i] == 0 or most > 1.0e-5 * d or marked:
+    if free[i] == 0:
         touched_out[vertex_body[i]] = 1
-
-
-@wp.kernel
-def mark_touched_points(
-    late: wp.array(dtype=wp.int32),
-    point_cell: wp.array(dtype=wp.int32),
-    cell_body: wp.array(dtype=wp.int32),
-    touched_out: wp.array(dtype=wp.int32),
-):
-    """Marks the body of each skin point a late static contact acted on."""
-    s = wp.tid()
-    if late[s] != 0:
-        touched_out[cell_body[point_cell[s]]] = 1
 
 
 @wp.kernel
@@ -638,6 +619,71 @@ def rigid_sums(
 
 
 @wp.kernel
+def rigid_contact_sums(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    diag_slot: wp.array(dtype=wp.int32),
+    matrix_base: wp.array(dtype=wp.mat33),
+    mass: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    vertex_body: wp.array(dtype=wp.int32),
+    body_first: wp.array(dtype=wp.int32),
+    touched: wp.array(dtype=wp.int32),
+    dt: float,
+    force_out: wp.array(dtype=wp.vec3),
+    torque_out: wp.array(dtype=wp.vec3),
+    kuu_out: wp.array(dtype=wp.mat33),
+    kuw_out: wp.array(dtype=wp.mat33),
+    kww_out: wp.array(dtype=wp.mat33),
+):
+    """Per untouched body, what its static contacts add to the rigid correction: row by row of the system.
+
+    The system without elasticity less its damped masses is the static contacts' blocks C (a vertex's on its
+    diagonal, a skin point's spread over its cell's corners). A rigid velocity ``u + w x y`` (y from the
+    body's first vertex) maps through J_a = [I, -[y_a]x], so C adds J^T C J to the 6x6 system (in blocks
+    uu, uw, ww) and -J^T C v to the residual's force and torque.
+    """
+    a = wp.tid()
+    body = vertex_body[a]
+    if touched[body] != 0:
+        return
+    origin = x[body_first[body]]
+    ya = wp.skew(x[a] - origin)
+    f = wp.vec3()
+    t = wp.vec3()
+    kuu = wp.mat33()
+    kuw = wp.mat33()
+    kww = wp.mat33()
+    for slot in range(row_start[a], row_start[a + 1]):
+        b = cols[slot]
+        B = matrix_base[slot]
+        if slot == diag_slot[a]:
+            B = B - (1.0 + dt * alpha[a]) * mass[a] * wp.identity(n=3, dtype=float)
+        yb = wp.skew(x[b] - origin)
+        fa = B * v[b]
+        f -= fa
+        t -= ya * fa
+        kuu += B
+        kuw -= B * yb
+        kww -= ya * B * yb
+        if b != a:
+            Bt = wp.transpose(B)
+            fb = Bt * v[a]
+            f -= fb
+            t -= yb * fb
+            kuu += Bt
+            kuw -= Bt * ya
+            kww -= yb * Bt * ya
+    wp.atomic_add(force_out, body, f)
+    wp.atomic_add(torque_out, body, t)
+    wp.atomic_add(kuu_out, body, kuu)
+    wp.atomic_add(kuw_out, body, kuw)
+    wp.atomic_add(kww_out, body, kww)
+
+
+@wp.kernel
 def rigid_correct(
     x: wp.array(dtype=wp.vec3),
     vertex_body: wp.array(dtype=wp.int32),
@@ -650,16 +696,21 @@ def rigid_correct(
     second: wp.array(dtype=wp.mat33),
     momentum: wp.array(dtype=wp.vec3),
     spin: wp.array(dtype=wp.vec3),
+    kuu: wp.array(dtype=wp.mat33),
+    kuw: wp.array(dtype=wp.mat33),
+    kww: wp.array(dtype=wp.mat33),
     dt: float,
     turn_limit: float,
     v_out: wp.array(dtype=wp.vec3),
 ):
     """Moves an untouched body's velocities by the rigid motion that zeroes its residual's force and torque.
 
-    The torque about the centre of mass is zeroed only while the body turns less than ``turn_limit`` (rad) a
-    step: a step's velocities turn a body along the chord of its rotation, whose moment falls short of its
-    angular momentum as the turn grows, so no torque balance holds for a fast spin. The body's momentum
-    then changes by exactly the impulse of gravity and damping.
+    The rigid motion ``u + w x y`` solves the 6x6 system of the damped masses and the static contacts
+    (:func:`rigid_contact_sums`), by its Schur complement on ``w``. In flight (no static contact) the torque is
+    balanced only while the body turns less than ``turn_limit`` (rad) a step: a step's velocities turn a body
+    along the chord of its rotation, whose moment falls short of its angular momentum as the turn grows, so no
+    torque balance holds for a fast spin; its momentum then changes by exactly the impulse of gravity and
+    damping. A body on a collider is always balanced: its contacts, not its spin, set its turn.
     """
     i = wp.tid()
     b = vertex_body[i]
@@ -670,10 +721,15 @@ def rigid_correct(
     ident = wp.identity(n=3, dtype=float)
     s = second[b]
     inertia = (wp.trace(s) * ident - s) - total * (wp.dot(c, c) * ident - wp.outer(c, c))
+    k_uu = total * ident + kuu[b]
+    k_uw = -wp.skew(moment[b]) + kuw[b]
+    k_ww = (wp.trace(s) * ident - s) + kww[b]
+    uu_inv = wp.inverse(k_uu)
     turn = wp.vec3()
-    if wp.determinant(inertia) > 0.0:
-        inverse = wp.inverse(inertia)
-        if wp.length(inverse * (spin[b] - wp.cross(c, momentum[b]))) * dt < turn_limit:
-            turn = inverse * (torque[b] - wp.cross(c, force[b]))
-    y = x[i] - x[body_first[b]]
-    v_out[i] = v_out[i] + force[b] / total + wp.cross(turn, y - c)
+    schur = k_ww - wp.transpose(k_uw) * uu_inv * k_uw
+    if wp.determinant(inertia) > 0.0 and wp.determinant(schur) > 0.0:
+        flight = wp.trace(kuu[b]) <= 0.0  # no static contact
+        if not flight or wp.length(wp.inverse(inertia) * (spin[b] - wp.cross(c, momentum[b]))) * dt < turn_limit:
+            turn = wp.inverse(schur) * (torque[b] - wp.transpose(k_uw) * (uu_inv * force[b]))
+    u = uu_inv * (force[b] - k_uw * turn)
+    v_out[i] = v_out[i] + u + wp.cross(turn, x[i] - x[body_first[b]])

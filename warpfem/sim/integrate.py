@@ -333,8 +333,12 @@ def late_contacts(
     count_out: wp.array,
     matrix_out: wp.array,
     rhs_out: wp.array,
+    matrix_base_out: wp.array,
+    rhs_base_out: wp.array,
 ) -> None:
     """Add to the system the static contacts that a solve's ``v_new`` crosses unseen (see ``kernels.integrate``).
+
+    Also to the system without elasticity ``matrix_base_out`` and ``rhs_base_out`` where those are not empty.
 
     ``late`` marks the tet vertices and skin points already given one this step (zero them at its start);
     ``count_out[0]`` counts those added.
@@ -345,7 +349,7 @@ def late_contacts(
         dim=model.vertex_count,
         inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.arrays,
                 model.vertex_body, momentum, model.body_mass, dt],
-        outputs=[late[0], count_out, matrix_out, rhs_out],
+        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )  # fmt: skip
@@ -355,7 +359,7 @@ def late_contacts(
             dim=model.skin_cell.shape[0],
             inputs=[state.x, state.v, v_new, model.cells, model.cell_slots, model.free, model.skin_cell,
                     model.skin_bary, model.skin_mass, model.cell_body, momentum, model.body_mass, c.arrays, dt],
-            outputs=[late[1], count_out, matrix_out, rhs_out],
+            outputs=[late[1], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
             device=model.device,
         )  # fmt: skip
 
@@ -439,23 +443,23 @@ RIGID_GATE = 1.0e-3
 
 
 class RigidCorrection:
-    """Keeps the momentum of bodies nothing outside acts on exactly what gravity and damping make it.
+    """Keeps the momentum of stiff bodies exactly what gravity, damping and the static colliders make it.
 
     At E dt^2 / (rho h^2) around 1e7 (a 1 GPa body at 24 steps a second), float32 rounding of the stiffness
     blocks exceeds the mass terms, so the system's rigid motions are lost in it: CG stalls, and the motion it
     returns along them is noise that can feed energy in. Elastic forces are internal and change no momentum,
-    so after a solve each body without pins, handles or contacts this step takes the rigid motion that zeroes
-    the force and torque of its residual without the elastic terms (``rhs_base``, needed; mass and damping
-    only, nothing large). Bodies in contact are left as the solve answered.
+    so after a solve each body without pins, handles or contacts with other bodies this step takes the rigid
+    motion that zeroes the force and torque of its residual without the elastic terms (``rhs_base`` and
+    ``matrix_base``, needed: masses, damping and the static contacts, nothing large). Bodies touching other
+    bodies are left as the solve answered.
     """
 
-    def __init__(self, model: Model, rhs_base: wp.array, matrix_base: wp.array, late: tuple[wp.array, wp.array]):
+    def __init__(self, model: Model, rhs_base: wp.array, matrix_base: wp.array):
         """Allocates the per-body sums; takes each body's stiffness rate from ``model``.
 
-        ``late``: the solver's flags of the tet vertices and skin points that late static contacts acted on
-        (each empty, or one per vertex or skin point).
+        ``rhs_base`` and ``matrix_base``: the step's system without elasticity, late static contacts included.
         """
-        self.model, self.rhs_base, self.matrix_base, self.late = model, rhs_base, matrix_base, late
+        self.model, self.rhs_base, self.matrix_base = model, rhs_base, matrix_base
         dev, nb = model.device, len(model.bodies)
         self.body_first = wp.array([b.vertex_start for b in model.bodies], dtype=wp.int32, device=dev)
         self.touched = wp.zeros(nb, dtype=wp.int32, device=dev)
@@ -466,6 +470,7 @@ class RigidCorrection:
         self.second = wp.zeros(nb, dtype=wp.mat33, device=dev)
         self.momentum = wp.zeros(nb, dtype=wp.vec3, device=dev)
         self.spin = wp.zeros(nb, dtype=wp.vec3, device=dev)
+        self.contact = [wp.zeros(nb, dtype=wp.mat33, device=dev) for _ in range(3)]  # blocks uu, uw, ww
         self.rate = _stiffness_rate(model)
         self._needed: dict[float, bool] = {}
 
@@ -481,26 +486,16 @@ class RigidCorrection:
         n = model.vertex_count
         block = spread_block_dim(n, dev)
         sums = [self.weight, self.moment, self.force, self.torque, self.second, self.momentum, self.spin]
-        for a in (self.touched, *sums):
+        for a in (self.touched, *sums, *self.contact):
             a.zero_()
         wp.launch(
             K.mark_touched_vertices,
             dim=n,
-            inputs=[model.free, model.mass, model.alpha, model.diag_slot, self.matrix_base, self.late[0],
-                    model.vertex_body, dt],
+            inputs=[model.free, model.vertex_body],
             outputs=[self.touched],
             device=dev,
             block_dim=block,
-        )  # fmt: skip
-        if self.late[1].shape[0]:
-            wp.launch(
-                K.mark_touched_points,
-                dim=self.late[1].shape[0],
-                inputs=[self.late[1], model.skin_cell, model.cell_body],
-                outputs=[self.touched],
-                device=dev,
-                block_dim=spread_block_dim(self.late[1].shape[0], dev),
-            )
+        )
         if coupling is not None and coupling.matrix.shape[0]:
             wp.launch(
                 K.mark_touched_pairs,
@@ -520,9 +515,17 @@ class RigidCorrection:
             block_dim=block,
         )
         wp.launch(
+            K.rigid_contact_sums,
+            dim=n,
+            inputs=[x, v, model.row_start, model.cols, model.diag_slot, self.matrix_base, *per_vertex, dt],
+            outputs=[self.force, self.torque, *self.contact],
+            device=dev,
+            block_dim=block,
+        )
+        wp.launch(
             K.rigid_correct,
             dim=n,
-            inputs=[x, model.vertex_body, self.body_first, self.touched, *sums, dt, RIGID_TURN_LIMIT],
+            inputs=[x, model.vertex_body, self.body_first, self.touched, *sums, *self.contact, dt, RIGID_TURN_LIMIT],
             outputs=[v],
             device=dev,
             block_dim=block,

@@ -139,7 +139,7 @@ class Solver:
             wp.zeros(model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
-        self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base, self.late) if apart else None
+        self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
         """Momentum of bodies nothing outside acts on, kept exact where float32 loses it (with ``apart`` only)."""
         # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
@@ -307,7 +307,8 @@ class Solver:
             if self.colliders.kind.shape[0]:
                 integrate.late_contacts(
                     self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
-                    self.matrix, self.rhs,
+                    self.matrix, self.rhs, self.matrix_base if self.apart else self._no_mat33,
+                    self.rhs_base if self.apart else self._no_vec3,
                 )  # fmt: skip
             if self.collider is not None and k < LATE_BODY_PASSES:
                 self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count)
