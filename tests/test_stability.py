@@ -289,3 +289,24 @@ def test_a_stiff_body_comes_to_rest_on_the_ground(device):
     assert min(lowest) > -0.001 * size, min(lowest) / size
     assert max(lowest) < 0.001 * size, max(lowest) / size
     assert moved < 0.001 * size  # at rest
+
+
+@pytest.mark.parametrize("quadratic", [False, True], ids=["linear", "quadratic"])
+def test_a_stiff_cube_lands_and_stays_put(device, quadratic):
+    """A 0.2 m, 1 GPa, nu 0.49 cube dropped 5 cm onto the ground at 24 steps a second: after 2 s it rests
+    flat on the ground where it landed, not sliding (the solve of its landing, left alone, set a quadratic
+    one sliding at 0.74 m/s)."""
+    V, T = box_tet_mesh((0, 0.05, 0), (SIZE, 0.05 + SIZE, SIZE), (2, 2, 2))
+    b = ModelBuilder()
+    add_body(b, "stiff", V, T, 1e9, 0.49, RHO, quadratic=quadratic)
+    model = b.finalize(device)
+    solver = Solver(model, gravity=(0, -G, 0), ground=Ground(), cg_iterations=100, cg_tolerance=1e-4)
+    s0, s1 = model.state(), model.state()
+    for _ in range(48):
+        _step(solver, s0, s1, 1 / 24)
+        s0, s1 = s1, s0
+    x, v = s0.x.numpy().astype(float), s0.v.numpy().astype(float)
+    assert solver.first_bad_vertex() is None
+    assert np.abs(v).max() < 1e-3
+    assert -1e-4 < x[:, 1].min() < 1e-4  # on the ground, within 0.1 mm
+    np.testing.assert_allclose(x[: len(V), [0, 2]], V[:, [0, 2]], atol=1e-3)  # where it was dropped
