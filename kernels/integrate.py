@@ -728,7 +728,7 @@ def rigid_correct(
     turn = wp.vec3()
     schur = k_ww - wp.transpose(k_uw) * uu_inv * k_uw
     if wp.determinant(inertia) > 0.0 and wp.determinant(schur) > 0.0:
-        flight = wp.trace(kuu[b]) <= 0.0  # no static contact
+        flight = wp.trace(kuu[b]) <= 1.0e-5 * total  # no static contact (its blocks: rounding at most)
         if not flight or wp.length(wp.inverse(inertia) * (spin[b] - wp.cross(c, momentum[b]))) * dt < turn_limit:
             turn = wp.inverse(schur) * (torque[b] - wp.transpose(k_uw) * (uu_inv * force[b]))
     u = uu_inv * (force[b] - k_uw * turn)

@@ -140,7 +140,7 @@ class Solver:
         )
         """Which tet vertices and skin points got a late static contact this step."""
         self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
-        """Momentum of bodies nothing outside acts on, kept exact where float32 loses it (with ``apart`` only)."""
+        """Momentum of bodies no other body touches, kept exact where float32 loses it (with ``apart`` only)."""
         # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
         self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
         coupling = self.collider.coupling if self.collider is not None else None
@@ -302,13 +302,14 @@ class Solver:
         """The contact passes: contacts the answer makes that the step did not count, and a solve where any."""
         if not self.contact_passes:
             return
+        base = self.rigid is not None and self.rigid.needed(dt)  # the rigid correction reads the late contacts
         for k in range(self.contact_passes):
             count = self.late_count[k]
             if self.colliders.kind.shape[0]:
                 integrate.late_contacts(
                     self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
-                    self.matrix, self.rhs, self.matrix_base if self.apart else self._no_mat33,
-                    self.rhs_base if self.apart else self._no_vec3,
+                    self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
+                    self.rhs_base if base else self._no_vec3,
                 )  # fmt: skip
             if self.collider is not None and k < LATE_BODY_PASSES:
                 self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count)
