@@ -100,8 +100,10 @@ def test_temp_file_gone_and_no_partial_target(tmp_path):
     writer = UsdWriter(path, bodies, fps=60.0)
     writer.add_frame(0, frames[0])
     writer.add_frame(1, frames[1])
-    # before close only a hidden temporary file streams the samples: no partial target
-    assert not path.exists() and [p.name for p in tmp_path.iterdir()] == [f".warpfem-chunk-0.tmp-{os.getpid()}.usdc"]
+    # before close only hidden temporaries: the samples' stream and the clips' staged topology; no partial target
+    hidden = sorted(p.name for p in tmp_path.iterdir())
+    pid = os.getpid()
+    assert not path.exists() and hidden == [f".anim.clips.tmp-{pid}", f".warpfem-chunk-0.tmp-{pid}.usdc"]
     writer.close()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.usdc"]
 

@@ -206,18 +206,18 @@ def record(
             save_every=save_every,
             props=props,
         )
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
+    except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
 
     def write(frame: int, points: list[np.ndarray]) -> None:
         writer.add_frame(frame, points, poses(frame / scene.fps))
 
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
-    clock = time.perf_counter()
-    sim.capture()  # before the writer's thread waits on the device: no capture may be active then
-    seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
-    started = check.started = time.perf_counter()
-    with writer:
+    with writer:  # an error before the first frame leaves nothing, the writer's staged files included
+        clock = time.perf_counter()
+        sim.capture()  # before the writer's thread waits on the device: no capture may be active then
+        seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
+        started = check.started = time.perf_counter()
         with FrameStream(sim, [("write", write), ("check", check.ground)], skippable=("check",)) as stream:
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
         clock = time.perf_counter()  # the writer writes what is left on leaving this block

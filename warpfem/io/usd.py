@@ -86,7 +86,7 @@ class UsdWriter:
         props: Sequence[Prop] = (),
         workers: int | None = None,
     ):
-        """Check the arguments and start the writer processes (nothing is written before the first frame).
+        """Check the arguments, start the writer processes or stage the clips' topology (nothing visible is written).
 
         Args:
             path: The output file; its extension picks the format: ``.usdc`` or ``.usd``
@@ -110,6 +110,7 @@ class UsdWriter:
                 worker count.
             FileNotFoundError: The output folder does not exist.
             FileExistsError: ``path`` or its clips folder exists and ``overwrite`` is False.
+            OSError: The output folder cannot be written.
         """
         self.path = Path(path)
         suffix = self.path.suffix.lower()
@@ -165,6 +166,12 @@ class UsdWriter:
         names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
         folder = self.path.parent  # where an inline chunk streams before it is placed
         self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths, folder)
+        staging = self.path.with_name(f".{self.clips_dir.name}.tmp-{os.getpid()}")
+        try:
+            self._pool.stage_clip_files(staging, self._bodies, self._props)
+        except BaseException:
+            self._pool.kill()
+            raise
 
     def _check_body(self, name: str, faces: np.ndarray) -> None:
         """Check one body's name and faces and keep them."""

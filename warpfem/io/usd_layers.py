@@ -44,11 +44,9 @@ class StageInfo:
 
     def author(self, target: object, end: int) -> None:
         """Author it on ``target``: ``upAxis``, ``metersPerUnit = 1``, time codes from 0 to ``end`` at ``fps``."""
-        from pxr import UsdGeom
-
-        target.defaultPrim = "World"
-        target.pseudoRoot.SetInfo(UsdGeom.Tokens.upAxis, self.up_axis)
-        target.pseudoRoot.SetInfo(UsdGeom.Tokens.metersPerUnit, 1.0)
+        target.defaultPrim = "World"  # the keys by name: importing pxr.UsdGeom for its tokens costs tens of ms
+        target.pseudoRoot.SetInfo("upAxis", self.up_axis)
+        target.pseudoRoot.SetInfo("metersPerUnit", 1.0)
         target.timeCodesPerSecond = self.fps
         target.framesPerSecond = self.fps
         target.startTimeCode = 0.0
@@ -125,6 +123,10 @@ MARKER = "warpfem.clips"
 """The topology layer's comment: marks a clips folder as one a writer made (and may replace)."""
 
 
+CLIP_FILES = ("topology.usdc", "manifest.usda")
+"""The files of a clips folder besides its chunks: the topology (a sublayer of the top-level file) and the manifest."""
+
+
 def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
     """Write a clips folder's topology (``topology.usdc``, marked) and manifest, each moved into place complete.
 
@@ -135,7 +137,7 @@ def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndar
     topology = layer(names, prop_paths)
     add_topology(topology, bodies, props)
     topology.comment = MARKER
-    for content, name in ((topology, "topology.usdc"), (layer(names, prop_paths), "manifest.usda")):
+    for content, name in zip((topology, layer(names, prop_paths)), CLIP_FILES, strict=True):
         path = folder / name
         tmp = path.with_name(f".{path.stem}.tmp-{tag}{path.suffix}")
         export(content, tmp)

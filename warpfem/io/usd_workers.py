@@ -19,6 +19,7 @@ import contextlib
 import mmap
 import os
 import resource
+import shutil
 import socket
 import subprocess
 import sys
@@ -31,6 +32,7 @@ import numpy as np
 
 from warpfem.io.crate import CrateStream
 from warpfem.io.usd_layers import (
+    CLIP_FILES,
     Chunk,
     Prop,
     StageInfo,
@@ -85,8 +87,24 @@ class InlinePool:
         self._folder = folder
         self._streams: dict[int, CrateStream] = {}
         self._done: list[tuple[int, int]] = []
+        self._staged: Path | None = None
         self.seconds = 0.0
         self.peak_bytes = 0
+
+    def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+        """Write the clips folder's topology and manifest ahead, into the hidden folder ``staging``.
+
+        Their export (tens of ms for a large mesh) then happens before the run steps, not on the writer's thread
+        beside it; starting the clips only moves them. A run that stays one file drops them.
+        """
+        shutil.rmtree(staging, ignore_errors=True)  # a leftover of a killed process with this one's id
+        staging.mkdir()
+        self._staged = staging
+        try:
+            write_clip_files(staging, str(os.getpid()), bodies, props)
+        except BaseException:
+            self._drop_staged()
+            raise
 
     def add(self, chunk: int, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
         """Sample ``points`` (and their extents) and ``matrices`` at ``frame`` in chunk number ``chunk``."""
@@ -101,7 +119,12 @@ class InlinePool:
     def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
         """Write the clips folder's topology and manifest (:func:`~warpfem.io.usd_layers.write_clip_files`)."""
         clock = time.perf_counter()
-        write_clip_files(folder, str(os.getpid()), bodies, props)
+        if self._staged is None:
+            write_clip_files(folder, str(os.getpid()), bodies, props)
+        else:
+            for name in CLIP_FILES:
+                os.replace(self._staged / name, folder / name)
+            self._drop_staged()
         self.seconds += time.perf_counter() - clock
 
     def cut(self, chunk: int, tmp: Path) -> None:
@@ -138,6 +161,7 @@ class InlinePool:
             export_single(layer, tmp, bodies, props, info, last)
         finally:
             stream.path.unlink(missing_ok=True)
+            self._drop_staged()
         self._done.append((chunk, last))
         self.seconds += time.perf_counter() - clock
 
@@ -147,13 +171,21 @@ class InlinePool:
         return done
 
     def stop(self) -> None:
-        """Nothing to stop."""
+        """Drop the staged clip files, if the clips never started."""
+        self._drop_staged()
 
     def kill(self) -> None:
-        """Remove the chunks being written."""
+        """Remove the chunks being written and the staged clip files."""
         for stream in self._streams.values():
             stream.discard()
         self._streams.clear()
+        self._drop_staged()
+
+    def _drop_staged(self) -> None:
+        """Remove the staging folder of :meth:`stage_clip_files`, if there is one."""
+        if self._staged is not None:
+            shutil.rmtree(self._staged, ignore_errors=True)
+            self._staged = None
 
 
 class ProcessPool:
@@ -216,6 +248,9 @@ class ProcessPool:
             view[start : start + p.size] = p.reshape(-1)
             start += p.size
         self._conns[chunk % self._count].send(("frame", chunk, frame, slot, list(matrices)))
+
+    def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+        """Nothing ahead: a writer process writes the clip files when the clips start, off the caller's thread."""
 
     def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
         """Have the clips folder's topology and manifest written, before the first chunk is reported exported."""
