@@ -56,3 +56,32 @@ def deepest_inside(
                     fraction = wp.min(depth / reach[j], 1.0)
                     quantised = wp.int64(fraction * wp.pow(2.0, float(DEPTH_BITS)))
                     wp.atomic_max(deepest, j, (quantised << wp.int64(OWNER_BITS)) | wp.int64(i))
+
+
+@wp.kernel
+def body_bounds(
+    points: wp.array(dtype=wp.vec3),
+    chunk_start: wp.array(dtype=wp.int32),
+    chunk_body: wp.array(dtype=wp.int32),
+    bounds: wp.array(dtype=wp.vec3),
+):
+    """Fold chunk i (points ``chunk_start[i]`` to ``chunk_start[i + 1]``, all of one body) into that body's box.
+
+    ``bounds[2 b]`` and ``bounds[2 b + 1]`` are body b's lower and upper corners, reset to +inf and -inf
+    before the launch. A non-finite point makes its body's box infinite both ways, so a reader of the box
+    alone sees that the points are not finite.
+    """
+    i = wp.tid()
+    b = chunk_body[i]
+    lo = wp.vec3(wp.inf, wp.inf, wp.inf)
+    hi = wp.vec3(-wp.inf, -wp.inf, -wp.inf)
+    for k in range(chunk_start[i], chunk_start[i + 1]):
+        p = points[k]
+        if wp.isfinite(p):
+            lo = wp.min(lo, p)
+            hi = wp.max(hi, p)
+        else:
+            lo = wp.vec3(-wp.inf, -wp.inf, -wp.inf)
+            hi = wp.vec3(wp.inf, wp.inf, wp.inf)
+    wp.atomic_min(bounds, 2 * b, lo)
+    wp.atomic_max(bounds, 2 * b + 1, hi)

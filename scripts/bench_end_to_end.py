@@ -117,6 +117,8 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
     import warpfem.io.usd as usd
     from warpfem.io.usd import clips_folder
 
+    if args.switch_interval is not None:
+        sys.setswitchinterval(args.switch_interval / 1e3)
     if args.writers is not None:  # what UsdWriter asks for by default
         usd.default_workers = lambda *_: args.writers
     if case.startswith("writer") and case[6:].isdigit():
@@ -166,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
     parser.add_argument("--writers", type=int, help="writer processes (0: none)")
+    parser.add_argument("--switch-interval", type=float, help="the interpreter's thread switch interval (ms)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.quick:
@@ -180,11 +183,13 @@ def main(argv: list[str] | None = None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
     results = {"environment": environment(device), "mode": "end-to-end", "frames": args.frames, "runs": []}
+    results["switch_interval_ms"] = args.switch_interval or 1e3 * sys.getswitchinterval()
     with tempfile.TemporaryDirectory(dir=args.workdir) as folder:
         for case in args.cases.split(","):
             cmd = [sys.executable, __file__, "--one", case, "--device", device.alias, "--frames", str(args.frames)]
             cmd += ["--assets", str(args.assets), "--cache-dir", str(args.cache_dir), "--workdir", folder]
             cmd += [] if args.writers is None else ["--writers", str(args.writers)]
+            cmd += [] if args.switch_interval is None else ["--switch-interval", str(args.switch_interval)]
             done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if done.returncode != 0:
                 results["runs"].append({"case": case, "error": done.stderr.strip().splitlines()[-1:]})

@@ -36,7 +36,7 @@ def test_every_frame_reaches_every_consumer_in_order_with_its_points(device):
     threads = set()
 
     def consumer(name):
-        def take(frame, points):
+        def take(frame, points, boxes):
             threads.add(threading.current_thread().name)
             time.sleep(0.002)  # slower than the producer: the stream must wait, not drop or mix frames
             seen.append((name, frame, [p.copy() for p in points]))
@@ -62,7 +62,7 @@ def test_a_skippable_consumer_behind_takes_the_newest_frame_and_always_the_last(
     taken: dict[str, list[int]] = {"all": [], "some": []}
 
     def take(name, delay):
-        def consume(frame, points):
+        def consume(frame, points, boxes):
             time.sleep(delay)
             assert all((p == frame).all() for p in points)
             taken[name].append(frame)
@@ -81,7 +81,7 @@ def test_a_skippable_consumer_behind_takes_the_newest_frame_and_always_the_last(
 def test_consumers_run_alongside_each_other(device):
     """Two consumers of 20 ms a frame over 10 frames take about 0.2 s together, not 0.4 s one after the other."""
     sim = _FakeSim(device)
-    slow = [("a", lambda frame, points: time.sleep(0.02)), ("b", lambda frame, points: time.sleep(0.02))]
+    slow = [("a", lambda frame, *_: time.sleep(0.02)), ("b", lambda frame, *_: time.sleep(0.02))]
     clock = time.perf_counter()
     with FrameStream(sim, slow) as stream:
         for frame in range(10):
@@ -94,7 +94,7 @@ def test_a_consumer_error_reaches_the_caller_and_stops_the_stream(device):
     sim = _FakeSim(device)
     taken = []
 
-    def failing(frame, points):
+    def failing(frame, points, boxes):
         if frame == 3:
             raise OSError("disk full")
         taken.append(frame)
@@ -111,11 +111,38 @@ def test_an_exception_in_the_caller_still_hands_over_the_frames_submitted(device
     sim = _FakeSim(device)
     taken = []
     with pytest.raises(KeyboardInterrupt):
-        with FrameStream(sim, [("write", lambda frame, points: taken.append(frame))]) as stream:
+        with FrameStream(sim, [("write", lambda frame, *_: taken.append(frame))]) as stream:
             for frame in range(5):
                 stream.submit(frame)
             raise KeyboardInterrupt
     assert taken == [0, 1, 2, 3, 4]
+
+
+def test_each_frame_carries_its_bodies_boxes_and_a_non_finite_point_makes_its_box_infinite(device):
+    """The boxes reduced on the device equal NumPy's min and max of each body's points; a NaN in one body
+    makes that body's box infinite both ways (a reader of the box alone sees it) and leaves the other's."""
+    sim = _FakeSim(device)
+    rng = np.random.default_rng(3)
+    frames = [rng.normal(size=(8, 3)).astype(np.float32) for _ in range(4)]
+    frames[2][4, 1] = np.nan  # body 1 (points 3..7) of frame 2
+    seen = {}
+
+    def map_dense():
+        sim.dense.assign(frames[sim.mapped])
+        sim.mapped += 1
+        return sim.dense
+
+    sim.map_dense = map_dense
+    with FrameStream(sim, [("boxes", lambda frame, points, boxes: seen.update({frame: boxes.copy()}))]) as stream:
+        for frame in range(4):
+            stream.submit(frame)
+    for frame, points in enumerate(frames):
+        for body, (start, end) in enumerate([(0, 3), (3, 8)]):
+            if frame == 2 and body == 1:
+                np.testing.assert_array_equal(seen[frame][body], [[-np.inf] * 3, [np.inf] * 3])
+            else:
+                want = [points[start:end].min(axis=0), points[start:end].max(axis=0)]
+                np.testing.assert_array_equal(seen[frame][body], want)
 
 
 @pytest.mark.parametrize("writers", [0, 2], ids=["inline", "2 writer processes"])

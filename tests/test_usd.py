@@ -37,15 +37,17 @@ def validation_errors(stage):
 
 @pytest.mark.parametrize("workers", [0, 3], ids=["inline", "3 writer processes"])
 @pytest.mark.parametrize("chunk_bytes", [1 << 20, 100, 400], ids=["one file", "a clip per frame", "clips"])
+@pytest.mark.parametrize("given", [False, True], ids=["extents read off the points", "extents given"])
 @pytest.mark.parametrize("ext", [".usdc", ".usda"])
-def test_round_trip(tmp_path, ext, chunk_bytes, workers):
+def test_round_trip(tmp_path, ext, chunk_bytes, workers, given):
     from pxr import Sdf, Usd, UsdGeom
 
     bodies, frames = bodies_and_frames(5)
     path = tmp_path / f"out{ext}"
     writer = UsdWriter(path, bodies, fps=30.0, up_axis="Z", chunk_bytes=chunk_bytes, workers=workers)
     for f, points in enumerate(frames):
-        writer.add_frame(f, points)
+        boxes = [[np.float32(p).min(axis=0), np.float32(p).max(axis=0)] for p in points] if given else None
+        writer.add_frame(f, points, extents=boxes)
     assert writer.frames_added == 5
     assert writer.close() == path
     frame_bytes = 12 * 14
@@ -120,6 +122,20 @@ def test_close_replaces_existing_file(tmp_path):
         assert path.read_bytes() == b"old content"
     stage = Usd.Stage.Open(str(path))
     assert stage.GetEndTimeCode() == 2.0 and stage.GetTimeCodesPerSecond() == 24.0
+
+
+def test_given_extents_are_checked(tmp_path):
+    """Extents the caller gives stand for its points: a non-finite corner is a non-finite frame, named by body."""
+    bodies, frames = bodies_and_frames(1)
+    writer = UsdWriter(tmp_path / "a.usdc", bodies, fps=60.0)
+    boxes = np.array([[p.min(axis=0), p.max(axis=0)] for p in frames[0]], np.float32)
+    with pytest.raises(ValueError, match=r"extents must be a \(3, 2, 3\) array, got shape \(2, 2, 3\)"):
+        writer.add_frame(0, frames[0], extents=boxes[:2])
+    boxes[1, 0, 2] = -np.inf
+    with pytest.raises(ValueError, match="body 'quad_1': frame 0 has non-finite points"):
+        writer.add_frame(0, frames[0], extents=boxes)
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_abort_leaves_nothing(tmp_path):

@@ -209,8 +209,8 @@ def record(
     except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
 
-    def write(frame: int, points: list[np.ndarray]) -> None:
-        writer.add_frame(frame, points, poses(frame / scene.fps))
+    def write(frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
+        writer.add_frame(frame, points, poses(frame / scene.fps), extents=boxes)
 
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
     with writer:  # an error before the first frame leaves nothing, the writer's staged files included
@@ -307,11 +307,12 @@ class _Check:
         self.seconds = 0.0
         self.started = time.perf_counter()  # set again by the run as it starts stepping
 
-    def ground(self, frame: int, points: list[np.ndarray]) -> None:
+    def ground(self, frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
         """Check frame ``frame``'s dense meshes against the ground and obstacles (any thread).
 
         Mesh obstacles (a winding number or closest-point query per point) on the frames spaced like the bodies'
-        checks, the last always; the ground, spheres and boxes every frame.
+        checks, the last always; the ground, spheres and boxes every frame. ``boxes``: the bodies' bounds from the
+        device (an axis-aligned ground reads its lowest point off them).
         """
         last = frame == self.sim.scene.frames
         ground, obstacles = scene_colliders(self.sim, frame / self.sim.fps)
@@ -320,7 +321,7 @@ class _Check:
         if meshes and not due:
             obstacles = [o for o in obstacles if o.mesh is None]
         clock = time.perf_counter()
-        result = self.body_check.measure(points, ground, obstacles, bodies=False)
+        result = self.body_check.measure(points, ground, obstacles, bodies=False, boxes=boxes)
         if meshes and due and frame > 0:
             self.next_mesh = self._next(frame, time.perf_counter() - clock)
         self.ground_worst = self.ground_worst.worst(result)

@@ -66,6 +66,60 @@ def bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(lows).min(axis=0), np.concatenate(highs).max(axis=0)
 
 
+class BodyBounds:
+    """Each body's bounding box over a flat device array of all bodies' points, in one launch.
+
+    The points are read in chunks of :attr:`CHUNK` of one body each, so a frame's boxes cost the device a
+    pass over its points and the host nothing (``warpfem.kernels.penetration.body_bounds``).
+
+    Args:
+        ranges: ``(start, end)`` of each body's points in the flat array, one after the other.
+        device: Warp device of the points.
+
+    Raises:
+        ValueError: The ranges do not follow each other from 0.
+    """
+
+    CHUNK = 64
+
+    def __init__(self, ranges: Sequence[tuple[int, int]], device: Any) -> None:
+        import warp as wp
+
+        starts, owners, end = [], [], 0
+        for body, (start, stop) in enumerate(ranges):
+            if start != end or stop < start:
+                raise ValueError(f"body {body}: points {start}..{stop} do not follow the previous body's (end {end})")
+            chunks = list(range(start, stop, self.CHUNK))
+            starts += chunks
+            owners += [body] * len(chunks)
+            end = stop
+        self.device = wp.get_device(device)
+        self._chunks = len(owners)
+        self._start = wp.array(np.array(starts + [end], np.int32), dtype=wp.int32, device=self.device)
+        self._owner = wp.array(np.array(owners, np.int32), dtype=wp.int32, device=self.device)
+        empty = np.tile(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), (len(ranges), 1))
+        self._empty = wp.array(empty, dtype=wp.vec3, device=self.device)
+        self.bounds = wp.empty(2 * len(ranges), dtype=wp.vec3, device=self.device)
+        """Body b's lower corner at ``2 b``, its upper at ``2 b + 1`` (m); infinite both ways for a non-finite point."""
+
+    def compute(self, points: Any) -> Any:
+        """Launch the boxes of ``points`` (the flat ``wp.vec3`` array) into :attr:`bounds` and return it."""
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        wp.copy(self.bounds, self._empty)
+        if self._chunks:
+            wp.launch(
+                K.body_bounds,
+                dim=self._chunks,
+                inputs=[points, self._start, self._owner],
+                outputs=[self.bounds],
+                device=self.device,
+            )
+        return self.bounds
+
+
 @dataclass(frozen=True, eq=False)
 class Obstacle:
     """A sphere (``radius``), a box (``half_extents``) or a triangle mesh (``mesh``), placed by ``matrix``.
@@ -227,9 +281,17 @@ class PenetrationCheck:
         ground: tuple[float, tuple[float, float, float]] | None = None,
         obstacles: Sequence[Obstacle] = (),
         bodies: bool = True,
+        boxes: np.ndarray | None = None,
     ) -> Penetration:
-        """Measure one frame: ``points`` as in :func:`measure`, one (V_i, 3) array per body (m)."""
-        boxes = [bounds(p) if len(p) else None for p in points]
+        """Measure one frame: ``points`` as in :func:`measure`, one (V_i, 3) array per body (m).
+
+        ``boxes``: each body's (2, 3) lower and upper corners where known (:class:`BodyBounds`), so the
+        points are not read for them.
+        """
+        if boxes is None:
+            boxes = [bounds(p) if len(p) else None for p in points]
+        else:
+            boxes = [(box[0], box[1]) if len(p) else None for p, box in zip(points, boxes, strict=True)]
         sizes = [float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0 for b in boxes]
         worst = Penetration()
         for p, box, size in zip(points, boxes, sizes, strict=True):

@@ -1,9 +1,12 @@
 """Frames handed from the device to the file on background threads, while the next frames simulate.
 
-Each frame's dense points are mapped on the device and copied asynchronously into one of a few pinned
-host buffers; each consumer (the USD writer, the penetration check) has a thread of its own that waits for
-the copy and takes the frames in order; a buffer is free again once every consumer is done with it. The
-simulation waits only when every buffer is taken, i.e. when a consumer is more than a few frames behind.
+Each frame's dense points are mapped on the device, each body's bounding box reduced there, and both
+copied asynchronously into one of a few pinned host buffers; each consumer (the USD writer, the penetration
+check) has a thread of its own that waits for the copy and takes the frames in order; a buffer is free again
+once every consumer is done with it. The simulation waits only when every buffer is taken, i.e. when a
+consumer is more than a few frames behind. The boxes spare the consumers' threads a pass over the points
+each (the extents the writer samples, the ground's lowest point), work that holds the interpreter lock
+the stepping thread needs.
 """
 
 from __future__ import annotations
@@ -17,14 +20,17 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from warpfem.io.penetration import BodyBounds
+
 QUEUE_BYTES = 256 << 20
 """Pinned host memory for frames in flight (bytes); at least :data:`MIN_SLOTS` frames whatever their size."""
 
 MIN_SLOTS = 2
 MAX_SLOTS = 8
 
-Consumer = Callable[[int, list[np.ndarray]], None]
-"""Called as ``consumer(frame, points)``: one (n_i, 3) float32 view per body, valid during the call only."""
+Consumer = Callable[[int, list[np.ndarray], np.ndarray], None]
+"""Called as ``consumer(frame, points, boxes)``: one (n_i, 3) float32 view per body and a (bodies, 2, 3) array of
+their lower and upper corners (infinite both ways for a body with a non-finite point), valid during the call."""
 
 
 class FrameStream:
@@ -53,6 +59,7 @@ class FrameStream:
         self._skippable = set(skippable)
         self._cuda = sim.device.is_cuda
         self._ranges = [(b.dense_start, b.dense_start + b.dense_count) for b in model.bodies]
+        self._bounds = BodyBounds(self._ranges, sim.device)
         frame_bytes = max(12 * model.dense_count, 1)
         count = min(MAX_SLOTS, max(MIN_SLOTS, QUEUE_BYTES // frame_bytes))
         self._free: queue.Queue[int] = queue.Queue()
@@ -61,6 +68,9 @@ class FrameStream:
         self._lock = threading.Lock()
         self._slots = [
             wp.empty(model.dense_count, dtype=wp.vec3, device="cpu", pinned=self._cuda) for _ in range(count)
+        ]
+        self._boxes = [
+            wp.empty(2 * len(self._ranges), dtype=wp.vec3, device="cpu", pinned=self._cuda) for _ in range(count)
         ]
         self._events = [wp.Event(sim.device) if self._cuda else None for _ in range(count)]
         self._stream = sim.device.stream if self._cuda else None
@@ -92,7 +102,9 @@ class FrameStream:
             except queue.Empty:
                 continue
         self.waited += time.perf_counter() - clock
-        wp.copy(self._slots[slot], self._sim.map_dense(), stream=self._stream)
+        dense = self._sim.map_dense()
+        wp.copy(self._slots[slot], dense, stream=self._stream)
+        wp.copy(self._boxes[slot], self._bounds.compute(dense), stream=self._stream)
         if self._cuda:
             self._stream.record_event(self._events[slot])
         self._users[slot] = len(self._work)
@@ -125,9 +137,9 @@ class FrameStream:
                 if self._error is None:
                     if self._cuda:
                         wp.synchronize_event(self._events[slot])
-                    flat = self._slots[slot].numpy()
+                    flat, boxes = self._slots[slot].numpy(), self._boxes[slot].numpy().reshape(-1, 2, 3)
                     clock = time.perf_counter()
-                    consume(frame, [flat[start:end] for start, end in self._ranges])
+                    consume(frame, [flat[start:end] for start, end in self._ranges], boxes)
                     self.seconds[name] += time.perf_counter() - clock
             except BaseException as err:  # handed to the simulating thread at its next submit or close
                 with self._lock:

@@ -210,7 +210,13 @@ class UsdWriter:
         """How many frames have been added."""
         return self._frames_added
 
-    def add_frame(self, frame: int, points: Sequence[np.ndarray], transforms: Sequence[np.ndarray] = ()) -> None:
+    def add_frame(
+        self,
+        frame: int,
+        points: Sequence[np.ndarray],
+        transforms: Sequence[np.ndarray] = (),
+        extents: np.ndarray | None = None,
+    ) -> None:
         """Sample every body's points (and extent), and every prop's transform, at time code ``frame``.
 
         Args:
@@ -220,6 +226,9 @@ class UsdWriter:
                 copied: the caller may reuse them once this returns.
             transforms: One 4x4 matrix per prop taking its own frame to the world, for column vectors
                 (``world = matrix @ [x, 1]``).
+            extents: Each body's lower and upper corners, (bodies, 2, 3), where the caller has them (the
+                simulation reduces them on the device): the points are then not read for them, and a
+                non-finite corner stands for non-finite points. None: read off the points.
 
         Raises:
             ValueError: A frame out of order, a wrong body count or shape, or non-finite points.
@@ -228,10 +237,11 @@ class UsdWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        arrays = self._checked(frame, points)
+        arrays = self._checked(frame, points, extents is None)
+        boxes = None if extents is None else self._checked_extents(frame, extents)
         matrices = _checked_transforms(transforms, len(self._props))
         with _held_signals(), self._aborting_on_failure():
-            self._pool.add(self._cuts, int(frame), arrays, matrices)
+            self._pool.add(self._cuts, int(frame), arrays, matrices, boxes)
             if self._chunk_first is None:
                 self._chunk_first = int(frame)
             for i, p in enumerate(arrays):
@@ -254,8 +264,8 @@ class UsdWriter:
             self.abort()
             raise
 
-    def _checked(self, frame: int, points: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """``points`` as contiguous float32 arrays, after checking the frame number, shapes and values."""
+    def _checked(self, frame: int, points: Sequence[np.ndarray], finite: bool = True) -> list[np.ndarray]:
+        """``points`` as contiguous float32 arrays, after checking the frame number, shapes and (``finite``) values."""
         if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
             raise ValueError(f"frame must be an integer >= 0, got {frame!r}")
         if self._last_frame is not None and frame <= self._last_frame:
@@ -272,10 +282,20 @@ class UsdWriter:
                 raise ValueError(f"body {name!r}: {len(p)} points, but its faces use {self._min_vertices[i]} vertices")
             if expected is not None and len(p) != expected:
                 raise ValueError(f"body {name!r}: {len(p)} points, expected {expected} (its vertex count)")
-            if not np.isfinite(p).all():
+            if finite and not np.isfinite(p).all():
                 raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
             arrays.append(p)
         return arrays
+
+    def _checked_extents(self, frame: int, extents: np.ndarray) -> np.ndarray:
+        """``extents`` as a (bodies, 2, 3) float32 array, after checking its shape and that it is finite."""
+        boxes = np.asarray(extents, dtype=np.float32)
+        if boxes.shape != (len(self._bodies), 2, 3):
+            raise ValueError(f"extents must be a ({len(self._bodies)}, 2, 3) array, got shape {boxes.shape}")
+        for (name, _), box in zip(self._bodies, boxes, strict=True):
+            if not np.isfinite(box).all():
+                raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
+        return boxes
 
     def save(self) -> None:
         """Cut the frames added since the last chunk as a chunk, and wait until every chunk is on disk.

@@ -73,8 +73,16 @@ class Chunk:
         self._transforms = [Sdf.Path(f"/World/{path}.xformOp:transform") for path in prop_paths]
         self.last = -1
 
-    def add(self, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
+    def add(
+        self,
+        frame: int,
+        points: Sequence[np.ndarray],
+        matrices: Sequence[np.ndarray],
+        extents: Sequence[np.ndarray] | None = None,
+    ) -> None:
         """Sample contiguous float32 (n_i, 3) ``points`` and 4x4 column-vector ``matrices`` at ``frame``.
+
+        ``extents``: each body's (2, 3) float32 bounds where known (else read off the points).
 
         Either every sample of the frame is authored or none (an exception half way, Ctrl-C included,
         erases what was set).
@@ -82,11 +90,12 @@ class Chunk:
         from pxr import Gf, Sdf, Vt
 
         code = float(frame)
+        boxes = [extent(p) for p in points] if extents is None else extents
         try:
             with Sdf.ChangeBlock():
                 for i, p in enumerate(points):
                     self.layer.SetTimeSample(self._points[i], code, vec3f_array(p))
-                    self.layer.SetTimeSample(self._extents[i], code, Vt.Vec3fArray.FromNumpy(extent(p)))
+                    self.layer.SetTimeSample(self._extents[i], code, Vt.Vec3fArray.FromNumpy(boxes[i]))
                 for path, m in zip(self._transforms, matrices, strict=True):
                     self.layer.SetTimeSample(path, code, Gf.Matrix4d(m.T.tolist()))
         except BaseException:

@@ -106,13 +106,25 @@ class InlinePool:
             self._drop_staged()
             raise
 
-    def add(self, chunk: int, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
-        """Sample ``points`` (and their extents) and ``matrices`` at ``frame`` in chunk number ``chunk``."""
+    def add(
+        self,
+        chunk: int,
+        frame: int,
+        points: Sequence[np.ndarray],
+        matrices: Sequence[np.ndarray],
+        extents: Sequence[np.ndarray] | None = None,
+    ) -> None:
+        """Sample ``points``, their (2, 3) ``extents`` and ``matrices`` at ``frame`` in chunk number ``chunk``.
+
+        ``extents`` None: read off the points.
+        """
         clock = time.perf_counter()
         if chunk not in self._streams:
             path = self._folder / f".warpfem-chunk-{chunk}.tmp-{os.getpid()}.usdc"
             self._streams[chunk] = CrateStream(path, self._attributes)
-        values = [v for p in points for v in (p, extent(p))] + [m.T for m in matrices]  # USD: row vectors
+        boxes = [extent(p) for p in points] if extents is None else extents
+        values = [v for p, box in zip(points, boxes, strict=True) for v in (p, box)]
+        values += [m.T for m in matrices]  # USD: row vectors
         self._streams[chunk].add(float(frame), values)
         self.seconds += time.perf_counter() - clock
 
@@ -235,8 +247,18 @@ class ProcessPool:
         for conn in self._conns:
             conn.send((self._names, self._prop_paths, ranges))
 
-    def add(self, chunk: int, frame: int, points: Sequence[np.ndarray], matrices: Sequence[np.ndarray]) -> None:
-        """Copy ``points`` into a free slot (waiting for one) and send frame ``frame`` of chunk ``chunk``."""
+    def add(
+        self,
+        chunk: int,
+        frame: int,
+        points: Sequence[np.ndarray],
+        matrices: Sequence[np.ndarray],
+        extents: Sequence[np.ndarray] | None = None,
+    ) -> None:
+        """Copy ``points`` into a free slot (waiting for one) and send frame ``frame`` of chunk ``chunk``.
+
+        ``extents``: the bodies' (2, 3) bounds, else the writer process reads them off the points.
+        """
         if self._ring is None:
             self._setup(points)
         while not self._free:
@@ -247,7 +269,8 @@ class ProcessPool:
         for p in points:
             view[start : start + p.size] = p.reshape(-1)
             start += p.size
-        self._conns[chunk % self._count].send(("frame", chunk, frame, slot, list(matrices)))
+        boxes = None if extents is None else np.asarray(extents)
+        self._conns[chunk % self._count].send(("frame", chunk, frame, slot, list(matrices), boxes))
 
     def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
         """Nothing ahead: a writer process writes the clip files when the clips start, off the caller's thread."""
@@ -355,10 +378,10 @@ def _serve(conn: Connection, fd: int) -> None:
         kind, number = message[0], message[1]
         try:
             if kind == "frame":
-                frame, slot, matrices = message[2:]
+                frame, slot, matrices, extents = message[2:]
                 view = np.frombuffer(ring, np.float32, floats, 4 * floats * slot).reshape(-1, 3)
                 chunk = chunk or Chunk(names, prop_paths)
-                chunk.add(frame, [view[a:b] for a, b in zip(ranges, ranges[1:], strict=False)], matrices)
+                chunk.add(frame, [view[a:b] for a, b in zip(ranges, ranges[1:], strict=False)], matrices, extents)
                 conn.send(("free", slot))
             elif kind == "clips":
                 write_clip_files(Path(message[2]), *message[3:])
