@@ -85,3 +85,27 @@ def body_bounds(
             hi = wp.vec3(wp.inf, wp.inf, wp.inf)
     wp.atomic_min(bounds, 2 * b, lo)
     wp.atomic_max(bounds, 2 * b + 1, hi)
+
+
+@wp.kernel
+def check_boxes(
+    bounds: wp.array(dtype=wp.vec3),
+    body_box: wp.array(dtype=wp.int32),
+    pad: float,
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    reach: wp.array(dtype=float),
+):
+    """Body b's box in the check's tree (``body_box[b]``, -1: none) and its reach, from its bounds.
+
+    The box is padded by ``pad`` times the body's size (its diagonal); the reach is the padded diagonal.
+    """
+    b = wp.tid()
+    lo = bounds[2 * b]
+    hi = bounds[2 * b + 1]
+    margin = pad * wp.max(wp.length(hi - lo), 1.0e-30)
+    reach[b] = wp.length(hi - lo) + 2.0 * margin
+    k = body_box[b]
+    if k >= 0:
+        lowers[k] = lo - wp.vec3(margin, margin, margin)
+        uppers[k] = hi + wp.vec3(margin, margin, margin)

@@ -76,9 +76,10 @@ def _reference(points, faces, names):
 
 def test_overlapping_bunnies_agree_with_libigl_exact_winding_numbers(device):
     """Two bunnies (one turned and scaled) in two poses, measured by one check (its meshes refitted)."""
+    import warp as wp
     from scipy.spatial.transform import Rotation
 
-    from warpfem.io.penetration import PenetrationCheck
+    from warpfem.io.penetration import BodyBounds, PenetrationCheck
     from warpfem.prep.surface import load_surface
 
     bunny = load_surface("builtin:bunny")
@@ -86,10 +87,14 @@ def test_overlapping_bunnies_agree_with_libigl_exact_winding_numbers(device):
     size = np.linalg.norm(np.ptp(v, axis=0))
     turned = 0.8 * Rotation.from_euler("xyz", [20, 70, -10], degrees=True).apply(v - v.mean(0)) + v.mean(0)
     check = PenetrationCheck([f, f], ["a", "b"], device)
+    on_device = PenetrationCheck([f, f], ["a", "b"], device)  # the points where a simulation maps them
+    bounds = BodyBounds([(0, len(v)), (len(v), 2 * len(v))], device)
     for offset in ([0.3, 0.05, 0.0], [0.15, -0.1, 0.2]):
         points = [v, turned + np.multiply(offset, size)]
         depth, relative, inside = _reference(points, [f, f], ["a", "b"])
-        result = check.measure([p.astype(np.float32) for p in points])
-        assert relative > 0.05 and result.inside == inside
-        assert result.depth == pytest.approx(depth, abs=1e-5 * size)
-        assert result.relative == pytest.approx(relative, abs=1e-5)
+        flat = wp.array(np.concatenate(points).astype(np.float32), dtype=wp.vec3, device=device)
+        on_device.start_bodies(flat, [len(v), len(v)], bounds.compute(flat))
+        for result in (check.measure([p.astype(np.float32) for p in points]), on_device.collect_bodies()):
+            assert relative > 0.05 and result.inside == inside
+            assert result.depth == pytest.approx(depth, abs=1e-5 * size)
+            assert result.relative == pytest.approx(relative, abs=1e-5)

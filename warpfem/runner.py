@@ -283,10 +283,10 @@ class _Check:
     The ground, spheres and boxes on every written frame it keeps up with (it skips to the newest when frames
     wait for it, the last always), on a thread of its own (NumPy only), and there too
     mesh obstacles on the last frame and on frames spaced so that they take about a tenth of the run's time.
-    Bodies inside each other the same way, on the simulation's device, from the stepping thread between
-    frames. Only the stepping thread touches the device: Warp's reads of CUDA arrays swap the device's
-    current stream, a state of the whole device, which a second thread doing the same could leave on another
-    stream.
+    Bodies inside each other the same way, on the simulation's device, launched from the stepping thread
+    between frames and read at the next check. Only the stepping thread touches the device: Warp's reads of
+    CUDA arrays swap the device's current stream, a state of the whole device, which a second thread doing
+    the same could leave on another stream.
     """
 
     SHARE = 0.1
@@ -294,16 +294,19 @@ class _Check:
     def __init__(self, sim: Simulation) -> None:
         import warp as wp
 
-        from warpfem.io.penetration import PenetrationCheck
+        from warpfem.io.penetration import BodyBounds, PenetrationCheck
         from warpfem.kernels import penetration
 
         wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
         self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, sim.device)
+        self.counts = [b.dense_count for b in sim.model.bodies]
+        self.boxes = BodyBounds([(b.dense_start, b.dense_start + b.dense_count) for b in sim.model.bodies], sim.device)
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
         self.ground_worst = self.ground_end = self.body_worst = self.body_end = Penetration()
         self.frames_checked = self.ground_frames = 0
         self.next = self.next_mesh = 1
+        self.pending: int | None = None  # the frame of a body check launched and not yet read
         self.seconds = 0.0
         self.started = time.perf_counter()  # set again by the run as it starts stepping
 
@@ -336,17 +339,32 @@ class _Check:
     def bodies_now(self, frame: int) -> None:
         """Check the bodies against each other at the simulation's current frame (the stepping thread only).
 
-        The ground and obstacles of this frame are :meth:`ground`'s, on the other thread.
+        The check queues on the device after the frame and is read at the next check (the last frame's at
+        once), so the stepping thread waits for neither; the dense points never pass through the host. Its
+        cost, for spacing the checks, is the thread's time and the previous check's device time. The ground
+        and obstacles of this frame are :meth:`ground`'s, on the other thread.
         """
         clock = time.perf_counter()
-        result = self.body_check.measure(self.sim.dense_points(), bodies=True)
+        self._collect()
+        dense = self.sim.map_dense()
+        self.body_check.start_bodies(dense, self.counts, self.boxes.compute(dense))
+        self.pending = frame
+        if frame == self.sim.scene.frames:
+            self._collect()
         cost = time.perf_counter() - clock
         self.seconds += cost
         self.frames_checked += 1
-        self.next = self._next(frame, cost)
+        self.next = self._next(frame, cost + self.body_check.device_seconds)
+
+    def _collect(self) -> None:
+        """Read the body check launched last, if any, into the worst and the last frame's figures."""
+        if self.pending is None:
+            return
+        result = self.body_check.collect_bodies()
         self.body_worst = self.body_worst.worst(result)
-        if frame == self.sim.scene.frames:
+        if self.pending == self.sim.scene.frames:
             self.body_end = result
+        self.pending = None
 
     def _next(self, frame: int, cost: float) -> int:
         """The next frame due for a check that cost ``cost`` s at ``frame``: a tenth of the run's time."""

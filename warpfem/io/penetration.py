@@ -274,6 +274,10 @@ class PenetrationCheck:
         self.names = list(names)
         self.device = wp.get_device(device)
         self._meshes: list[Any] | None = None  # built from the first frame checked for bodies
+        self._bvh: Any = None  # the tree of the bodies' boxes, built from the first boxes
+        self._started = False  # a body check launched and not collected
+        self.device_seconds = 0.0
+        """The device time of the last body check collected (s; 0 on the CPU)."""
 
     def measure(
         self,
@@ -300,7 +304,75 @@ class PenetrationCheck:
                 worst = Penetration(below_ground=below, below_relative=below / max(size, 1e-30))
         if not bodies or sum(len(f) > 0 for f in self.faces) < 2:
             return worst
-        for j, (depth, owner) in enumerate(self._deepest(points, boxes, sizes)):
+        return self._worst_inside(self._deepest(points, boxes, sizes), sizes, worst)
+
+    def start_bodies(self, points: Any, counts: Sequence[int], bounds: Any) -> None:
+        """Launch the check of bodies inside each other on a flat device array; :meth:`collect_bodies` reads it.
+
+        Args:
+            points: ``wp.vec3`` array on this check's device, the bodies' points one after the other (m).
+            counts: Each body's number of points in ``points``.
+            bounds: ``wp.vec3`` array of each body's lower and upper corners (:attr:`BodyBounds.bounds`).
+
+        It queues on the device's current stream after what is there and returns without waiting (the first
+        call waits once: the trees are built from its points); the points never pass through the host.
+
+        Raises:
+            RuntimeError: The previous check was not collected.
+        """
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        if self._started:
+            raise RuntimeError("collect the previous body check first")
+        dev, first = self.device, self._meshes is None
+        if first:
+            self._allocate(list(counts))
+        if points.shape[0] != self._points.shape[0]:
+            raise ValueError(f"{points.shape[0]} points given, {self._points.shape[0]} expected")
+        if dev.is_cuda and not first:
+            dev.stream.record_event(self._begin)
+        wp.copy(self._points, points)
+        if first:
+            self._build(list(counts))
+            if dev.is_cuda:
+                dev.stream.record_event(self._begin)
+        wp.launch(
+            K.check_boxes,
+            dim=len(counts),
+            inputs=[bounds, self._body_box, self.PAD],
+            outputs=[self._lowers, self._uppers, self._reach],
+            device=dev,
+        )
+        self._query()
+        wp.copy(self._deep_host, self._deep)
+        wp.copy(self._reach_host, self._reach)
+        if dev.is_cuda:
+            dev.stream.record_event(self._end)
+        self._started = True
+
+    def collect_bodies(self) -> Penetration:
+        """Wait for the check :meth:`start_bodies` launched and return the deepest vertex inside another body.
+
+        :attr:`device_seconds` is then the time the check took on the device (0 on the CPU).
+        """
+        import warp as wp
+
+        if not self._started:
+            raise RuntimeError("no body check was started")
+        self._started = False
+        if self.device.is_cuda:
+            wp.synchronize_event(self._end)
+            self.device_seconds = wp.get_event_elapsed_time(self._begin, self._end) / 1e3
+        reach = self._reach_host.numpy().astype(np.float64)
+        sizes = list(reach / (1 + 2 * self.PAD))
+        deepest = self._decode(self._deep_host.numpy(), reach)
+        return self._worst_inside(deepest, sizes, Penetration())
+
+    def _worst_inside(self, deepest: list[tuple[float, int]], sizes: list[float], worst: Penetration) -> Penetration:
+        """``worst`` updated with the deepest vertex inside another body (``deepest``: per body, depth and owner)."""
+        for j, (depth, owner) in enumerate(deepest):
             relative = depth / max(sizes[j], 1e-30)
             if depth > 0 and relative > worst.relative:
                 inside = f"{self.names[owner]} in {self.names[j]}"
@@ -308,23 +380,39 @@ class PenetrationCheck:
         return worst
 
     def _deepest(
-        self, points: Sequence[np.ndarray], boxes: list[tuple[np.ndarray, np.ndarray] | None], sizes: list[float]
+        self,
+        points: Sequence[np.ndarray],
+        boxes: list[tuple[np.ndarray, np.ndarray] | None],
+        sizes: list[float],
     ) -> list[tuple[float, int]]:
         """Per body: the deepest depth (m) of another body's vertex inside it, and that body's index."""
-        import warp as wp
-
-        from warpfem.kernels import penetration as K
-
-        if self._meshes is None:
-            self._build(points)
+        first = self._meshes is None
+        counts = [len(p) for p in points]
+        if first:
+            self._allocate(counts)
         self._upload(points)
+        if first:
+            self._build(counts)
         pad = [self.PAD * max(s, 1e-30) for s in sizes]
         reach = np.array([s + 2 * d for s, d in zip(sizes, pad, strict=True)], np.float32)
         box = [(boxes[j][0] - pad[j], boxes[j][1] + pad[j]) for j in self._box_body_np]
         self._lowers.assign(np.array([b[0] for b in box], np.float32))
         self._uppers.assign(np.array([b[1] for b in box], np.float32))
         self._reach.assign(reach)
-        self._bvh.refit()
+        self._query()
+        return self._decode(self._deep.numpy(), reach)
+
+    def _query(self) -> None:
+        """Refit the trees to the points and boxes in place and launch the query (the box tree built at first)."""
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        if self._bvh is None:  # built on the first boxes, so that its splits follow the bodies
+            wp.synchronize_device(self.device)
+            self._bvh = wp.Bvh(self._lowers, self._uppers)
+        else:
+            self._bvh.refit()
         for mesh in self._meshes:
             if mesh is not None:
                 mesh.refit()
@@ -336,23 +424,31 @@ class PenetrationCheck:
             outputs=[self.ACCURACY, self._deep],
             device=self.device,
         )
-        packed = self._deep.numpy()
+
+    @staticmethod
+    def _decode(packed: np.ndarray, reach: np.ndarray) -> list[tuple[float, int]]:
+        """Per body, the depth (m) and owner packed by ``deepest_inside`` against its reach."""
+        from warpfem.kernels import penetration as K
+
         owner = (packed & ((1 << K.OWNER_BITS) - 1)).astype(int)
         fraction = (packed >> K.OWNER_BITS).astype(np.float64) / 2.0**K.DEPTH_BITS
         return [(float(f * r), int(o)) for f, r, o in zip(fraction, reach, owner, strict=True)]
 
-    def _build(self, points: Sequence[np.ndarray]) -> None:
-        """Allocate the flat point arrays and build each body's ``wp.Mesh`` and the BVH of the bodies' boxes."""
+    def _allocate(self, counts: list[int]) -> None:
+        """Allocate the flat point array of the bodies' points (``counts`` each)."""
+        import warp as wp
+
+        if len(counts) != len(self.faces) or len(counts) >= 1 << 20:
+            raise ValueError(f"{len(counts)} point arrays for {len(self.faces)} bodies (at most 2^20)")
+        self._host = None  # the host side of an upload, allocated by the first one
+        self._points = wp.zeros(sum(counts), dtype=wp.vec3, device=self.device)
+
+    def _build(self, counts: list[int]) -> None:
+        """Build each body's ``wp.Mesh`` on the flat array's first points, and what the query keeps between frames."""
         import warp as wp
 
         dev = self.device
-        counts = [len(p) for p in points]
-        if len(counts) != len(self.faces) or len(counts) >= 1 << 20:
-            raise ValueError(f"{len(counts)} point arrays for {len(self.faces)} bodies (at most 2^20)")
-        total = sum(counts)
-        self._host = wp.empty(total, dtype=wp.vec3, device="cpu", pinned=dev.is_cuda)
-        self._points = self._host if dev.is_cpu else wp.empty(total, dtype=wp.vec3, device=dev)
-        self._upload(points)
+        wp.synchronize_device(dev)  # the trees are built from the points just copied
         self._offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int)
         owner = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
         self._owner = wp.array(owner, dtype=wp.int32, device=dev)
@@ -369,16 +465,26 @@ class PenetrationCheck:
         self._mesh_ids = wp.array([m.id if m else 0 for m in self._meshes], dtype=wp.uint64, device=dev)
         self._box_body_np = [j for j, m in enumerate(self._meshes) if m is not None]
         self._box_body = wp.array(self._box_body_np, dtype=wp.int32, device=dev)
+        body_box = np.full(len(counts), -1, np.int32)
+        body_box[self._box_body_np] = np.arange(len(self._box_body_np), dtype=np.int32)
+        self._body_box = wp.array(body_box, dtype=wp.int32, device=dev)
         self._lowers = wp.zeros(len(self._box_body_np), dtype=wp.vec3, device=dev)
         self._uppers = wp.zeros(len(self._box_body_np), dtype=wp.vec3, device=dev)
-        self._bvh = wp.Bvh(self._lowers, self._uppers)
         self._reach = wp.zeros(len(counts), dtype=float, device=dev)
         self._deep = wp.zeros(len(counts), dtype=wp.int64, device=dev)
+        self._reach_host = wp.zeros(len(counts), dtype=float, device="cpu", pinned=dev.is_cuda)
+        self._deep_host = wp.zeros(len(counts), dtype=wp.int64, device="cpu", pinned=dev.is_cuda)
+        self._begin = wp.Event(dev, enable_timing=True) if dev.is_cuda else None
+        self._end = wp.Event(dev, enable_timing=True) if dev.is_cuda else None
 
     def _upload(self, points: Sequence[np.ndarray]) -> None:
         """Copy the bodies' points into the flat host array, then to the device (one copy)."""
         import warp as wp
 
+        dev = self.device
+        if self._host is None:
+            cpu = dev.is_cpu
+            self._host = self._points if cpu else wp.empty(len(self._points), dtype=wp.vec3, device="cpu", pinned=True)
         flat = self._host.numpy()
         start = 0
         for p in points:
