@@ -210,22 +210,27 @@ def main() -> int:
                 f"{r['cg_iterations_per_step']:.0f} | {1e3 * r['dense_penetration_m']:.0f} mm |"
             )
     lines += end_to_end_lines(newest("bench-end-to-end-cuda*.json"))
+    lines += end_to_end_lines(newest("bench-end-to-end-cpu*.json"), "on the CPU")
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines) + "\n")
     print("wrote BENCHMARKS.md")
     return 0
 
 
-def end_to_end_lines(found: tuple[Path, dict] | None) -> list[str]:
-    """The end-to-end table (``scripts/bench_end_to_end.py``): what a user waits for, the file written."""
+def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[str]:
+    """The end-to-end table (``scripts/bench_end_to_end.py``): what a user waits for, the file written.
+
+    ``where``: added to the heading (a second table, e.g. the CPU's).
+    """
     if not found:
         return []
     path, data = found
     env = data["environment"]
+    machine = f"driver {env['driver']}" if env.get("driver") else f"Python {env.get('python', '?')}"
     lines = [
         "",
-        "## End to end: the file written",
+        f"## End to end: the file written{', ' + where if where else ''}",
         "",
-        f"`{path.name}` ({env['device']}, driver {env['driver']}, Warp {env['warp']}, commit `{env['commit'][:10]}`): "
+        f"`{path.name}` ({env['device']}, {machine}, Warp {env['warp']}, commit `{env['commit'][:10]}`): "
         f"`warpfem run` of {data['frames']} frames to a real file, each case in a fresh process. Per frame: "
         "wall from the first step to the file written; simulate (the stepping thread, including its waits for "
         "the interpreter lock); write and check, each on a thread of its own beside it; raw, writing the same "
