@@ -341,9 +341,11 @@ class _Check:
 
         The check queues on the device after the frame and is read at the next check (the last frame's at
         once), so the stepping thread waits for neither; the dense points never pass through the host. Its
-        cost, for spacing the checks, is the thread's time and the previous check's device time. The ground
-        and obstacles of this frame are :meth:`ground`'s, on the other thread.
+        cost, for spacing the checks, is the thread's time and the previous check's device time; the first
+        check, which builds the bodies' trees, is followed by another at the next frame to measure a check's
+        own cost. The ground and obstacles of this frame are :meth:`ground`'s, on the other thread.
         """
+        first = self.frames_checked == 0
         clock = time.perf_counter()
         self._collect()
         dense = self.sim.map_dense()
@@ -354,7 +356,7 @@ class _Check:
         cost = time.perf_counter() - clock
         self.seconds += cost
         self.frames_checked += 1
-        self.next = self._next(frame, cost + self.body_check.device_seconds)
+        self.next = frame + 1 if first else self._next(frame, cost + self.body_check.device_seconds)
 
     def _collect(self) -> None:
         """Read the body check launched last, if any, into the worst and the last frame's figures."""
