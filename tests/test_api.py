@@ -166,21 +166,67 @@ def test_a_run_preprocesses_each_mesh_once(ball_dir, monkeypatch, cache):
 
 
 def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path):
-    """The summary's ground figure is the lowest dense point of the written file over all frames (NumPy)."""
+    """The summary's ground figure is the lowest dense point of the written file over all frames (NumPy), its last
+    body figure libigl's check of the written last frame, and every extent the written points' bounds."""
+    import igl
     from pxr import Usd, UsdGeom
 
     scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
     summary = warpfem.run(scene, out=tmp_path / "a.usdc", device="cpu", cache=False)
     stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
-    lowest = {}
+    lowest, last = {}, {}
     for name in ("ball", "top"):
-        attr = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}")).GetPointsAttr()
-        lowest[name] = min(np.asarray(attr.Get(t))[:, 1].min() for t in range(scene.frames + 1))
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}"))
+        frames = [np.asarray(mesh.GetPointsAttr().Get(t)) for t in range(scene.frames + 1)]
+        for t, points in enumerate(frames):  # the extent the device reduced is the points' bounds
+            np.testing.assert_array_equal(mesh.GetExtentAttr().Get(t), [points.min(axis=0), points.max(axis=0)])
+        lowest[name] = min(points[:, 1].min() for points in frames)
+        last[name] = (frames[-1].astype(np.float64), np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3))
     below = max(0.0, -min(lowest.values()))
+    deepest = 0.0  # the last frame's bodies in each other, by libigl's exact winding numbers and distances
+    for inner, outer in (("ball", "top"), ("top", "ball")):
+        (q, _), (v, f) = last[inner], last[outer]
+        inside = q[igl.winding_number(v, f, q) > 0.5]
+        if len(inside):
+            depth, *_ = igl.signed_distance(inside, v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED)
+            deepest = max(deepest, float(np.abs(depth).max()) / np.linalg.norm(np.ptp(v, axis=0)))
+    assert summary.penetration_end.relative == pytest.approx(deepest, abs=1e-5)
     assert summary.penetration.below_ground == pytest.approx(below, abs=1e-7)
     assert summary.penetration_end.below_ground <= summary.penetration.below_ground
     assert summary.penetration_frames >= 1 and summary.penetration.relative >= summary.penetration_end.relative
     assert summary.penetration.inside in ("", "ball in top", "top in ball")
+
+
+def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path):
+    """Two balls started inside each other: the summary's last body figure, measured on the device a check
+    behind the run, is libigl's exact check of the written last frame (winding numbers and distances)."""
+    import dataclasses
+
+    import igl
+    from pxr import Usd, UsdGeom
+
+    scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
+    top = dataclasses.replace(scene.objects[1], translate=(0.05, 0.57, 0.0))
+    scene = dataclasses.replace(scene, objects=[scene.objects[0], top]).with_frames(3)
+    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device="cpu", cache=False)
+    stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
+    last = {}
+    for name in ("ball", "top"):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}"))
+        faces = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        last[name] = (np.asarray(mesh.GetPointsAttr().Get(scene.frames), np.float64), faces)
+    deepest, inside = 0.0, ""
+    for inner, outer in (("ball", "top"), ("top", "ball")):
+        (q, _), (v, f) = last[inner], last[outer]
+        held = q[igl.winding_number(v, f, q) > 0.5]
+        if len(held):
+            depth, *_ = igl.signed_distance(held, v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED)
+            relative = float(np.abs(depth).max()) / np.linalg.norm(np.ptp(v, axis=0))
+            if relative > deepest:
+                deepest, inside = relative, f"{inner} in {outer}"
+    assert deepest > 0.01  # still well inside each other
+    assert summary.penetration_end.relative == pytest.approx(deepest, abs=1e-5)
+    assert summary.penetration_end.inside == inside
 
 
 def test_cg_stopping_at_its_cap_is_said_once_and_counted(ball_dir, capsys):
