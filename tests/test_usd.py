@@ -50,6 +50,7 @@ def test_round_trip(tmp_path, ext, chunk_bytes, workers, given):
         writer.add_frame(f, points, extents=boxes)
     assert writer.frames_added == 5
     assert writer.close() == path
+    assert [p.name for p in tmp_path.rglob("*") if ".tmp-" in p.name] == []  # staged topology moved or dropped
     frame_bytes = 12 * 14
     clips = sorted(p.name for p in (tmp_path / "out.clips").glob("out.*.usdc"))
     assert len(clips) == (0 if chunk_bytes > 5 * frame_bytes else -(-5 // -(-chunk_bytes // frame_bytes)))
@@ -138,9 +139,11 @@ def test_given_extents_are_checked(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_abort_leaves_nothing(tmp_path):
+@pytest.mark.parametrize("workers", [0, 2], ids=["inline", "2 writer processes"])
+def test_abort_leaves_nothing(tmp_path, workers):
+    """Nor the clips' topology staged ahead, inline or by a writer process."""
     bodies, frames = bodies_and_frames(2)
-    writer = UsdWriter(tmp_path / "a.usdc", bodies, fps=60.0)
+    writer = UsdWriter(tmp_path / "a.usdc", bodies, fps=60.0, workers=workers)
     writer.add_frame(0, frames[0])
     writer.abort()
     assert list(tmp_path.iterdir()) == []

@@ -219,6 +219,8 @@ class ProcessPool:
         self._slot_floats = 0
         self._free: list[int] = []
         self._done: list[tuple[int, int]] = []
+        self._staged: Path | None = None  # clip files staged ahead (stage_clip_files), until moved
+        self._staged_ready = False
         self.seconds = 0.0
         self.peak_bytes = 0
         self._fd = os.memfd_create("warpfem-frames") if hasattr(os, "memfd_create") else _unlinked_file()
@@ -273,11 +275,29 @@ class ProcessPool:
         self._conns[chunk % self._count].send(("frame", chunk, frame, slot, list(matrices), boxes))
 
     def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-        """Nothing ahead: a writer process writes the clip files when the clips start, off the caller's thread."""
+        """Have the first writer process write the clips folder's topology and manifest now, into ``staging``.
+
+        It does so while the run is built, not when the first chunk is cut, when its export (hundreds of ms for
+        a large pile) held up that process's frames and, behind them, the simulation's.
+        """
+        shutil.rmtree(staging, ignore_errors=True)  # a leftover of a killed process with this one's id
+        staging.mkdir()
+        self._staged, self._staged_ready = staging, False
+        self._conns[0].send(("stage", str(staging), str(os.getpid()), list(bodies), list(props)))
 
     def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-        """Have the clips folder's topology and manifest written, before the first chunk is reported exported."""
-        self._conns[0].send(("clips", 0, str(folder), str(os.getpid()), list(bodies), list(props)))
+        """Have the clips folder's topology and manifest in ``folder`` before the first chunk is reported exported.
+
+        Staged ones are moved there once the process says they are written; else a process writes them.
+        """
+        if self._staged is None:
+            self._conns[0].send(("clips", 0, str(folder), str(os.getpid()), list(bodies), list(props)))
+            return
+        while not self._staged_ready:
+            self._pump(block=True)
+        for name in CLIP_FILES:
+            os.replace(self._staged / name, folder / name)
+        self._drop_staged()
 
     def cut(self, chunk: int, tmp: Path) -> None:
         """Have chunk ``chunk`` exported to ``tmp`` (it is reported by :meth:`done` once it is there)."""
@@ -310,6 +330,8 @@ class ProcessPool:
                     raise OSError(f"USD writer process {proc.pid} exited (code {proc.wait()})") from None
                 if message[0] == "free":
                     self._free.append(message[1])
+                elif message[0] == "staged":
+                    self._staged_ready = True
                 elif message[0] == "done":
                     self._done.append(message[1:3])
                     self.seconds += message[3]
@@ -336,8 +358,15 @@ class ProcessPool:
             proc.wait()
         self._release()
 
+    def _drop_staged(self) -> None:
+        """Remove the staging folder of :meth:`stage_clip_files`, if there is one."""
+        if self._staged is not None:
+            shutil.rmtree(self._staged, ignore_errors=True)
+            self._staged = None
+
     def _release(self) -> None:
-        """Forget the processes and unmap the shared memory."""
+        """Forget the processes (exited), remove staged clip files never used and unmap the shared memory."""
+        self._drop_staged()
         self._conns, self._procs = [], []
         if self._ring is not None:
             with contextlib.suppress(BufferError):  # a view still held (an interrupted copy's frame): unmapped later
@@ -363,8 +392,17 @@ def _unlinked_file() -> int:
 
 
 def _serve(conn: Connection, fd: int) -> None:
-    """A writer process's loop: frames into its chunk, chunks exported, until the socket closes."""
-    names, prop_paths, ranges = conn.recv()
+    """A writer process's loop: clip files staged ahead, frames into its chunk, chunks exported, until EOF."""
+    first = conn.recv()
+    while first[0] == "stage":  # before the first frame: the clips' topology and manifest, ahead
+        try:
+            write_clip_files(Path(first[1]), *first[2:])
+        except Exception as err:  # reported to the caller, which stops
+            conn.send(("error", f"USD writer process: {err}"))
+            return
+        conn.send(("staged",))
+        first = conn.recv()
+    names, prop_paths, ranges = first
     ring = mmap.mmap(fd, os.fstat(fd).st_size)
     floats = 3 * ranges[-1]
     chunk: Chunk | None = None
