@@ -446,8 +446,8 @@ def interrupted(*args, **kwargs):
     out = method(*args, **kwargs)
     if out != []:  # a chunk sent, or chunks reported exported
         calls.append(1)
-    if len(calls) == 3:
-        signal.raise_signal(signal.SIGINT)
+        if len(calls) == 3:  # one Ctrl-C (a second would stop the writer at once, by design)
+            signal.raise_signal(signal.SIGINT)
     return out
 
 setattr(w._pool, sys.argv[2], interrupted)

@@ -36,7 +36,7 @@ from types import TracebackType
 
 import numpy as np
 
-from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export
+from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export, extent
 from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
@@ -237,7 +237,10 @@ class UsdWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        arrays = self._checked(frame, points, extents is None)
+        inline = extents is None and not self.workers
+        arrays = self._checked(frame, points, finite=extents is None and not inline)
+        if inline:  # a point's NaN or infinity reaches its body's extent: checking that checks the points
+            extents = [extent(p) for p in arrays]
         boxes = None if extents is None else self._checked_extents(frame, extents)
         matrices = _checked_transforms(transforms, len(self._props))
         with _held_signals(), self._aborting_on_failure():
