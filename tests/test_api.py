@@ -165,14 +165,14 @@ def test_a_run_preprocesses_each_mesh_once(ball_dir, monkeypatch, cache):
     assert (ball_dir / "cache").exists() == cache
 
 
-def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path):
+def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path, device):
     """The summary's ground figure is the lowest dense point of the written file over all frames (NumPy), its last
     body figure libigl's check of the written last frame, and every extent the written points' bounds."""
     import igl
     from pxr import Usd, UsdGeom
 
     scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
-    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device="cpu", cache=False)
+    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device=device, cache=False)
     stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
     lowest, last = {}, {}
     for name in ("ball", "top"):
@@ -197,7 +197,7 @@ def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path):
     assert summary.penetration.inside in ("", "ball in top", "top in ball")
 
 
-def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path):
+def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path, device):
     """Two balls started inside each other: the summary's last body figure, measured on the device a check
     behind the run, is libigl's exact check of the written last frame (winding numbers and distances)."""
     import dataclasses
@@ -208,7 +208,7 @@ def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path
     scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
     top = dataclasses.replace(scene.objects[1], translate=(0.05, 0.57, 0.0))
     scene = dataclasses.replace(scene, objects=[scene.objects[0], top]).with_frames(3)
-    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device="cpu", cache=False)
+    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device=device, cache=False)
     stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
     last = {}
     for name in ("ball", "top"):
