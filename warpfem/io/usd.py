@@ -237,7 +237,7 @@ class UsdWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is closed")
-        inline = extents is None and not self.workers
+        inline = extents is None and not self.workers  # written on this thread: the extents read off the points here
         arrays = self._checked(frame, points, finite=extents is None and not inline)
         if inline:  # a point's NaN or infinity reaches its body's extent: checking that checks the points
             extents = [extent(p) for p in arrays]
@@ -295,9 +295,10 @@ class UsdWriter:
         boxes = np.asarray(extents, dtype=np.float32)
         if boxes.shape != (len(self._bodies), 2, 3):
             raise ValueError(f"extents must be a ({len(self._bodies)}, 2, 3) array, got shape {boxes.shape}")
-        for (name, _), box in zip(self._bodies, boxes, strict=True):
-            if not np.isfinite(box).all():
-                raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
+        finite = np.isfinite(boxes).all(axis=(1, 2))
+        if not finite.all():
+            name = self._bodies[int(np.argmin(finite))][0]
+            raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
         return boxes
 
     def save(self) -> None:
@@ -354,7 +355,7 @@ class UsdWriter:
                 raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
             shutil.rmtree(folder)
         folder.mkdir()
-        self._pool.clip_files(folder, self._bodies, self._props)
+        self._pool.clip_files(folder)
 
     def _write_top(self) -> None:
         """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""

@@ -44,7 +44,7 @@ class StageInfo:
 
     def author(self, target: object, end: int) -> None:
         """Author it on ``target``: ``upAxis``, ``metersPerUnit = 1``, time codes from 0 to ``end`` at ``fps``."""
-        target.defaultPrim = "World"  # the keys by name: importing pxr.UsdGeom for its tokens costs tens of ms
+        target.defaultPrim = "World"  # the metadata keys by name, so that pxr.UsdGeom is not imported for them
         target.pseudoRoot.SetInfo("upAxis", self.up_axis)
         target.pseudoRoot.SetInfo("metersPerUnit", 1.0)
         target.timeCodesPerSecond = self.fps

@@ -39,7 +39,6 @@ from warpfem.io.usd_layers import (
     animated_attributes,
     export,
     export_single,
-    extent,
     write_clip_files,
 )
 
@@ -70,7 +69,31 @@ def default_workers(frame_bytes: int | None = None) -> int:
     return min(MAX_WORKERS, cores // 4)
 
 
-class InlinePool:
+class _StagedClipFiles:
+    """The clips folder's topology and manifest, written ahead into a hidden staging folder, moved in later."""
+
+    _staged: Path | None = None
+
+    def _stage(self, staging: Path) -> None:
+        """Make ``staging`` the (empty) folder to write them into."""
+        shutil.rmtree(staging, ignore_errors=True)  # a leftover of a killed process with this one's id
+        staging.mkdir()
+        self._staged = staging
+
+    def _move_staged(self, folder: Path) -> None:
+        """Move the staged files into ``folder`` and remove the staging folder."""
+        for name in CLIP_FILES:
+            os.replace(self._staged / name, folder / name)
+        self._drop_staged()
+
+    def _drop_staged(self) -> None:
+        """Remove the staging folder, if there is one."""
+        if self._staged is not None:
+            shutil.rmtree(self._staged, ignore_errors=True)
+            self._staged = None
+
+
+class InlinePool(_StagedClipFiles):
     """Streams chunks to their files on the calling thread (no processes).
 
     A chunk's samples go to a hidden temporary file in ``folder`` as they come (:class:`~warpfem.io.crate.
@@ -87,19 +110,16 @@ class InlinePool:
         self._folder = folder
         self._streams: dict[int, CrateStream] = {}
         self._done: list[tuple[int, int]] = []
-        self._staged: Path | None = None
         self.seconds = 0.0
         self.peak_bytes = 0
 
     def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
         """Write the clips folder's topology and manifest ahead, into the hidden folder ``staging``.
 
-        Their export (tens of ms for a large mesh) then happens before the run steps, not on the writer's thread
-        beside it; starting the clips only moves them. A run that stays one file drops them.
+        Their export then happens before the run steps, not on the writer's thread beside it; starting the
+        clips only moves them. A run that stays one file drops them.
         """
-        shutil.rmtree(staging, ignore_errors=True)  # a leftover of a killed process with this one's id
-        staging.mkdir()
-        self._staged = staging
+        self._stage(staging)
         try:
             write_clip_files(staging, str(os.getpid()), bodies, props)
         except BaseException:
@@ -112,31 +132,22 @@ class InlinePool:
         frame: int,
         points: Sequence[np.ndarray],
         matrices: Sequence[np.ndarray],
-        extents: Sequence[np.ndarray] | None = None,
+        extents: Sequence[np.ndarray],
     ) -> None:
-        """Sample ``points``, their (2, 3) ``extents`` and ``matrices`` at ``frame`` in chunk number ``chunk``.
-
-        ``extents`` None: read off the points.
-        """
+        """Sample ``points``, their (2, 3) ``extents`` and ``matrices`` at ``frame`` in chunk number ``chunk``."""
         clock = time.perf_counter()
         if chunk not in self._streams:
             path = self._folder / f".warpfem-chunk-{chunk}.tmp-{os.getpid()}.usdc"
             self._streams[chunk] = CrateStream(path, self._attributes)
-        boxes = [extent(p) for p in points] if extents is None else extents
-        values = [v for p, box in zip(points, boxes, strict=True) for v in (p, box)]
+        values = [v for p, box in zip(points, extents, strict=True) for v in (p, box)]
         values += [m.T for m in matrices]  # USD: row vectors
         self._streams[chunk].add(float(frame), values)
         self.seconds += time.perf_counter() - clock
 
-    def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-        """Write the clips folder's topology and manifest (:func:`~warpfem.io.usd_layers.write_clip_files`)."""
+    def clip_files(self, folder: Path) -> None:
+        """Move the staged topology and manifest into the clips folder ``folder``."""
         clock = time.perf_counter()
-        if self._staged is None:
-            write_clip_files(folder, str(os.getpid()), bodies, props)
-        else:
-            for name in CLIP_FILES:
-                os.replace(self._staged / name, folder / name)
-            self._drop_staged()
+        self._move_staged(folder)
         self.seconds += time.perf_counter() - clock
 
     def cut(self, chunk: int, tmp: Path) -> None:
@@ -193,14 +204,8 @@ class InlinePool:
         self._streams.clear()
         self._drop_staged()
 
-    def _drop_staged(self) -> None:
-        """Remove the staging folder of :meth:`stage_clip_files`, if there is one."""
-        if self._staged is not None:
-            shutil.rmtree(self._staged, ignore_errors=True)
-            self._staged = None
 
-
-class ProcessPool:
+class ProcessPool(_StagedClipFiles):
     """Authors and exports chunks in ``workers`` writer processes, chunk ``c`` in process ``c % workers``.
 
     The processes start at once, so that they are ready by the first frame, whose size sets the slots of
@@ -219,8 +224,7 @@ class ProcessPool:
         self._slot_floats = 0
         self._free: list[int] = []
         self._done: list[tuple[int, int]] = []
-        self._staged: Path | None = None  # clip files staged ahead (stage_clip_files), until moved
-        self._staged_ready = False
+        self._staged_ready = False  # the first process said the staged clip files are written
         self.seconds = 0.0
         self.peak_bytes = 0
         self._fd = os.memfd_create("warpfem-frames") if hasattr(os, "memfd_create") else _unlinked_file()
@@ -277,27 +281,18 @@ class ProcessPool:
     def stage_clip_files(self, staging: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
         """Have the first writer process write the clips folder's topology and manifest now, into ``staging``.
 
-        It does so while the run is built, not when the first chunk is cut, when its export (hundreds of ms for
-        a large pile) held up that process's frames and, behind them, the simulation's.
+        It does so while the run is built, not when the first chunk is cut, when its export held up that
+        process's frames and, behind them, the simulation's.
         """
-        shutil.rmtree(staging, ignore_errors=True)  # a leftover of a killed process with this one's id
-        staging.mkdir()
-        self._staged, self._staged_ready = staging, False
+        self._stage(staging)
+        self._staged_ready = False
         self._conns[0].send(("stage", str(staging), str(os.getpid()), list(bodies), list(props)))
 
-    def clip_files(self, folder: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-        """Have the clips folder's topology and manifest in ``folder`` before the first chunk is reported exported.
-
-        Staged ones are moved there once the process says they are written; else a process writes them.
-        """
-        if self._staged is None:
-            self._conns[0].send(("clips", 0, str(folder), str(os.getpid()), list(bodies), list(props)))
-            return
+    def clip_files(self, folder: Path) -> None:
+        """Move the staged topology and manifest into the clips folder ``folder`` once the process wrote them."""
         while not self._staged_ready:
             self._pump(block=True)
-        for name in CLIP_FILES:
-            os.replace(self._staged / name, folder / name)
-        self._drop_staged()
+        self._move_staged(folder)
 
     def cut(self, chunk: int, tmp: Path) -> None:
         """Have chunk ``chunk`` exported to ``tmp`` (it is reported by :meth:`done` once it is there)."""
@@ -358,12 +353,6 @@ class ProcessPool:
             proc.wait()
         self._release()
 
-    def _drop_staged(self) -> None:
-        """Remove the staging folder of :meth:`stage_clip_files`, if there is one."""
-        if self._staged is not None:
-            shutil.rmtree(self._staged, ignore_errors=True)
-            self._staged = None
-
     def _release(self) -> None:
         """Forget the processes (exited), remove staged clip files never used and unmap the shared memory."""
         self._drop_staged()
@@ -421,8 +410,6 @@ def _serve(conn: Connection, fd: int) -> None:
                 chunk = chunk or Chunk(names, prop_paths)
                 chunk.add(frame, [view[a:b] for a, b in zip(ranges, ranges[1:], strict=False)], matrices, extents)
                 conn.send(("free", slot))
-            elif kind == "clips":
-                write_clip_files(Path(message[2]), *message[3:])
             elif kind == "cut":
                 export(chunk.layer, Path(message[2]))
             else:
