@@ -17,6 +17,8 @@ from warpfem.scene import Scene
 from warpfem.simulation import Simulation
 
 if TYPE_CHECKING:
+    import warp as wp
+
     from warpfem.io.stream import FrameStream
     from warpfem.io.usd import Prop
 
@@ -270,7 +272,7 @@ def _stream_frames(
             stream.submit(frame)
             seconds["map"] += time.perf_counter() - t1
             if check.bodies_due(frame):
-                check.bodies_now(frame)
+                check.bodies_now(frame, *stream.on_device)
             if on_points:
                 on_points(frame, sim.dense_points())
         if frame and on_frame:
@@ -294,13 +296,12 @@ class _Check:
     def __init__(self, sim: Simulation) -> None:
         import warp as wp
 
-        from warpfem.io.penetration import BodyBounds, PenetrationCheck
+        from warpfem.io.penetration import PenetrationCheck
         from warpfem.kernels import penetration
 
         wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
         self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, sim.device)
         self.counts = [b.dense_count for b in sim.model.bodies]
-        self.boxes = BodyBounds([(b.dense_start, b.dense_start + b.dense_count) for b in sim.model.bodies], sim.device)
         self.sim = sim
         self.bodies = len(sim.model.bodies) > 1
         self.ground_worst = self.ground_end = self.body_worst = self.body_end = Penetration()
@@ -336,8 +337,11 @@ class _Check:
         """Whether the bodies are checked against each other at frame ``frame`` (written)."""
         return self.bodies and (frame == self.sim.scene.frames or (frame >= self.next and frame > 0))
 
-    def bodies_now(self, frame: int) -> None:
-        """Check the bodies against each other at the simulation's current frame (the stepping thread only).
+    def bodies_now(self, frame: int, dense: wp.array, bounds: wp.array) -> None:
+        """Check the bodies against each other at frame ``frame`` (the stepping thread only).
+
+        ``dense`` and ``bounds``: the frame's mapped dense points and the bodies' boxes, on the device, as the
+        frame stream has them (:attr:`~warpfem.io.stream.FrameStream.on_device`).
 
         The check queues on the device after the frame and is read at the next check (the last frame's at
         once), so the stepping thread waits for neither; the dense points never pass through the host. Its
@@ -348,8 +352,7 @@ class _Check:
         first = self.frames_checked == 0
         clock = time.perf_counter()
         self._collect()
-        dense = self.sim.map_dense()
-        self.body_check.start_bodies(dense, self.counts, self.boxes.compute(dense))
+        self.body_check.start_bodies(dense, self.counts, bounds)
         self.pending = frame
         if frame == self.sim.scene.frames:
             self._collect()

@@ -51,6 +51,8 @@ class FrameStream:
         seconds: Wall time per consumer name (s), spent on its thread.
         skipped: Frames each consumer skipped (only a ``skippable`` one skips).
         waited: Wall time the caller spent waiting for a free buffer (s).
+        on_device: The last submitted frame's dense points and boxes on the device (the flat ``wp.vec3``
+            arrays, valid until the next submit); None before the first.
     """
 
     def __init__(self, sim: Any, consumers: Sequence[tuple[str, Consumer]], skippable: Sequence[str] = ()) -> None:
@@ -79,6 +81,7 @@ class FrameStream:
         self.seconds = {name: 0.0 for name, _ in self._consumers}
         self.skipped = {name: 0 for name, _ in self._consumers}
         self.waited = 0.0
+        self.on_device: tuple[wp.array, wp.array] | None = None
         self._error: BaseException | None = None
         self._threads = [
             threading.Thread(target=self._run, args=(i,), name=f"warpfem-{name}", daemon=True)
@@ -103,8 +106,10 @@ class FrameStream:
                 continue
         self.waited += time.perf_counter() - clock
         dense = self._sim.map_dense()
+        bounds = self._bounds.compute(dense)
         wp.copy(self._slots[slot], dense, stream=self._stream)
-        wp.copy(self._boxes[slot], self._bounds.compute(dense), stream=self._stream)
+        wp.copy(self._boxes[slot], bounds, stream=self._stream)
+        self.on_device = (dense, bounds)
         if self._cuda:
             self._stream.record_event(self._events[slot])
         self._users[slot] = len(self._work)
