@@ -98,3 +98,29 @@ def test_overlapping_bunnies_agree_with_libigl_exact_winding_numbers(device):
             assert relative > 0.05 and result.inside == inside
             assert result.depth == pytest.approx(depth, abs=1e-5 * size)
             assert result.relative == pytest.approx(relative, abs=1e-5)
+
+
+def test_bad_boxes_ranges_and_body_check_order_are_named(device):
+    """Boxes of the wrong shape, ranges that do not follow each other, points of the wrong count, and a body
+    check collected before it started or started twice: each a one-line error saying what is wrong."""
+    import warp as wp
+
+    from warpfem.io.penetration import BodyBounds, PenetrationCheck
+
+    tet = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    check = PenetrationCheck([tet, tet], ["a", "b"], device)
+    with pytest.raises(ValueError, match=r"boxes must be a \(2, 2, 3\) array, got shape \(1, 2, 3\)"):
+        check.measure([corners, corners + 0.5], boxes=np.zeros((1, 2, 3)))
+    with pytest.raises(ValueError, match=r"body 1: points 5\.\.8 do not follow the previous body's \(end 4\)"):
+        BodyBounds([(0, 4), (5, 8)], device)
+    with pytest.raises(RuntimeError, match="no body check was started"):
+        check.collect_bodies()
+    flat = wp.array(np.concatenate([corners, corners + 0.5]), dtype=wp.vec3, device=device)
+    bounds = BodyBounds([(0, 4), (4, 8)], device).compute(flat)
+    check.start_bodies(flat, [4, 4], bounds)
+    with pytest.raises(RuntimeError, match="collect the previous body check first"):
+        check.start_bodies(flat, [4, 4], bounds)
+    check.collect_bodies()
+    with pytest.raises(ValueError, match="4 points given, 8 expected"):
+        check.start_bodies(flat[:4], [4, 4], bounds)

@@ -295,6 +295,8 @@ class PenetrationCheck:
         if boxes is None:
             boxes = [bounds(p) if len(p) else None for p in points]
         else:
+            if np.shape(boxes) != (len(points), 2, 3):
+                raise ValueError(f"boxes must be a ({len(points)}, 2, 3) array, got shape {np.shape(boxes)}")
             boxes = [(box[0], box[1]) if len(p) else None for p, box in zip(points, boxes, strict=True)]
         sizes = [float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0 for b in boxes]
         worst = Penetration()
