@@ -26,6 +26,28 @@ FAR = 1.0e30
 # a tangential speed below this (m/s) counts as sticking when the friction coefficient is computed
 FRICTION_SPEED_EPS = 1.0e-3
 
+FRICTION_TIE_RATIO = 4.0
+"""The most a body-body contact's implicit friction may stiffen its tangential coupling, relative to the
+penalty's normal stiffness (see :func:`tie_friction`). Chosen by measurement (docs/decisions.md, "Friction
+ties between bodies")."""
+
+
+@wp.func
+def tie_friction(mu: float, a: float, depth: float, slip: float, dt: float):
+    """Implicit friction coefficient c (N s/m) of a body-body contact.
+
+    ``c = mu a d / max(slip, eps, mu d / (r dt))`` for penalty stiffness ``a`` (N/m), depth ``d`` (m),
+    tangential slip speed (m/s), ``eps`` :data:`FRICTION_SPEED_EPS` and ``r`` :data:`FRICTION_TIE_RATIO`.
+    Below the larger of the two speeds the contact sticks, its tangential term ``dt c`` at most r times the
+    normal ``dt^2 a``: sticking contacts otherwise tie two moving bodies hundreds of times more stiffly than
+    the normal penalty, which block-Jacobi CG cannot precondition (a soft body resting on a stiff one stopped
+    at the CG cap in most steps). Static colliders (:func:`static_contact`) keep the plain rule: their tie
+    is diagonal, which Jacobi inverts exactly.
+    """
+    d = wp.max(depth, 0.0)
+    stick = wp.max(FRICTION_SPEED_EPS, mu * d / (FRICTION_TIE_RATIO * dt))
+    return mu * a * d / wp.max(slip, stick)
+
 
 @wp.struct
 class Colliders:
