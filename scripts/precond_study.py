@@ -1,160 +1,156 @@
-"""Which preconditioner keeps a stiff body resting on a soft one converging?
+"""Which preconditioner or start keeps CG converging where bodies are stiff, or differ in stiffness?
 
-Runs a stack of bunnies (Young's moduli from the command line, bottom first) to a frame on the CPU, takes the
-next step's first system (assembled blocks plus the contact pairs' coupling), and counts SciPy PCG iterations
-to a relative residual of 1e-4 from the solver's start with block Jacobi, and with block Jacobi plus an
-additive coarse correction on per-body translations, rigid modes or affine modes.
+Runs a scene to a frame on the CPU, records the next frame's linear systems (the stored blocks plus the contact
+pairs' coupling, rebuilt with SciPy) and counts PCG iterations to a relative residual of 1e-4 (block-Jacobi
+norm, CG's own stopping rule) with block Jacobi from the solver's start and from zero, from the start corrected
+along each body's affine modes (one Galerkin solve of 12 unknowns a body before CG), and with an additive
+coarse correction on per-body translations, rigid or affine modes in every iteration.
 
-    python scripts/precond_study.py 3e5,1e7 30
+    python scripts/precond_study.py 1e7,3e5 30                        # a stack of bunnies, bottom first
+    python scripts/precond_study.py 1e7 30 --mesh ../shared/assets/horse.ply --size 1.5   # one body alone
+
+The stack is half-size bunnies of 400 faces; ``--mesh`` drops one body of that mesh (500 coarse faces, as the
+bench's mixed pile builds it) and sizes it to ``--size`` m. Also prints, per body, the largest and median ratio
+of a vertex's diagonal block to its mass (the Jacobi-scaled system's condition is about their largest).
 """
 
+import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
-import warpfem
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from test_friction import _bunny_stack, _record_solves, _system  # noqa: E402
+
+import warpfem  # noqa: E402
 
 wp.config.quiet = True
 
 
-def scene(youngs, frames=60):
-    """A stack of 0.5-scale bunnies, one per Young's modulus (Pa), bottom first."""
-    objs = []
-    for k, y in enumerate(youngs):
-        objs.append(
-            {
-                "name": f"b{k}",
-                "mesh": "builtin:bunny",
-                "subdivide": 0,
-                "faces": 400,
-                "scale": 0.5,
-                "translate": [0.05 * k, 0.25 + 0.42 * k, 0.0],
-                "young": y,
-            }
-        )
-    return warpfem.Scene.from_dict({"scene": {"frames": frames, "substeps": 4}, "object": objs}, name="contrast")
+def single(mesh: str, size: float, young: float) -> warpfem.Scene:
+    """One body of ``mesh`` (500 faces), ``size`` m across, dropped on the ground as the bench's mixed pile does."""
+    from bench import mixed_pile
+
+    base = warpfem.load_scene(ROOT / "scenes" / "default.toml")
+    return mixed_pile(base, [(str(Path(mesh).resolve()), 500)], copies=1, sizes=(size, size), youngs=(young, young))
 
 
-youngs = [float(y) for y in sys.argv[1].split(",")]
-frame = int(sys.argv[2])
-sim = warpfem.Simulation(scene(youngs), device="cpu")
-for _ in range(frame):
-    sim.step_frame()
-snap = {}
-cg = sim.solver.cg
-orig = cg.solve
-
-
-def grab(values, diag_inv, b, x, direction=None, mass=None):
-    if not snap:
-        snap.update(values=values.numpy().copy(), b=b.numpy().copy(), x=x.numpy().copy())
-        c = sim.solver.collider.coupling
-        k = int(c.count.numpy()[0])
-        snap["pairs"] = [a.numpy()[:k].copy() for a in (c.verts_a, c.weights_a, c.verts_b, c.weights_b, c.matrix)]
-    return orig(values, diag_inv, b, x, direction, mass)
-
-
-cg.solve = grab
-sim.step_frame()
-m = sim.model
-n = m.vertex_count
-rs, cols, free, body = (a.numpy() for a in (m.row_start, m.cols, m.free, m.vertex_body))
-rows = np.repeat(np.arange(n), np.diff(rs))
-V = snap["values"]
-rows_u, cols_u, data_u = [], [], []
-for a in range(3):
-    for b in range(3):
-        rows_u.append(3 * rows + a)
-        cols_u.append(3 * cols + b)
-        data_u.append(V[:, a, b])
-U = sp.coo_matrix((np.concatenate(data_u), (np.concatenate(rows_u), np.concatenate(cols_u))), shape=(3 * n, 3 * n))
-U = U.tocsr()
-# the upper triangle's blocks mirrored; the diagonal blocks are stored whole
-dblocks = sp.block_diag([V[s] for s in m.diag_slot.numpy()]).tocsr()
-A = (U - dblocks) + (U - dblocks).T + dblocks
-va, wa, vb, wb, C = snap["pairs"]
-rows_c, cols_c, dat = [], [], []
-for c in range(len(va)):
-    idx = np.concatenate([va[c], vb[c]])
-    w = np.concatenate([wa[c], -wb[c]])
-    for p in range(8):
-        for q in range(8):
-            if p == q:
-                continue  # the assembled matrix already holds w^2 C
-            blk = w[p] * w[q] * C[c]
-            for a in range(3):
-                for b in range(3):
-                    rows_c.append(3 * idx[p] + a)
-                    cols_c.append(3 * idx[q] + b)
-                    dat.append(blk[a, b])
-A = A + sp.coo_matrix((dat, (rows_c, cols_c)), shape=A.shape).tocsr()
-keep = np.repeat(free != 0, 3)
-A = A[keep][:, keep]
-b = snap["b"].reshape(-1)[keep]
-x0 = snap["x"].reshape(-1)[keep]
-bf = body[free != 0]
-xf = sim.states[0].x.numpy()[free != 0].astype(float)
-print(f"bodies {youngs} frame {frame}: n {A.shape[0] // 3} pairs {len(va)}; symmetric {abs(A - A.T).max():.2g}")
-
-nb = A.shape[0] // 3
-blocks = [A[3 * i : 3 * i + 3, 3 * i : 3 * i + 3].toarray() for i in range(nb)]
-Dinv = sp.block_diag([np.linalg.inv(B) for B in blocks]).tocsr()
-
-
-def coarse(rot):
-    cols_ = []
-    for bd in np.unique(bf):
-        sel = bf == bd
-        c = xf[sel].mean(0)
+def affine_modes(x: np.ndarray, body: np.ndarray, rotations_only: bool | str) -> np.ndarray:
+    """Columns spanning each body's translations (False), rigid modes (True) or affine modes ("affine")."""
+    cols, n = [], len(x)
+    for b in np.unique(body):
+        sel = body == b
+        r = x - x[sel].mean(0)
         for a in range(3):
-            z = np.zeros((nb, 3))
+            z = np.zeros((n, 3))
             z[sel, a] = 1.0
-            cols_.append(z.reshape(-1))
-        if rot == "affine":
-            r = xf - c
-            for a in range(3):
+            cols.append(z.reshape(-1))
+            if rotations_only == "affine":
                 for k in range(3):
-                    z = np.zeros((nb, 3))
+                    z = np.zeros((n, 3))
                     z[sel, a] = r[sel, k]
-                    cols_.append(z.reshape(-1))
-        elif rot:
-            r = xf - c
-            for a in range(3):
-                e = np.zeros(3)
-                e[a] = 1.0
-                z = np.zeros((nb, 3))
-                z[sel] = np.cross(e, r[sel])
-                cols_.append(z.reshape(-1))
-    Z = np.stack(cols_, 1)
-    E = Z.T @ (A @ Z)
-    Einv = np.linalg.inv(E)
-    return lambda r: Dinv @ r + Z @ (Einv @ (Z.T @ r))
+                    cols.append(z.reshape(-1))
+            elif rotations_only:
+                z = np.zeros((n, 3))
+                z[sel] = np.cross(np.eye(3)[a], r[sel])
+                cols.append(z.reshape(-1))
+    return np.stack(cols, 1)
 
 
-def pcg(apply, tol=1e-4, cap=2000):
-    x = x0.copy()
+def pcg(A, b, x, apply, m_inv, tol=1e-4, cap=3000) -> int:
+    """Iterations of PCG (preconditioner ``apply``) from ``x`` to ``tol`` in the block-Jacobi norm."""
+    x = x.copy()
     r = b - A @ x
     z = apply(r)
-    p = z.copy()
-    rz = r @ z
-    bz = b @ apply(b)
+    p, rz, bz = z.copy(), r @ z, b @ (m_inv @ b)
     for k in range(cap):
-        if np.sqrt(max(rz, 0) / bz) < tol:
+        if np.sqrt(max(r @ (m_inv @ r), 0.0) / bz) < tol:
             return k
-        Ap = A @ p
-        al = rz / (p @ Ap)
-        x += al * p
-        r -= al * Ap
+        q = A @ p
+        alpha = rz / (p @ q)
+        x += alpha * p
+        r -= alpha * q
         z = apply(r)
-        rz2 = r @ z
-        p = z + rz2 / rz * p
-        rz = rz2
+        rz, beta = r @ z, (r @ z) / rz
+        p = z + beta * p
     return cap
 
 
-print("block Jacobi", pcg(lambda r: Dinv @ r))
-print("+ per-body translations (3 per body)", pcg(coarse(False)))
-print("+ per-body rigid modes (6 per body)", pcg(coarse(True)))
-print("+ per-body affine modes (12 per body)", pcg(coarse("affine")))
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("youngs", help="comma list of Young's moduli (Pa): the stack, bottom first, or one body")
+    parser.add_argument("frame", type=int, help="frames run before the systems are recorded")
+    parser.add_argument("--mesh", help="one body of this mesh instead of the bunny stack")
+    parser.add_argument("--size", type=float, default=1.5, help="m: the body's bounding-box diagonal (--mesh)")
+    parser.add_argument("--solves", type=int, default=3, help="how many of the next frame's solves to study")
+    args = parser.parse_args()
+    youngs = [float(y) for y in args.youngs.split(",")]
+    scene = single(args.mesh, args.size, youngs[0]) if args.mesh else _bunny_stack(youngs)
+    sim = warpfem.Simulation(scene, device="cpu")
+    for _ in range(args.frame):
+        sim.step_frame()
+    starts = []
+    cg = sim.solver.cg
+    recorded = cg.solve
+
+    def keep_start(values, diag_inv, b, x, *rest, **kw):
+        starts.append(x.numpy().copy())
+        return recorded(values, diag_inv, b, x, *rest, **kw)
+
+    cg.solve = keep_start
+    solves = _record_solves(sim)  # wraps keep_start: inputs, then the answer
+    sim.step_frame()
+    model = sim.model
+    free_v = model.free.numpy() != 0
+    free = np.repeat(free_v, 3)
+    body = model.vertex_body.numpy()[free_v]
+    x = sim.states[0].x.numpy()[free_v].astype(float)
+    mass = model.mass.numpy()[free_v]
+    what = args.mesh or "bunny stack"
+    print(f"{what} {youngs} frame {args.frame}: {int(free_v.sum())} free vertices, {len(solves)} solves")
+    for s, start in list(zip(solves, starts, strict=True))[: args.solves]:
+        A = _system(model, s["values"], s["pairs"])[free][:, free].tocsr()
+        print(f"  {len(s['pairs'][0])} contact pairs")
+        study(A, s["b"].reshape(-1)[free].astype(float), start.reshape(-1)[free].astype(float), x, body, mass)
+
+
+def study(A, b: np.ndarray, x0: np.ndarray, x: np.ndarray, body: np.ndarray, mass: np.ndarray) -> None:
+    """Print one system's diagonal-to-mass ratios and the iterations each preconditioner or start needs."""
+    blocks = [A[i : i + 3, i : i + 3].toarray() for i in range(0, A.shape[0], 3)]
+    m_inv = sp.block_diag([np.linalg.inv(blk) for blk in blocks]).tocsr()
+    ratio = np.array([np.trace(blk) / 3.0 for blk in blocks]) / mass
+    per_body = ", ".join(
+        f"{int(bd)}: {ratio[body == bd].max():.0f} / {np.median(ratio[body == bd]):.0f}" for bd in np.unique(body)
+    )
+    print(f"    diagonal / mass, largest / median per body: {per_body}")
+
+    def jacobi(r):
+        return m_inv @ r
+
+    def coarse(kind):
+        P = affine_modes(x, body, kind)
+        e_inv = np.linalg.pinv(P.T @ (A @ P))
+        return P, e_inv, lambda r: m_inv @ r + P @ (e_inv @ (P.T @ r))
+
+    P, e_inv, additive = coarse("affine")
+    corrected = x0 + P @ (e_inv @ (P.T @ (b - A @ x0)))
+    print(
+        f"    block Jacobi: from the solver's start {pcg(A, b, x0, jacobi, m_inv)}, from zero "
+        f"{pcg(A, b, 0 * x0, jacobi, m_inv)}, from the affine-corrected start {pcg(A, b, corrected, jacobi, m_inv)}"
+    )
+    print(
+        "    additive coarse correction every iteration (from the solver's start): translations "
+        f"{pcg(A, b, x0, coarse(False)[2], m_inv)}, rigid {pcg(A, b, x0, coarse(True)[2], m_inv)}, "
+        f"affine {pcg(A, b, x0, additive, m_inv)}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -115,9 +115,11 @@ def _record_solves(sim):
     solve = cg.solve
 
     def recording(values, diag_inv, b, x, *args, **kwargs):
-        c = sim.solver.collider.coupling
-        k = int(c.count.numpy()[0])
-        pairs = [arr.numpy()[:k].copy() for arr in (c.verts_a, c.weights_a, c.verts_b, c.weights_b, c.matrix)]
+        pairs = [np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 3, 3))]
+        if sim.solver.collider is not None:
+            c = sim.solver.collider.coupling
+            k = int(c.count.numpy()[0])
+            pairs = [arr.numpy()[:k].copy() for arr in (c.verts_a, c.weights_a, c.verts_b, c.weights_b, c.matrix)]
         entry = dict(values=values.numpy().copy(), b=b.numpy().copy(), pairs=pairs)
         out = solve(values, diag_inv, b, x, *args, **kwargs)
         entry["x"] = x.numpy().copy()
