@@ -139,18 +139,21 @@ def mixed_pile(
     copies: int = 2,
     sizes: tuple[float, float] = (0.8, 1.5),
     youngs: tuple[float, float] = (3e5, 1e7),
+    side: int | None = None,
 ) -> warpfem.Scene:
     """``scene`` with ``copies`` of each ``(mesh, faces)``, in a 1.1 m grid, each turned about y, dropped 0.2 m.
 
     Sizes (bounding-box diagonals, m) and Young's moduli (Pa) are spread evenly (the moduli on a log scale)
-    over the bodies, in orders that do not pair the largest with the stiffest.
+    over the bodies, in orders that do not pair the largest with the stiffest. ``side``: bodies a row and a
+    column of each layer (default: as few layers as a grid of at most 4 x 4 allows); layers stand 1.6 m apart,
+    so a small ``side`` stacks the bodies onto each other.
     """
     from warpfem.build import euler_rotation
     from warpfem.prep.surface import read_triangles, source_file
 
     n = copies * len(meshes)
     rng = np.random.default_rng(n)
-    side = min(4, math.ceil(math.sqrt(n)))
+    side = side or min(4, math.ceil(math.sqrt(n)))
     size = np.linspace(*sizes, n)
     young = np.geomspace(*youngs, n)[rng.permutation(n)]
     bounds = {mesh: read_triangles(source_file(mesh) or mesh)[0] for mesh, _ in meshes}
@@ -627,6 +630,8 @@ def main(argv=None) -> int:
         if "mixed" not in skip:
             meshes = [(str((args.assets / name).resolve()), faces) for name, faces in MIXED]
             work.append(("mixed", 2 * len(MIXED), mixed_pile(scene_defaults, meshes)))
+            # the same meshes stacked four layers high on a 2 x 2 grid, so different bodies press on each other
+            work.append(("mixed", 4 * len(MIXED), mixed_pile(scene_defaults, meshes, copies=4, side=2)))
         frames, cg_cells = args.frames, (60, 60, 52)
 
     try:

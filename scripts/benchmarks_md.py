@@ -38,6 +38,15 @@ def newest(pattern: str) -> tuple[Path, dict] | None:
     return (paths[-1], json.loads(paths[-1].read_text())) if paths else None
 
 
+def scene_name(run: dict) -> str:
+    """A run's row name: the scene, or the pile and its size."""
+    if run["kind"] == "pile":
+        return f"pile of {run['n']} armadillos"
+    if run["kind"] == "mixed":
+        return f"mixed pile of {run['n']}"
+    return run["kind"]
+
+
 def penetration_text(run: dict) -> str:
     """The run's dense penetration: the independent check's worst (bodies / ground, % of size) where present."""
     check = run.get("dense_check")
@@ -110,7 +119,7 @@ def main() -> int:
     own_tolerance: dict[str, float] = {}  # each scene's first run has the scene file's own CG settings
     for r in data["runs"]:
         p = r["phase_ms"]
-        name = r["kind"] if r["kind"] != "pile" else f"pile of {r['n']} armadillos"
+        name = scene_name(r)
         tolerance = own_tolerance.setdefault(r["kind"], r.get("cg_tolerance"))
         if r.get("cg_tolerance") != tolerance:
             name += f", CG to {r['cg_tolerance']:g}"
@@ -206,7 +215,7 @@ def main() -> int:
             "| --- | --- | --- | --- | --- | --- |",
         ]
         for r in cpu[1]["runs"]:
-            name = r["kind"] if r["kind"] != "pile" else f"pile of {r['n']} armadillos"
+            name = scene_name(r)
             lines.append(
                 f"| {name} | {r['substeps']} | {r['ms_per_frame']:.1f} | {r['fps']:.0f} | "
                 f"{r['cg_iterations_per_step']:.0f} | {penetration_text(r)} |"

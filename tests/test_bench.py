@@ -125,6 +125,28 @@ def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_abov
             assert np.any(a.min(axis=0) > b.max(axis=0)) or np.any(b.min(axis=0) > a.max(axis=0))
 
 
+def test_mixed_pile_with_a_small_side_stacks_its_bodies(tmp_path):
+    """With two bodies a row, eight bodies stand in two layers of four, 1.6 m apart, each body above the
+    footprint of the one below it (so they land on each other), and no two boxes overlap at the start."""
+    import trimesh
+
+    from warpfem.build import euler_rotation
+
+    ball = str(ROOT / "tests" / "data" / "golden" / "ball.obj")
+    box = str(tmp_path / "box.obj")
+    trimesh.creation.box(extents=(2.0, 1.0, 3.0)).export(box)
+    scene = load_scene(ROOT / "scenes" / "default.toml")
+    mixed = bench.mixed_pile(scene, [(ball, 120), (box, 100)], copies=4, sizes=(0.5, 1.0), side=2)
+    own = [obj.scale * trimesh.load(obj.mesh, force="mesh").vertices for obj in mixed.objects]
+    placed = [v @ euler_rotation(o.rotate).T + np.asarray(o.translate) for v, o in zip(own, mixed.objects, strict=True)]
+    np.testing.assert_allclose([p[:, 1].min() for p in placed], [0.2] * 4 + [1.8] * 4, atol=1e-9)
+    for i, a in enumerate(placed):
+        for b in placed[i + 1 :]:
+            assert np.any(a.min(axis=0) > b.max(axis=0)) or np.any(b.min(axis=0) > a.max(axis=0))
+    for low, high in zip(placed[:4], placed[4:], strict=True):  # the same grid cell, one layer up
+        np.testing.assert_allclose(low.mean(axis=0)[[0, 2]], high.mean(axis=0)[[0, 2]], atol=0.6)
+
+
 @pytest.mark.parametrize(
     "setting, message",
     [
