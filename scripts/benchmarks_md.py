@@ -56,16 +56,11 @@ def penetration_text(run: dict) -> str:
     return f"{100 * worst['relative']:.2f} % / {100 * worst['below_relative']:.2f} %"
 
 
-def main() -> int:
-    ours = newest("bench-full-cuda*.json")
-    if ours is None:
-        print("no bench-full-cuda*.json under scripts/results", file=sys.stderr)
-        return 1
-    path, data = ours
-    env = data["environment"]
-    # the peer: every Newton JSON of the same device within PEER_HOURS of ours, the nearest in time first,
-    # so the nearest run of each pile size wins (a Newton crash on a large pile ends its process: the sizes
-    # after it come from a separate run)
+def peer_runs(env: dict) -> tuple[dict[int, dict], list[Path], tuple[Path, dict] | None]:
+    """Newton's figures for our run: every Newton JSON of the same device within PEER_HOURS of ours, the
+    nearest in time first, so the nearest run of each pile size wins (a Newton crash on a large pile ends its
+    process: the sizes after it come from a separate run). Returns the runs by pile size, the files they come
+    from, and the nearest file with its data (None if none is in the window)."""
     ours_at = datetime.fromisoformat(env["date"])
     peers = []
     for candidate in RESULTS.glob("bench-newton-cuda*.json"):
@@ -81,7 +76,12 @@ def main() -> int:
         newton.update((r["n"], r) for r in fresh)
         if fresh:
             used.append(candidate)
-    peer = peers[0] if peers else None
+    return newton, used, peers[0] if peers else None
+
+
+def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dict] | None) -> list[str]:
+    """The title, where the figures come from (ours and the peer's) and how they are taken."""
+    env = data["environment"]
     lines = [
         "# Benchmarks",
         "",
@@ -100,7 +100,7 @@ def main() -> int:
             "iterations per frame, self-contact on; pile sizes missing here have no Newton run in that window "
             "(Newton 1.8 has crashed on 256 and more with an illegal memory access; logs beside the JSON)"
         )
-    lines += [
+    return lines + [
         "",
         "Per 1/60 s frame: stepping, collisions and dense mapping on the device (a replayed CUDA graph), file",
         "output excluded; 2 warm-up frames. Phase split: " + split_text(data["runs"]),
@@ -109,6 +109,12 @@ def main() -> int:
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
         "collider's own estimate at the end, in mm); lowest point: ours the lowest dense vertex at the end,",
         "Newton's its lowest tet vertex (ground at 0).",
+    ]
+
+
+def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
+    """Every GPU run: sizes, frame time and its phases, CG, contacts, penetration, and Newton beside the piles."""
+    lines = [
         "",
         "| scene | substeps | bodies | tets | dense triangles | ms/frame | fps | elastic | collision | solve | map"
         " | output | CG it/step | contacts max/step | dense penetration | lowest point | Newton ms/frame"
@@ -138,88 +144,126 @@ def main() -> int:
             f"{r['contacts_max_per_step']:,} | {penetration_text(r)} | "
             f"{1e3 * r['lowest_dense_point_m']:+.0f} mm | {peer_cols} |"
         )
+    return lines
+
+
+def tolerance_lines(data: dict) -> list[str]:
+    """The paper scenes' CG tolerances against the error CG alone adds in one frame."""
     trade = [r for r in data["runs"] if "frame_error" in r and r["kind"] != "pile"]
-    if trade:
-        lines += [
-            "",
-            "## CG tolerance against accuracy (the paper's scenes)",
-            "",
-            "One frame error: from the state the timed frames ended in, one frame with the run's CG settings against",
-            "the same frame with CG converged to 1e-6 (same state, same substeps), the largest and rms distance of",
-            "the tet vertices. It is the error CG alone adds in a frame; a whole run's end would mostly measure how",
-            "chaotic a stack is. The project's `default` quality preset stops CG at 1e-3, the paper scenes at 1e-4.",
-            "",
-            "| scene | substeps | CG tolerance | ms/frame | fps | CG it/step | one-frame error max / rms"
-            " | deepest contact | dense penetration |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for r in trade:
-            e = r["frame_error"]
-            lines.append(
-                f"| {r['kind']} | {r['substeps']} | {r['cg_tolerance']:g} | {r['ms_per_frame']:.2f} | {r['fps']:.0f} | "
-                f"{r['cg_iterations_per_step']:.0f} | {1e3 * e['max_m']:.2f} / {1e3 * e['rms_m']:.3f} mm | "
-                f"{1e3 * r['contact_depth_max_m']:.1f} mm | {1e3 * r['dense_penetration_m']:.0f} mm |"
-            )
+    if not trade:
+        return []
+    lines = [
+        "",
+        "## CG tolerance against accuracy (the paper's scenes)",
+        "",
+        "One frame error: from the state the timed frames ended in, one frame with the run's CG settings against",
+        "the same frame with CG converged to 1e-6 (same state, same substeps), the largest and rms distance of",
+        "the tet vertices. It is the error CG alone adds in a frame; a whole run's end would mostly measure how",
+        "chaotic a stack is. The project's `default` quality preset stops CG at 1e-3, the paper scenes at 1e-4.",
+        "",
+        "| scene | substeps | CG tolerance | ms/frame | fps | CG it/step | one-frame error max / rms"
+        " | deepest contact | dense penetration |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in trade:
+        e = r["frame_error"]
+        lines.append(
+            f"| {r['kind']} | {r['substeps']} | {r['cg_tolerance']:g} | {r['ms_per_frame']:.2f} | {r['fps']:.0f} | "
+            f"{r['cg_iterations_per_step']:.0f} | {1e3 * e['max_m']:.2f} / {1e3 * e['rms_m']:.3f} mm | "
+            f"{1e3 * r['contact_depth_max_m']:.1f} mm | {1e3 * r['dense_penetration_m']:.0f} mm |"
+        )
+    return lines
+
+
+def deviation_lines(data: dict, newton: dict[int, dict]) -> list[str]:
+    """Settled piles against a converged run of each, ours and Newton's."""
     deviations = [
         (r["n"], r["settle_deviation"], newton.get(r["n"], {}).get("settle_deviation"))
         for r in data["runs"]
         if r["kind"] == "pile" and "settle_deviation" in r
     ]
-    if deviations:
-        lines += [
-            "",
-            "## Settled pile against a converged run",
-            "",
-            "Tet vertex positions after the timed scene's frame count, bench settings against a converged run of the",
-            "same pile (ours: 4x substeps, CG to 1e-6; Newton: 4x substeps, 4x iterations). A dropped armadillo",
-            "bounces and topples, so this measures how chaotic the drop is as much as the solver's accuracy.",
-            "",
-            "| pile | ours max / rms | Newton max / rms |",
-            "| --- | --- | --- |",
-        ]
-        for n, ours_dev, peer_dev in deviations:
-            theirs = f"{peer_dev['max_m']:.3f} / {peer_dev['rms_m']:.3f} m" if peer_dev else "not measured"
-            lines.append(f"| {n} | {ours_dev['max_m']:.3f} / {ours_dev['rms_m']:.3f} m | {theirs} |")
+    if not deviations:
+        return []
+    lines = [
+        "",
+        "## Settled pile against a converged run",
+        "",
+        "Tet vertex positions after the timed scene's frame count, bench settings against a converged run of the",
+        "same pile (ours: 4x substeps, CG to 1e-6; Newton: 4x substeps, 4x iterations). A dropped armadillo",
+        "bounces and topples, so this measures how chaotic the drop is as much as the solver's accuracy.",
+        "",
+        "| pile | ours max / rms | Newton max / rms |",
+        "| --- | --- | --- |",
+    ]
+    for n, ours_dev, peer_dev in deviations:
+        theirs = f"{peer_dev['max_m']:.3f} / {peer_dev['rms_m']:.3f} m" if peer_dev else "not measured"
+        lines.append(f"| {n} | {ours_dev['max_m']:.3f} / {ours_dev['rms_m']:.3f} m | {theirs} |")
+    return lines
+
+
+def cg_scale_lines(data: dict) -> list[str]:
+    """One CG iteration on a box of about a million tets against its memory-traffic floor."""
     cg = data.get("cg_at_scale")
-    if cg:
+    if not cg:
+        return []
+    lines = [
+        "",
+        "## One CG iteration at scale",
+        "",
+        f"A {cg['tets']:,}-tet box ({cg['nnz_blocks']:,} 3x3 blocks): "
+        f"**{cg['cg_iteration_us']:.0f} µs per block-Jacobi PCG iteration**,",
+        f"against {cg['spmv_floor_us']:.0f} µs that one SpMV's memory traffic ({cg['spmv_bytes'] / 1e6:.0f} MB) "
+        f"needs at the {cg['stream_bandwidth_GBps']:.0f} GB/s",
+        f"a streaming copy reached in the same run: **{cg['ratio_to_spmv_floor']:.1f}x** the floor "
+        "(an iteration also streams the update vectors).",
+    ]
+    if "stored_blocks" in cg:
+        by_chunk = ", ".join(f"{k}: {v:.0f} µs" for k, v in cg["cg_iteration_us_by_chunk"].items())
         lines += [
-            "",
-            "## One CG iteration at scale",
-            "",
-            f"A {cg['tets']:,}-tet box ({cg['nnz_blocks']:,} 3x3 blocks): "
-            f"**{cg['cg_iteration_us']:.0f} µs per block-Jacobi PCG iteration**,",
-            f"against {cg['spmv_floor_us']:.0f} µs that one SpMV's memory traffic ({cg['spmv_bytes'] / 1e6:.0f} MB) "
-            f"needs at the {cg['stream_bandwidth_GBps']:.0f} GB/s",
-            f"a streaming copy reached in the same run: **{cg['ratio_to_spmv_floor']:.1f}x** the floor "
-            "(an iteration also streams the update vectors).",
+            f"We store the upper triangle ({cg['stored_blocks']:,} blocks; its own product floor "
+            f"{cg['stored_spmv_floor_us']:.0f} µs). Iteration time by blocks per thread of the product: "
+            f"{by_chunk} (64: in effect a thread per row).",
         ]
-        if "stored_blocks" in cg:
-            by_chunk = ", ".join(f"{k}: {v:.0f} µs" for k, v in cg["cg_iteration_us_by_chunk"].items())
-            lines += [
-                f"We store the upper triangle ({cg['stored_blocks']:,} blocks; its own product floor "
-                f"{cg['stored_spmv_floor_us']:.0f} µs). Iteration time by blocks per thread of the product: "
-                f"{by_chunk} (64: in effect a thread per row).",
-            ]
-    cpu = newest("bench-full-cpu*.json")
-    if cpu:
-        cpu_env = cpu[1]["environment"]
-        lines += [
-            "",
-            "## On the CPU",
-            "",
-            f"`{cpu[0].name}` (commit `{cpu_env['commit'][:10]}`, Python {cpu_env['python']}, Warp {cpu_env['warp']}; "
-            "the CI machine's kind, 2 cores; Warp runs CPU kernels on one thread). Dense penetration as above "
-            "(runs before that check: the collider's own estimate at the end, in mm):",
-            "",
-            "| scene | substeps | ms/frame | fps | CG it/step | dense penetration |",
-            "| --- | --- | --- | --- | --- | --- |",
-        ]
-        for r in cpu[1]["runs"]:
-            name = scene_name(r)
-            lines.append(
-                f"| {name} | {r['substeps']} | {r['ms_per_frame']:.1f} | {r['fps']:.0f} | "
-                f"{r['cg_iterations_per_step']:.0f} | {penetration_text(r)} |"
-            )
+    return lines
+
+
+def cpu_lines(found: tuple[Path, dict] | None) -> list[str]:
+    """The newest CPU run of the bench: frame time, CG and penetration per scene."""
+    if not found:
+        return []
+    cpu_env = found[1]["environment"]
+    lines = [
+        "",
+        "## On the CPU",
+        "",
+        f"`{found[0].name}` (commit `{cpu_env['commit'][:10]}`, Python {cpu_env['python']}, Warp {cpu_env['warp']}; "
+        "the CI machine's kind, 2 cores; Warp runs CPU kernels on one thread). Dense penetration as above "
+        "(runs before that check: the collider's own estimate at the end, in mm):",
+        "",
+        "| scene | substeps | ms/frame | fps | CG it/step | dense penetration |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in found[1]["runs"]:
+        lines.append(
+            f"| {scene_name(r)} | {r['substeps']} | {r['ms_per_frame']:.1f} | {r['fps']:.0f} | "
+            f"{r['cg_iterations_per_step']:.0f} | {penetration_text(r)} |"
+        )
+    return lines
+
+
+def main() -> int:
+    ours = newest("bench-full-cuda*.json")
+    if ours is None:
+        print("no bench-full-cuda*.json under scripts/results", file=sys.stderr)
+        return 1
+    path, data = ours
+    newton, used, peer = peer_runs(data["environment"])
+    lines = header_lines(path, data, used, peer)
+    lines += main_table_lines(data, newton)
+    lines += tolerance_lines(data)
+    lines += deviation_lines(data, newton)
+    lines += cg_scale_lines(data)
+    lines += cpu_lines(newest("bench-full-cpu*.json"))
     lines += end_to_end_lines(newest("bench-end-to-end-cuda*.json"))
     lines += end_to_end_lines(newest("bench-end-to-end-cpu*.json"), "on the CPU")
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines) + "\n")
