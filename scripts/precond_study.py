@@ -96,16 +96,7 @@ def main() -> None:
     sim = warpfem.Simulation(scene, device="cpu")
     for _ in range(args.frame):
         sim.step_frame()
-    starts = []
-    cg = sim.solver.cg
-    recorded = cg.solve
-
-    def keep_start(values, diag_inv, b, x, *rest, **kw):
-        starts.append(x.numpy().copy())
-        return recorded(values, diag_inv, b, x, *rest, **kw)
-
-    cg.solve = keep_start
-    solves = _record_solves(sim)  # wraps keep_start: inputs, then the answer
+    solves = _record_solves(sim)
     sim.step_frame()
     model = sim.model
     free_v = model.free.numpy() != 0
@@ -115,10 +106,10 @@ def main() -> None:
     mass = model.mass.numpy()[free_v]
     what = args.mesh or "bunny stack"
     print(f"{what} {youngs} frame {args.frame}: {int(free_v.sum())} free vertices, {len(solves)} solves")
-    for s, start in list(zip(solves, starts, strict=True))[: args.solves]:
+    for s in solves[: args.solves]:
         A = _system(model, s["values"], s["pairs"])[free][:, free].tocsr()
         print(f"  {len(s['pairs'][0])} contact pairs")
-        study(A, s["b"].reshape(-1)[free].astype(float), start.reshape(-1)[free].astype(float), x, body, mass)
+        study(A, s["b"].reshape(-1)[free].astype(float), s["x0"].reshape(-1)[free].astype(float), x, body, mass)
 
 
 def study(A, b: np.ndarray, x0: np.ndarray, x: np.ndarray, body: np.ndarray, mass: np.ndarray) -> None:

@@ -110,7 +110,8 @@ def _system(model, values, pairs):
 
 
 def _record_solves(sim):
-    """Wrap the solver's CG (on the CPU, not captured) so that every solve keeps its inputs and answer."""
+    """Wrap the solver's CG (on the CPU, not captured) so that every solve keeps its inputs, its start
+    (``x0``) and its answer (``x``)."""
     cg, solves = sim.solver.cg, []
     solve = cg.solve
 
@@ -120,7 +121,7 @@ def _record_solves(sim):
             c = sim.solver.collider.coupling
             k = int(c.count.numpy()[0])
             pairs = [arr.numpy()[:k].copy() for arr in (c.verts_a, c.weights_a, c.verts_b, c.weights_b, c.matrix)]
-        entry = dict(values=values.numpy().copy(), b=b.numpy().copy(), pairs=pairs)
+        entry = dict(values=values.numpy().copy(), b=b.numpy().copy(), x0=x.numpy().copy(), pairs=pairs)
         out = solve(values, diag_inv, b, x, *args, **kwargs)
         entry["x"] = x.numpy().copy()
         solves.append(entry)
