@@ -115,7 +115,7 @@ def _head_on(
 def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
     """Closing at 10 m/s (a step's travel is 3.5 % of the size) with scene defaults, the dense surfaces
     overlap by less than 1 % of the size. At 30 m/s too in this meeting (turned otherwise, such an impact
-    can reach 2 %: docs/decisions.md), since contacts the step's own motion makes are answered within the
+    can overlap more: docs/decisions.md), since contacts the step's own motion makes are answered within the
     step; found only at the start of the next step, and with each step linearised about the rotations at its
     start (which stretches the deforming surfaces along their tangents), they overlap by more than 1.5 %."""
     assert _head_on(device, 5.0) < 0.01
