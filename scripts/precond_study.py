@@ -27,7 +27,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_friction import _bunny_stack, _record_solves, _system  # noqa: E402
+from solves import record_solves, system  # noqa: E402
+from test_friction import _bunny_stack  # noqa: E402
 
 import warpfem  # noqa: E402
 
@@ -96,7 +97,7 @@ def main() -> None:
     sim = warpfem.Simulation(scene, device="cpu")
     for _ in range(args.frame):
         sim.step_frame()
-    solves = _record_solves(sim)
+    solves = record_solves(sim)
     sim.step_frame()
     model = sim.model
     free_v = model.free.numpy() != 0
@@ -107,7 +108,7 @@ def main() -> None:
     what = args.mesh or "bunny stack"
     print(f"{what} {youngs} frame {args.frame}: {int(free_v.sum())} free vertices, {len(solves)} solves")
     for s in solves[: args.solves]:
-        A = _system(model, s["values"], s["pairs"])[free][:, free].tocsr()
+        A = system(model, s["values"], s["pairs"])[free][:, free].tocsr()
         print(f"  {len(s['pairs'][0])} contact pairs")
         study(A, s["b"].reshape(-1)[free].astype(float), s["x0"].reshape(-1)[free].astype(float), x, body, mass)
 

@@ -44,7 +44,7 @@ def test_every_default_applied(tmp_path):
     assert (scene.frames, scene.fps, scene.substeps) == (120, 60.0, 4)
     assert scene.gravity == (0.0, -9.81, 0.0)
     assert scene.up_axis == "Y"
-    assert scene.solver == SolverConfig(cg_mode="tolerance", cg_iterations=100, cg_tolerance=1e-4)
+    assert scene.solver == SolverConfig(cg_mode="tolerance", cg_iterations=400, cg_tolerance=1e-4)
     assert scene.ground == GroundConfig(enabled=True, height=0.0, stiffness=1e7, friction=0.5)
     assert scene.collision == CollisionConfig(enabled=True, stiffness=1e7, friction=0.5)
     assert scene.camera == CameraConfig(position=None, target=None, fov=35.0)

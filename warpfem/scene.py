@@ -155,7 +155,7 @@ class SolverConfig:
     """
 
     cg_mode: str = "tolerance"
-    cg_iterations: int = 100
+    cg_iterations: int = 400
     cg_tolerance: float = 1e-4
     rotation_updates: int = 2
     rotation_tolerance: float = 0.01

@@ -79,7 +79,7 @@ class Solver:
         gravity: tuple[float, float, float] = (0.0, -9.81, 0.0),
         ground: Ground | None = DEFAULT_GROUND,
         obstacles: Sequence[Sphere | Box | MeshCollider] = (),
-        cg_iterations: int = 100,
+        cg_iterations: int = 400,
         cg_tolerance: float = 1.0e-4,
         collision: CollisionSettings | None = DEFAULT_COLLISION,
         cg_path: str | None = None,
