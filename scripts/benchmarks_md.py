@@ -13,6 +13,12 @@ PEER_HOURS = 12
 """Newton runs this close in time to ours count as the same session's peer figures."""
 
 
+def timed_text(runs: list[dict]) -> str:
+    """How many frames each run timed (a pile's later frames, settled and touching, cost more than its first)."""
+    counts = sorted({int(r["frames_timed"]) for r in runs if "frames_timed" in r})
+    return " or ".join(map(str, counts)) + " timed frames from the start" if counts else "the timed frames"
+
+
 def split_text(runs: list[dict]) -> str:
     """How the runs' phase split was measured (runs before the trajectory split have no rerun gap)."""
     if all("phase_rerun_gap_m" in r for r in runs):
@@ -98,12 +104,13 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
             f"- peer: {names} — Newton {penv.get('newton', '')} `SolverVBD`, {penv['device']}, within "
             f"{PEER_HOURS} hours (the nearest run of each size) and the same tet meshes, 10 substeps x 10 "
             "iterations per frame, self-contact on; pile sizes missing here have no Newton run in that window "
-            "(Newton 1.8 has crashed on 256 and more with an illegal memory access; logs beside the JSON)"
+            "(Newton 1.8 has crashed with an illegal memory access on 256 and more on the H100, on 64 on the H200;"
+            " logs beside the JSON)"
         )
     return lines + [
         "",
         "Per 1/60 s frame: stepping, collisions and dense mapping on the device (a replayed CUDA graph), file",
-        "output excluded; 2 warm-up frames. Phase split: " + split_text(data["runs"]),
+        f"output excluded; 2 warm-up frames, then {timed_text(data['runs'])}. Phase split: " + split_text(data["runs"]),
         "Output, the USD file writing, is outside the frame time. Dense penetration: measured on the dense meshes",
         "alone (warpfem.io.penetration), the worst over a replay of the timed frames, a vertex inside another",
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
