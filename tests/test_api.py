@@ -50,6 +50,36 @@ def test_no_source_file_runs_past_800_lines():
     assert long == {}
 
 
+def _expanded(pattern: str) -> list[str]:
+    """``pattern`` with each ``{a,b}`` alternative written out, as a shell expands it."""
+    match = re.search(r"\{([^{}]*)\}", pattern)
+    if match is None:
+        return [pattern]
+    head, tail = pattern[: match.start()], pattern[match.end() :]
+    return [name for alt in match.group(1).split(",") for name in _expanded(head + alt + tail)]
+
+
+def test_every_result_file_is_cited():
+    """scripts/results keeps only what BENCHMARKS.md, the READMEs and docs/ name (a file, a folder, or a glob
+    such as ``ab-x-*.json``; a log counts with the JSON it sits beside), and holds every file they name."""
+    import fnmatch
+
+    pages = [ROOT / "BENCHMARKS.md", ROOT / "README.md", ROOT / "scenes" / "README.md", *ROOT.glob("docs/*.md")]
+    text = "\n".join(p.read_text() for p in pages)
+    files = re.findall(r"[\w.*{},\-]+\.(?:json|csv|png|txt)", text)
+    folders = re.findall(r"`scripts/results/([\w.\-]+)/`", text)
+    patterns = {name for token in files + folders for name in _expanded(token)}
+    uncited = []
+    for path in sorted((ROOT / "scripts" / "results").iterdir()):
+        name = path.with_suffix(".json").name if path.suffix == ".log" else path.name
+        if not any(fnmatch.fnmatch(name, p) for p in patterns):
+            uncited.append(path.name)
+    assert uncited == []
+    cited = re.findall(r"scripts/results/([\w.*,\-]+\.(?:json|csv|png|txt))", text)
+    present = [p.name for p in (ROOT / "scripts" / "results").iterdir()]
+    assert [name for name in cited if not fnmatch.filter(present, name)] == []  # and nothing cited is missing
+
+
 @pytest.fixture
 def ball_dir(tmp_path):
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
