@@ -270,3 +270,31 @@ def test_a_stiff_body_on_the_ground_converges_with_scene_defaults():
         sim.step_frame()
     assert len(solves) > 100
     assert worst_residual(sim, solves) < 2.0 * sim.scene.solver.cg_tolerance  # float32 rounding aside
+
+
+@pytest.mark.parametrize("young", [1e7, 1e9])
+def test_a_run_says_when_float32_cannot_resolve_the_tolerance(young):
+    """A 1 m bunny landing on the ground. At 1e9 Pa CG's recurrence reaches the tolerance while the system's
+    residual (float64, with SciPy, from the stored blocks and float32 answers) stays several times above it:
+    the run warns once, and its float32 floor estimate is within a factor 3 of that residual. At 1e7 Pa the
+    system's residual meets the tolerance, and nothing is said."""
+    from solves import record_solves, worst_residual
+
+    import warpfem
+
+    body = {"name": "b", "mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "rotate": [15.0, 30.0, 0.0]}
+    doc = {"scene": {"frames": 30}, "object": [{**body, "translate": [0.0, 0.3, 0.0], "young": young}]}
+    said = []
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stiff"), device="cpu", warn=said.append)
+    solves = record_solves(sim)
+    for _ in range(30):
+        sim.step_frame()
+    measured, tolerance = worst_residual(sim, solves), sim.scene.solver.cg_tolerance
+    floor = sim.totals.cg_float32_floor
+    warned = [w for w in said if "float32" in w]
+    if young > 1e8:
+        assert measured > 3.0 * tolerance and sim.totals.cg_residual_max <= tolerance * 1.01  # CG's own: met
+        assert len(warned) == 1 and "'b'" in warned[0]
+        assert measured / 3.0 < floor < 3.0 * measured
+    else:
+        assert measured < 2.0 * tolerance and floor < tolerance and warned == []

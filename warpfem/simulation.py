@@ -40,6 +40,11 @@ from warpfem.sim.solver import Solver
 FAST_TURN = 0.03
 """Rotation per step (rad) past which a body gains visible energy (docs/tradeoff.md): warned about once."""
 
+FLOAT32_FLOOR = 0.25 * 2.0**-24
+"""The relative residual float32 CG resolves, per unit of the largest ratio of a free vertex's diagonal block
+(2-norm) to its mass: measured 0.11-0.44 times float32's unit roundoff on bunnies and a horse, linear and
+quadratic tets, 3e6-3e9 Pa (docs/decisions.md, "CG's float32 floor")."""
+
 
 @dataclass(frozen=True)
 class FrameStats:
@@ -96,6 +101,10 @@ class RunTotals:
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
+        cg_short_solves: Solves that stopped at the cap above the tolerance.
+        cg_float32_floor: The relative residual float32 resolves in these systems, estimated once from the
+            first frame's diagonal blocks (:data:`FLOAT32_FLOOR`); a smaller residual CG reports is its own
+            recurrence's, not the system's.
         contacts: Contacts summed over steps.
         contacts_max: Most contacts in one step.
         deepest_contact: Deepest contact (m).
@@ -107,6 +116,7 @@ class RunTotals:
     cg_residual_max: float = 0.0
     cg_capped_frames: int = 0
     cg_short_solves: int = 0
+    cg_float32_floor: float = 0.0
     contacts: int = 0
     contacts_max: int = 0
     deepest_contact: float = 0.0
@@ -144,7 +154,8 @@ class Simulation:
         cache: False preprocesses again and stores nothing (the CLI's ``--no-cache``).
         progress: Receives ``(object name, message)`` as each preprocessing stage starts.
         warn: Receives one-line warnings, each kind at most once (contact buffer overflow; a body moving more
-            than half a tet per step; a body turning fast enough to gain energy).
+            than half a tet per step; a body turning fast enough to gain energy; CG stopping at its cap or below
+            what float32 resolves).
         cg_path: How CG runs (see :class:`~warpfem.sim.solver.Solver`); None: the default.
         notify: Receives one-line notices of work before the first step that takes long only once: compiling
             the kernels on a first run (before it starts, then its time).
@@ -412,6 +423,8 @@ class Simulation:
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)
         t.cg_short_solves += cg.short
         cap, tolerance = self.solver.cg.limits
+        if t.steps == substeps:  # the first read: the systems' diagonal blocks are in place
+            self._check_float32_floor(tolerance)
         if tolerance > 0 and cg.residual_max > tolerance * CAP_SLACK:
             t.cg_capped_frames += frames
             self._warn_once(
@@ -451,6 +464,30 @@ class Simulation:
             deepest_contact=deepest,
         )
         return self.stats
+
+    def _check_float32_floor(self, tolerance: float) -> None:
+        """Estimate the residual float32 resolves from the last solve's diagonal blocks; warn once above the tolerance.
+
+        A body stiff for its step (its diagonal blocks many times its masses) leaves CG's recurrence below the
+        tolerance while the system's residual stays above it: the residual CG reports then understates.
+        """
+        model = self.model
+        blocks = self.solver.matrix.numpy()[model.diag_slot.numpy()].astype(np.float64)
+        mass, free = model.mass.numpy().astype(np.float64), model.free.numpy() != 0
+        ratio = np.zeros(len(mass))
+        live = free & (mass > 0.0)
+        ratio[live] = np.linalg.norm(blocks[live], ord=2, axis=(1, 2)) / mass[live]
+        vertex = int(np.argmax(ratio))
+        floor = FLOAT32_FLOOR * float(ratio[vertex])
+        self.totals.cg_float32_floor = floor
+        if 0.0 < tolerance < floor:
+            self._warn_once(
+                "float32",
+                f"warning: body '{model.body_of_vertex(vertex).name}': float32 resolves CG's relative residual only "
+                f"to about {floor:.1g} here, above its tolerance {tolerance:g} (the body is stiff for this step: "
+                f"its stiffest vertex's diagonal is {ratio[vertex]:.2g} times its mass), so the residual CG reports "
+                "understates the system's: raise substeps or lower young for the tolerance to hold",
+            )
 
     def _check_speed(self, speeds: np.ndarray) -> None:
         """Warn once if a body moves more than half a tet in one step: thin parts may then tunnel."""

@@ -259,7 +259,7 @@ def _report(
         (
             "CG iterations per step",
             f"{summary.cg_iterations_per_step:.1f} in {summary.cg_solves_per_step:.2f} solves (max residual "
-            f"{summary.cg_residual_max:.2g}; at its cap above "
+            f"{summary.cg_residual_max:.2g}, float32 floor about {summary.cg_float32_floor:.1g}; at its cap above "
             f"its tolerance in {summary.cg_short_solves} solves over {summary.cg_capped_frames} of {summary.frames} "
             "frames)",
         ),
