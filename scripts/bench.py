@@ -346,6 +346,7 @@ def time_scene(
         "cg_solves_per_step": stats.cg_solves,
         "rotation_updates": scene.solver.rotation_updates,
         "cg_residual_max": stats.cg_residual,
+        "cg_float32_floor": sim.totals.cg_float32_floor,
         "contacts_max_per_step": stats.contacts_max,
         "contact_depth_max_m": stats.deepest_contact,
         "dense_penetration_m": check["end"]["depth"],
