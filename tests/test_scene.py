@@ -39,6 +39,15 @@ def test_scene_solver_defaults_are_the_solvers():
     assert SolverConfig().rotation_tolerance == DEFAULT_ROTATION_TOLERANCE
 
 
+def test_fixed_mode_without_a_count_runs_a_hundred_iterations(tmp_path):
+    """The default cg_iterations (400) is a cap for tolerance mode; fixed mode runs that many every solve, so a
+    fixed-mode scene that names no count gets 100, and one that names a count keeps it."""
+    scene = load_scene(write(tmp_path, '[solver]\ncg_mode = "fixed"\n' + MINIMAL))
+    assert (scene.solver.cg_mode, scene.solver.cg_iterations, scene.solver.stop_tolerance) == ("fixed", 100, 0.0)
+    scene = load_scene(write(tmp_path, '[solver]\ncg_mode = "fixed"\ncg_iterations = 30\n' + MINIMAL))
+    assert scene.solver.cg_iterations == 30
+
+
 def test_every_default_applied(tmp_path):
     scene = load_scene(write(tmp_path, MINIMAL))
     assert (scene.frames, scene.fps, scene.substeps) == (120, 60.0, 4)
