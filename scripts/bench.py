@@ -543,7 +543,8 @@ def cg_at_scale(
     }
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The command line's options."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="CPU, small: test the harness in under a minute")
     parser.add_argument("--device", default=None)
@@ -593,6 +594,78 @@ def main(argv=None) -> int:
         metavar="SECTION.KEY=VALUE",
         help="set a scene key in every scene of the run (object.KEY on every object; the value read as TOML)",
     )
+    return parser
+
+
+def _full_work(args: argparse.Namespace, skip: set[str], defaults: warpfem.Scene) -> list:
+    """The full run's scenes as (kind, size, scene): the paper's (and their variants), the piles, the mixed piles."""
+    armadillo = str((args.assets / "armadillo.off").resolve())
+    work = []
+    if "paper" not in skip:
+        for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
+            scene = load_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
+            work.append((name, len(scene.objects), scene))
+            for k in args.paper_substeps:
+                if k != scene.substeps:
+                    work.append((name, len(scene.objects), dataclasses.replace(scene, substeps=k)))
+            for tolerance in args.paper_tolerances:
+                if scene.solver.stop_tolerance != tolerance:
+                    work.append((name, len(scene.objects), cg_to(scene, tolerance)))
+    if "piles" not in skip:
+        work += [("pile", n, pile(defaults, n, armadillo, 500)) for n in args.piles]
+    if "mixed" not in skip:
+        meshes = [(str((args.assets / name).resolve()), faces) for name, faces in MIXED]
+        work.append(("mixed", 2 * len(MIXED), mixed_pile(defaults, meshes)))
+        # the same meshes stacked four layers high on a 2 x 2 grid, so different bodies press on each other
+        work.append(("mixed", 4 * len(MIXED), mixed_pile(defaults, meshes, copies=4, side=2)))
+    return work
+
+
+def _set_and_vary(work: list, args: argparse.Namespace) -> list:
+    """``work`` with every ``--set`` applied (validated), plus each scene at each ``--rotation-updates``."""
+    try:
+        for setting in args.set:
+            work = [(kind, n, replaced(scene, setting)) for kind, n, scene in work]
+        for _, _, scene in work:
+            scene.validate()
+    except (warpfem.InputError, TypeError, AttributeError) as err:  # a bad value, an unknown section or key
+        raise SystemExit(f"bench: --set: {err}") from None
+    return work + [
+        (kind, n, dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, rotation_updates=k)))
+        for kind, n, scene in list(work)
+        for k in args.rotation_updates
+        if k != scene.solver.rotation_updates
+    ]
+
+
+def _time_all(work: list, cg_paths: list[str], args: argparse.Namespace, device, frames: int) -> list[dict]:
+    """Each scene of ``work`` timed on each CG path, one printed line each (and its kernels on CUDA)."""
+    runs = []
+    for (kind, n, scene), cg_path in itertools.product(work, cg_paths):
+        t0 = time.perf_counter()
+        path = None if cg_path == "auto" else cg_path
+        measured = kind not in ("pile", "mixed") or (kind == "pile" and n in args.deviation)
+        run = time_scene(scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
+        if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
+            run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)
+        run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
+        runs.append(run)
+        print(
+            f"{kind:28s} N={n:5d} {cg_path:8s} sub={run['substeps']} tets={run['tets']:8d} "
+            f"dense tris={run['dense_triangles']:10d} "
+            f"{run['ms_per_frame']:9.2f} ms/frame  CG to {run['cg_tolerance']:g}: "
+            f"{run['cg_iterations_per_step']:6.1f} it/step {run['cg_solves_per_step']:4.2f} solves "
+            f"upd={run['rotation_updates']}  "
+            f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
+            flush=True,
+        )
+        for name, row in run.get("kernel_ms", {}).items():
+            print(f"    {row['ms']:8.3f} ms {row['launches']:6d} launches  {name[:90]}", flush=True)
+    return runs
+
+
+def main(argv=None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
@@ -605,81 +678,24 @@ def main(argv=None) -> int:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - parts))}")
     scene_defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
-
     if args.quick:
         work = [("pile", n, pile(scene_defaults, n, "builtin:bunny", 300, scale=0.5)) for n in (1, 2)]
         ball = str(ROOT / "tests" / "data" / "golden" / "ball.obj")
         work.append(("mixed", 2, mixed_pile(scene_defaults, [("builtin:bunny", 300), (ball, 120)], copies=1)))
         frames, cg_cells = 5, (8, 8, 8)
     else:
-        armadillo = str((args.assets / "armadillo.off").resolve())
-        work = []
-        if "paper" not in skip:
-            for name in ("paper_a_armadillo_stack", "paper_b_four_horses", "paper_c_two_bodies"):
-                scene = load_with_assets(ROOT / "scenes" / f"{name}.toml", args.assets)
-                work.append((name, len(scene.objects), scene))
-                for k in args.paper_substeps:
-                    if k != scene.substeps:
-                        variant = dataclasses.replace(scene, substeps=k)
-                        work.append((name, len(scene.objects), variant))
-                for tolerance in args.paper_tolerances:
-                    if scene.solver.stop_tolerance != tolerance:
-                        work.append((name, len(scene.objects), cg_to(scene, tolerance)))
-        if "piles" not in skip:
-            for n in args.piles:
-                work.append(("pile", n, pile(scene_defaults, n, armadillo, 500)))
-        if "mixed" not in skip:
-            meshes = [(str((args.assets / name).resolve()), faces) for name, faces in MIXED]
-            work.append(("mixed", 2 * len(MIXED), mixed_pile(scene_defaults, meshes)))
-            # the same meshes stacked four layers high on a 2 x 2 grid, so different bodies press on each other
-            work.append(("mixed", 4 * len(MIXED), mixed_pile(scene_defaults, meshes, copies=4, side=2)))
-        frames, cg_cells = args.frames, (60, 60, 52)
-
-    try:
-        for setting in args.set:
-            work = [(kind, n, replaced(scene, setting)) for kind, n, scene in work]
-        for _, _, scene in work:
-            scene.validate()
-    except (warpfem.InputError, TypeError, AttributeError) as err:  # a bad value, an unknown section or key
-        raise SystemExit(f"bench: --set: {err}") from None
+        work, frames, cg_cells = _full_work(args, skip, scene_defaults), args.frames, (60, 60, 52)
+    work = _set_and_vary(work, args)
     results["settings"] = args.set
-    work += [
-        (kind, n, dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, rotation_updates=k)))
-        for kind, n, scene in list(work)
-        for k in args.rotation_updates
-        if k != scene.solver.rotation_updates
-    ]
-
     if args.prepare_only:
         for _, _, scene in work:
             for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in scene.objects}:
                 warpfem.prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
         return 0
-
-    for (kind, n, scene), cg_path in itertools.product(work, cg_paths):
-        t0 = time.perf_counter()
-        path = None if cg_path == "auto" else cg_path
-        measured = kind not in ("pile", "mixed") or (kind == "pile" and n in args.deviation)
-        run = time_scene(scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
-        if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
-            run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)
-        run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
-        results["runs"].append(run)
-        print(
-            f"{kind:28s} N={n:5d} {cg_path:8s} sub={run['substeps']} tets={run['tets']:8d} "
-            f"dense tris={run['dense_triangles']:10d} "
-            f"{run['ms_per_frame']:9.2f} ms/frame  CG to {run['cg_tolerance']:g}: "
-            f"{run['cg_iterations_per_step']:6.1f} it/step {run['cg_solves_per_step']:4.2f} solves "
-            f"upd={run['rotation_updates']}  "
-            f"pen {1e3 * run['dense_penetration_m']:6.1f} mm",
-            flush=True,
-        )
-        for name, row in run.get("kernel_ms", {}).items():
-            print(f"    {row['ms']:8.3f} ms {row['launches']:6d} launches  {name[:90]}", flush=True)
+    results["runs"] = _time_all(work, cg_paths, args, device, frames)
     if "cg" not in skip:
         results["cg_at_scale"] = cg_at_scale(device, cg_cells)
         print("CG at scale:", json.dumps(results["cg_at_scale"]), flush=True)
-
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     path = args.out / f"bench-{results['mode']}-{device.alias.replace(':', '')}-{stamp}.json"
