@@ -1,6 +1,11 @@
-"""The quality presets a scene names as ``[solver] quality = "<name>"`` (applied by :mod:`warpfem.scene`)."""
+"""Scene defaults applied to the document: quality presets, and the CG iteration count of fixed mode.
+
+A scene names a preset as ``[solver] quality = "<name>"``; :mod:`warpfem.scene` applies both.
+"""
 
 from __future__ import annotations
+
+from typing import Any
 
 PRESETS: dict[str, dict[str, object]] = {
     "preview": dict(
@@ -41,3 +46,14 @@ PRESETS: dict[str, dict[str, object]] = {
 ``elements``, and each object's ``faces``, ``maxh``, ``tets_across`` and ``max_tets``; keys the scene file sets
 itself win. Each is a measured point: its cost and its error on a dense cantilever through the whole pipeline
 are in docs/tradeoff.md."""
+
+FIXED_CG_ITERATIONS = 100
+"""CG's iteration count in ``cg_mode = "fixed"`` where the scene gives none (``cg_iterations``' default, 400, is
+a cap meant for tolerance mode, which a converging solve never reaches)."""
+
+
+def apply_mode_default(doc: dict[str, Any]) -> None:
+    """Give a scene document's fixed-mode solver without ``cg_iterations`` :data:`FIXED_CG_ITERATIONS`."""
+    solver = doc.get("solver")
+    if isinstance(solver, dict) and solver.get("cg_mode") == "fixed":
+        solver.setdefault("cg_iterations", FIXED_CG_ITERATIONS)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
-from warpfem.presets import PRESETS
+from warpfem.presets import PRESETS, apply_mode_default
 
 Vec3 = tuple[float, float, float]
 
@@ -118,18 +118,6 @@ def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ..
         raise err(key, f"must be {allowed}, got {_shown(value)}")
 
 
-FIXED_CG_ITERATIONS = 100
-"""CG's iteration count in ``cg_mode = "fixed"`` where the scene gives none (``cg_iterations``' default, 400, is
-a cap meant for tolerance mode, which a converging solve never reaches)."""
-
-
-def _apply_mode_default(doc: dict[str, Any]) -> None:
-    """Give a fixed-mode solver without ``cg_iterations`` :data:`FIXED_CG_ITERATIONS`."""
-    solver = doc.get("solver")
-    if isinstance(solver, dict) and solver.get("cg_mode") == "fixed":
-        solver.setdefault("cg_iterations", FIXED_CG_ITERATIONS)
-
-
 def _apply_preset(doc: dict[str, Any], origin: str) -> None:
     """Fill the keys a ``[solver] quality`` preset sets, where the scene file leaves them unset."""
     solver = doc.get("solver")
@@ -159,7 +147,7 @@ class SolverConfig:
             most ``cg_iterations``); ``"fixed"``: always ``cg_iterations`` iterations (the paper's
             choice: predictable frame time, less accuracy).
         cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1). A scene file in
-            fixed mode that leaves it out gets :data:`FIXED_CG_ITERATIONS`.
+            fixed mode that leaves it out gets :data:`~warpfem.presets.FIXED_CG_ITERATIONS`.
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
         rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
         rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
@@ -749,7 +737,7 @@ def _from_doc(doc: dict[str, Any], path: Path) -> Scene:
     origin = str(path)
     known = ("scene", "solver", "ground", "collision", "camera", "object", "obstacle", "handle")
     _apply_preset(doc, origin)
-    _apply_mode_default(doc)
+    apply_mode_default(doc)
     for key in doc:
         if key not in known:
             close = difflib.get_close_matches(key, known, n=1)
