@@ -298,3 +298,24 @@ def test_a_run_says_when_float32_cannot_resolve_the_tolerance(young):
         assert measured / 3.0 < floor < 3.0 * measured
     else:
         assert measured < 2.0 * tolerance and floor < tolerance and warned == []
+
+
+def test_the_float32_floor_is_said_on_every_device(device):
+    """The floor's estimate and its warning come from the solver's blocks read between frames, on any device: a
+    1 m bunny of 1e9 Pa is warned about once, one of 1e7 Pa is not (the CPU test above checks the estimate)."""
+    import warpfem
+
+    body = {"name": "b", "mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "translate": [0.0, 0.3, 0.0]}
+    floors = []
+    for young in (1e7, 1e9):
+        said = []
+        doc = {"scene": {"frames": 3}, "object": [{**body, "young": young}]}
+        sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stiff"), device=device, warn=said.append)
+        for _ in range(3):
+            sim.step_frame()
+        floors.append((sim.totals.cg_float32_floor, len([w for w in said if "float32" in w])))
+    tolerance = sim.scene.solver.cg_tolerance
+    (soft, soft_said), (stiff, stiff_said) = floors
+    assert soft < tolerance and soft_said == 0
+    assert stiff > tolerance and stiff_said == 1
+    assert stiff / soft == pytest.approx(100.0, rel=0.2)  # the elastic diagonal scales with Young's modulus
