@@ -497,6 +497,29 @@ def _climb(attempt: _Attempt, maxh: float, deadline: float):
     raise InputError(f"{name}: no valid tet mesh at {attempt.faces} faces, every rung failed: {' '.join(failures)}")
 
 
+def _sized_tets(attempt: _Attempt, maxh: float, sizing: tuple[float, int], name: str) -> tuple[tuple, dict]:
+    """:func:`_climb` at the size ``sizing`` (tets across, tet budget) gives ``attempt``'s surface.
+
+    Sized once more where Netgen overran the budget. Returns the climb's result and the sizing's stats.
+    """
+    unit, faces, say, deadline = attempt.dense, attempt.faces, attempt.say, attempt.deadline
+    seconds = attempt.seconds
+    clock = time.perf_counter()
+    sized_faces, sized_maxh, sized = _sized(unit, faces, maxh, *sizing, say)
+    seconds["sizing"] = time.perf_counter() - clock
+    climbed = _climb(replace(attempt, faces=sized_faces), sized_maxh, deadline)
+    tets, (across, max_tets) = climbed[3], sizing
+    if across and len(tets) > BUDGET_SLACK * max_tets and time.perf_counter() < deadline:
+        # Netgen filled the body more densely than the sizing estimated: size once more for a budget scaled
+        # down by the square root of the overrun (a full correction overshoots: fewer faces make fewer tets too)
+        say(f"{name}: {len(tets)} tets for a budget of {max_tets}: sizing again")
+        budget = max(1, round(max_tets * (max_tets / len(tets)) ** 0.5))
+        sized_faces, sized_maxh, resized = _sized(unit, faces, maxh, across, budget, say)
+        sized = resized | {"max_tets": max_tets, "sized_twice": 1}
+        climbed = _climb(replace(attempt, faces=sized_faces, surfaces={}), sized_maxh, deadline)
+    return climbed, sized
+
+
 def _build(
     dense: Surface,
     faces: int,
@@ -527,21 +550,8 @@ def _build(
     # a surface crossing itself or overlapping shells count some volume twice: the outer surface's is used
     clean = dense_pairs == 0 and not dense.overlapping
     volume = signed_volume(unit.vertices, unit.faces)
-    clock = time.perf_counter()
-    sized_faces, sized_maxh, sized = _sized(unit, faces, maxh, *sizing, say)
-    seconds["sizing"] = time.perf_counter() - clock
-    attempt = _Attempt(unit, sized_faces, timeout_s, say, volume, clean, {}, seconds, deadline)
-    coarse_v, coarse_f, tet_v, tets, quality, index, failures = _climb(attempt, sized_maxh, deadline)
-    across, max_tets = sizing
-    if across and len(tets) > BUDGET_SLACK * max_tets and time.perf_counter() < deadline:
-        # Netgen filled the body more densely than the sizing estimated: size once more for a budget scaled
-        # down by the square root of the overrun (a full correction overshoots: fewer faces make fewer tets too)
-        say(f"{name}: {len(tets)} tets for a budget of {max_tets}: sizing again")
-        budget = max(1, round(max_tets * (max_tets / len(tets)) ** 0.5))
-        sized_faces, sized_maxh, resized = _sized(unit, faces, maxh, across, budget, say)
-        sized = resized | {"max_tets": max_tets, "sized_twice": 1}
-        attempt = _Attempt(unit, sized_faces, timeout_s, say, volume, clean, {}, seconds, deadline)
-        coarse_v, coarse_f, tet_v, tets, quality, index, failures = _climb(attempt, sized_maxh, deadline)
+    attempt = _Attempt(unit, faces, timeout_s, say, volume, clean, {}, seconds, deadline)
+    (coarse_v, coarse_f, tet_v, tets, quality, index, failures), sized = _sized_tets(attempt, maxh, sizing, name)
 
     boundary = coarse_f.copy()  # tetrahedralize keeps the surface points first, so these index tet_v
     clock = time.perf_counter()
