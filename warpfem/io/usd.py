@@ -113,25 +113,9 @@ class UsdWriter:
             OSError: The output folder cannot be written.
         """
         self.path = Path(path)
-        suffix = self.path.suffix.lower()
-        if suffix not in _FORMATS:
-            raise ValueError(f"{self.path}: USD output must end in .usdc, .usd or .usda, got '{suffix}'")
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"{self.path}: the output folder {self.path.parent} does not exist")
-        if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
-            raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
-        if up_axis not in ("Y", "Z"):
-            raise ValueError(f'up_axis must be "Y" or "Z", got {up_axis!r}')
-        if not bodies:
-            raise ValueError("UsdWriter needs at least one body")
-        if save_every is not None and not (np.isfinite(save_every) and save_every >= 0):
-            raise ValueError(f"save_every must be None or a finite number >= 0, got {save_every!r}")
-        if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
-            raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
+        _check_arguments(self.path, fps, up_axis, bodies, save_every, chunk_bytes, workers)
         import pxr.Sdf  # noqa: F401  (loaded now, before a run steps, not on its writer's thread at the first chunk)
 
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
-            raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
         self.clips_dir = clips_folder(self.path)
         if not overwrite and (self.path.exists() or self.clips_dir.exists()):
             raise FileExistsError(f"{self.path}: the file exists (overwriting was not asked for)")
@@ -492,6 +476,35 @@ def _deliver(signum: int, handler: object, frame: object) -> None:
         handler(signum, frame)
     elif handler in (signal.SIG_DFL, None):
         signal.raise_signal(signum)  # the handler is back in place: the default action (SIGTERM ends the process)
+
+
+def _check_arguments(
+    path: Path,
+    fps: float,
+    up_axis: str,
+    bodies: Sequence[tuple[str, np.ndarray]],
+    save_every: float | None,
+    chunk_bytes: int,
+    workers: int | None,
+) -> None:
+    """Raise on a bad :class:`UsdWriter` argument (the bodies' names and faces are checked one by one after)."""
+    suffix = path.suffix.lower()
+    if suffix not in _FORMATS:
+        raise ValueError(f"{path}: USD output must end in .usdc, .usd or .usda, got '{suffix}'")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path}: the output folder {path.parent} does not exist")
+    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
+    if up_axis not in ("Y", "Z"):
+        raise ValueError(f'up_axis must be "Y" or "Z", got {up_axis!r}')
+    if not bodies:
+        raise ValueError("UsdWriter needs at least one body")
+    if save_every is not None and not (np.isfinite(save_every) and save_every >= 0):
+        raise ValueError(f"save_every must be None or a finite number >= 0, got {save_every!r}")
+    if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
+        raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+        raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
 
 
 def clips_folder(path: str | Path) -> Path:
