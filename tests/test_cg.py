@@ -255,9 +255,9 @@ def test_chunks_held_only_where_each_has_a_thread(device):
 
 
 def test_a_stiff_body_on_the_ground_converges_with_scene_defaults():
-    """A 1 m bunny of 1e8 Pa landing and resting on the ground, with nothing set but its modulus: the default
-    cap leaves CG room for a stiff body's conditioning, so every solve reaches the default tolerance, measured
-    on the system rebuilt with SciPy (a cap of 100 stopped a third of them short)."""
+    """The bunny (2.6 m across) of 1e8 Pa landing and resting on the ground, nothing set but its modulus: the
+    default cap leaves CG room for a stiff body's conditioning, so every solve reaches the default tolerance,
+    measured on the system rebuilt with SciPy (a cap of 100 stopped a third of them short)."""
     from solves import record_solves, worst_residual
 
     import warpfem
@@ -274,10 +274,10 @@ def test_a_stiff_body_on_the_ground_converges_with_scene_defaults():
 
 @pytest.mark.parametrize("young", [1e7, 1e9])
 def test_a_run_says_when_float32_cannot_resolve_the_tolerance(young):
-    """A 1 m bunny landing on the ground. At 1e9 Pa CG's recurrence reaches the tolerance while the system's
-    residual (float64, with SciPy, from the stored blocks and float32 answers) stays several times above it:
-    the run warns once, and its float32 floor estimate is within a factor 3 of that residual. At 1e7 Pa the
-    system's residual meets the tolerance, and nothing is said."""
+    """The bunny (2.6 m across) landing on the ground. At 1e9 Pa CG's recurrence reaches the tolerance while the
+    system's residual (float64, with SciPy, from the stored blocks and float32 answers) stays several times
+    above it: the run warns once, and its float32 floor estimate is within a factor 3 of that residual. At
+    1e7 Pa the system's residual meets the tolerance, and nothing is said."""
     from solves import record_solves, worst_residual
 
     import warpfem
@@ -301,8 +301,8 @@ def test_a_run_says_when_float32_cannot_resolve_the_tolerance(young):
 
 
 def test_the_float32_floor_is_said_on_every_device(device):
-    """The floor's estimate and its warning come from the solver's blocks read between frames, on any device: a
-    1 m bunny of 1e9 Pa is warned about once, one of 1e7 Pa is not (the CPU test above checks the estimate)."""
+    """The floor's estimate and its warning come from the solver's blocks read between frames, on any device: the
+    bunny (2.6 m across) of 1e9 Pa is warned about once, of 1e7 Pa not (the CPU test above checks the estimate)."""
     import warpfem
 
     body = {"name": "b", "mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "translate": [0.0, 0.3, 0.0]}
