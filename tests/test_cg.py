@@ -323,7 +323,7 @@ def test_the_float32_floor_is_said_on_every_device(device):
 
 def test_the_float32_floor_script_reports_each_modulus(capsys):
     """scripts/float32_floor.py: one line per modulus. In flight (4 frames) at 1e9 Pa the bunny's residual
-    measured with SciPy is already several times what CG reports, at 1e7 Pa the same; R, the run's estimate
+    measured with SciPy is already several times what CG reports, at 1e7 Pa the two agree; R, the run's estimate
     (0.25 u R in flight, where no contact adds to the diagonal) and the iterations grow with the modulus."""
     import importlib.util
     import re
