@@ -401,6 +401,32 @@ def subdivide_surface(surface: Surface, iterations: int) -> Surface:
     )
 
 
+def _check_raw(name: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Raise :class:`InputError` for a mesh as read that no repair can use.
+
+    No faces, non-finite or overflowing coordinates, indices out of range, all vertices at one point or in one plane.
+    """
+    if len(faces) == 0:
+        raise InputError(f"{name}: mesh has no faces")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
+        raise InputError(f"{name}: {bad} vertices have NaN or Inf coordinates")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"{name}: face indices out of range")
+    with np.errstate(over="ignore"):
+        diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    if not np.isfinite(diag) or diag > MAX_EXTENT:
+        raise InputError(f"{name}: coordinates too large (bounding box beyond {MAX_EXTENT:g} units)")
+    if diag == 0.0:
+        raise InputError(f"{name}: all vertices are at the same position")
+    sample = vertices[:: max(1, len(vertices) // 100_000)]
+    thinnest = np.linalg.svd(sample - sample.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(sample))
+    if thinnest <= FLAT * diag:
+        raise InputError(
+            f"{name}: flat surface: all its vertices lie in one plane, so it encloses zero volume (nothing to simulate)"
+        )
+
+
 def load_surface(
     path: str | Path,
     subdivide: int = 0,
@@ -440,25 +466,7 @@ def load_surface(
         vertices, faces = _read_usd_bunny()
     else:
         vertices, faces = _read_file(Path(path), prim)
-    if len(faces) == 0:
-        raise InputError(f"{name}: mesh has no faces")
-    if not np.all(np.isfinite(vertices)):
-        bad = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
-        raise InputError(f"{name}: {bad} vertices have NaN or Inf coordinates")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise InputError(f"{name}: face indices out of range")
-    with np.errstate(over="ignore"):
-        diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    if not np.isfinite(diag) or diag > MAX_EXTENT:
-        raise InputError(f"{name}: coordinates too large (bounding box beyond {MAX_EXTENT:g} units)")
-    if diag == 0.0:
-        raise InputError(f"{name}: all vertices are at the same position")
-    sample = vertices[:: max(1, len(vertices) // 100_000)]
-    thinnest = np.linalg.svd(sample - sample.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(sample))
-    if thinnest <= FLAT * diag:
-        raise InputError(
-            f"{name}: flat surface: all its vertices lie in one plane, so it encloses zero volume (nothing to simulate)"
-        )
+    _check_raw(name, vertices, faces)
 
     repairs: list[str] = []
     vertices, faces = _weld(vertices, faces, repairs)
