@@ -42,8 +42,8 @@ FAST_TURN = 0.03
 
 FLOAT32_FLOOR = 0.25 * 2.0**-24
 """The relative residual float32 CG resolves, per unit of the largest ratio of a free vertex's diagonal block
-(2-norm) to its mass: measured 0.11-0.44 times float32's unit roundoff on bunnies and a horse, linear and
-quadratic tets, 3e6-3e9 Pa (docs/decisions.md, "CG's float32 floor")."""
+(2-norm) to its mass: a quarter of float32's unit roundoff, the middle of what float64 residuals of stiff
+bodies' solves measured (docs/decisions.md, "CG's float32 floor, said")."""
 
 
 @dataclass(frozen=True)
