@@ -472,11 +472,8 @@ class Simulation:
         tolerance while the system's residual stays above it: the residual CG reports then understates.
         """
         model = self.model
-        blocks = self.solver.matrix.numpy()[model.diag_slot.numpy()].astype(np.float64)
-        mass, free = model.mass.numpy().astype(np.float64), model.free.numpy() != 0
-        ratio = np.zeros(len(mass))
-        live = free & (mass > 0.0)
-        ratio[live] = np.linalg.norm(blocks[live], ord=2, axis=(1, 2)) / mass[live]
+        blocks = self.solver.matrix.numpy()[model.diag_slot.numpy()]
+        ratio = diagonal_to_mass(blocks, model.mass.numpy(), model.free.numpy() != 0)
         vertex = int(np.argmax(ratio))
         floor = FLOAT32_FLOOR * float(ratio[vertex])
         self.totals.cg_float32_floor = floor
@@ -516,6 +513,18 @@ class Simulation:
         if self.warn is not None and kind not in self._warned:
             self._warned.add(kind)
             self.warn(message)
+
+
+def diagonal_to_mass(blocks: np.ndarray, mass: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Each vertex's diagonal block (2-norm, blocks (n, 3, 3)) over its mass (kg); 0 where held or massless.
+
+    Its largest value sets float32's floor of a solve (:data:`FLOAT32_FLOOR`).
+    """
+    mass = np.asarray(mass, np.float64)
+    ratio = np.zeros(len(mass))
+    live = np.asarray(free, bool) & (mass > 0.0)
+    ratio[live] = np.linalg.norm(np.asarray(blocks, np.float64)[live], ord=2, axis=(1, 2)) / mass[live]
+    return ratio
 
 
 def box_surface(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
