@@ -3,7 +3,8 @@
 One thread per dense vertex: the bodies whose bounding box holds it (a BVH over the boxes), the winding
 number of each one's dense surface (``wp.Mesh``) around it, and only where it is inside, its distance to that
 surface (the closest-point search is the costly part), kept per body as the deepest with its vertex's owner
-packed into one int64 (an atomic max).
+packed into one int64 (an atomic max). Mesh obstacles likewise: one thread per dense vertex, its depth inside
+a closed obstacle mesh or behind an open one, folded into the body's deepest (an atomic max).
 """
 
 import warp as wp
@@ -109,3 +110,104 @@ def check_boxes(
     if k >= 0:
         lowers[k] = lo - wp.vec3(margin, margin, margin)
         uppers[k] = hi + wp.vec3(margin, margin, margin)
+
+
+OPEN_EDGE_WEIGHT = wp.constant(1.0e-5)
+"""A barycentric weight below which the nearest point counts as on the edge opposite that corner."""
+
+
+@wp.struct
+class MeshObstacle:
+    """A mesh obstacle's surface in its own frame and where it is: what :func:`obstacle_depth` reads.
+
+    ``inverse`` and ``translation`` take a world point into the obstacle's frame (``inverse (p - translation)``);
+    ``lower`` and ``upper`` bound the points it can hold there (its box, padded by ``reach`` when open); ``reach``
+    (m) is how far a point may be from its surface (an open mesh's thickness; for a closed one, twice its box
+    diagonal: beyond any point of its box).
+    ``flags`` per face: bits 0-2 its edges a-b, b-c, c-a that no other face shares, bits 3-5 its corners a, b, c
+    on such an edge.
+    """
+
+    mesh: wp.uint64
+    inverse: wp.mat33
+    translation: wp.vec3
+    lower: wp.vec3
+    upper: wp.vec3
+    closed: int
+    reach: float
+    flags: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def on_open_edge(flags: int, wa: float, wb: float, wc: float) -> bool:
+    """Whether a point of weights (wa, wb, wc) on a face with ``flags`` lies on an open edge or an open corner."""
+    na = wa < OPEN_EDGE_WEIGHT
+    nb = wb < OPEN_EDGE_WEIGHT
+    nc = wc < OPEN_EDGE_WEIGHT
+    edge = ((flags & 1) != 0 and nc) or ((flags & 2) != 0 and na) or ((flags & 4) != 0 and nb)
+    corner = ((flags & 8) != 0 and nb and nc) or ((flags & 16) != 0 and nc and na) or ((flags & 32) != 0 and na and nb)
+    return edge or corner
+
+
+@wp.func
+def in_box(q: wp.vec3, lower: wp.vec3, upper: wp.vec3) -> bool:
+    """Whether ``q`` lies in the box from ``lower`` to ``upper`` (bounds included; never for a non-finite point)."""
+    inside = True
+    for k in range(3):
+        inside = inside and q[k] >= lower[k] and q[k] <= upper[k]
+    return inside
+
+
+@wp.func
+def obstacle_depth(o: MeshObstacle, p: wp.vec3, accuracy: float) -> float:
+    """How deep world point ``p`` is in mesh obstacle ``o`` (m; 0 outside).
+
+    Closed: where its surface winds around the point (winding number > 0.5), the distance to the surface.
+    Open: the distance to the nearest surface point where that point is not on an open edge or corner, the
+    point is on that face's back side and at most ``reach`` from it.
+    """
+    q = o.inverse @ (p - o.translation)
+    if not in_box(q, o.lower, o.upper):
+        return 0.0
+    if o.closed != 0 and winding_number(o.mesh, q, accuracy) <= 0.5:
+        return 0.0
+    hit = wp.mesh_query_point_no_sign(o.mesh, q, o.reach * 1.000001)
+    if not hit.result:
+        return 0.0
+    a = wp.mesh_get_point(o.mesh, hit.face * 3)
+    b = wp.mesh_get_point(o.mesh, hit.face * 3 + 1)
+    c = wp.mesh_get_point(o.mesh, hit.face * 3 + 2)
+    w = 1.0 - hit.u - hit.v
+    offset = q - (a * hit.u + b * hit.v + c * w)
+    depth = wp.length(offset)
+    if o.closed != 0:
+        return depth
+    if depth > o.reach or wp.dot(offset, wp.cross(b - a, c - a)) >= 0.0:
+        return 0.0
+    if on_open_edge(o.flags[hit.face], hit.u, hit.v, w):
+        return 0.0
+    return depth
+
+
+@wp.kernel
+def obstacle_depths(
+    points: wp.array(dtype=wp.vec3), obstacle: MeshObstacle, accuracy: float, depths: wp.array(dtype=float)
+):
+    """Each point's depth in a mesh obstacle (m; :func:`obstacle_depth`)."""
+    t = wp.tid()
+    depths[t] = obstacle_depth(obstacle, points[t], accuracy)
+
+
+@wp.kernel
+def deepest_in_obstacle(
+    points: wp.array(dtype=wp.vec3),
+    obstacle: MeshObstacle,
+    accuracy: float,
+    slot: int,
+    deepest: wp.array(dtype=float),
+):
+    """Fold the points' depths in a mesh obstacle into ``deepest[slot]`` (m; an atomic max, reset to 0)."""
+    t = wp.tid()
+    depth = obstacle_depth(obstacle, points[t], accuracy)
+    if depth > 0.0:
+        wp.atomic_max(deepest, slot, depth)

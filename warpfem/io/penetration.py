@@ -3,7 +3,8 @@
 An independent check of what a user sees in the output: it takes only the dense meshes' points and
 triangles (as written to the USD file), never the simulator's contact buffers. A dense vertex of one body
 is inside another when the other's dense surface winds around it (Warp's fast winding number,
-``warpfem.kernels.penetration``), and its depth is its distance to that surface.
+``warpfem.kernels.penetration``), and its depth is its distance to that surface. Mesh obstacles are queried
+the same way in Warp kernels of that module, on the CPU; the ground, spheres and boxes in NumPy.
 """
 
 from __future__ import annotations
@@ -141,47 +142,136 @@ class Obstacle:
 
     def depth(self, p: np.ndarray) -> np.ndarray:
         """How deep each point is inside (m; <= 0 outside); behind an open mesh's faces counts as inside."""
+        if self.mesh is not None:
+            return _mesh_query(self.mesh).depths(p, self.matrix)
         if self.matrix is not None:
             m = np.asarray(self.matrix, np.float64)
             p = (p - m[:3, 3]) @ m[:3, :3]
-        if self.mesh is not None:
-            return _mesh_depth(p, *self.mesh)
         d = p - np.asarray(self.center)
         if self.half_extents is None:
             return self.radius - np.linalg.norm(d, axis=1)
         return np.min(np.asarray(self.half_extents) - np.abs(d), axis=1)
 
 
-def _mesh_depth(p: np.ndarray, vertices: np.ndarray, faces: np.ndarray, closed: bool, reach: float) -> np.ndarray:
-    """Depth of each point inside a closed mesh (winding number), or behind an open one's faces.
+_ACCURACY = 2.0
+"""The winding number's far-field accuracy around a closed mesh obstacle (Warp's dipole approximation; its default)."""
 
-    Behind an open mesh: the nearest point is not on an edge no other face shares (nor at a corner of one),
-    the point is on that face's back side and at most ``reach`` (m) from it; its depth is that distance.
+
+class _MeshQuery:
+    """A mesh obstacle's ``wp.Mesh`` in its own frame, on Warp's CPU device, and the depth of points in it.
+
+    A closed mesh holds a point its surface winds around (winding number > 0.5), as deep as the point's
+    distance to the surface. An open mesh holds a point behind its faces: the nearest surface point is not on
+    an edge no other face shares (nor at a corner of one), the point is on that face's back side and at most
+    ``reach`` (m) from it; its depth is that distance. The queries run in Warp kernels
+    (``warpfem.kernels.penetration.obstacle_depth``) on the CPU, where the points are: they hold no Python
+    lock, so the threads beside the check run on, and they touch no GPU stream.
     """
-    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
-    pad = 0.0 if closed else reach  # nothing outside the mesh's box (padded by how far it acts) is in it
-    near = np.all((p >= v.min(axis=0) - pad) & (p <= v.max(axis=0) + pad), axis=1)
-    depth = np.zeros(len(p))
-    if near.any():
-        q = np.ascontiguousarray(p[near], np.float64)
-        depth[near] = _depth_inside(q, v, f) if closed else _depth_behind(q, v, f, reach)
-    return depth
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, closed: bool, reach: float) -> None:
+        import warp as wp
+
+        v, f = np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces, np.int64).reshape(-1, 3)
+        self.device = wp.get_device("cpu")
+        self.closed = bool(closed)
+        flags = np.zeros(len(f), np.int32)
+        if not closed and len(f):
+            lone, rim = _open_edges(f.tobytes(), len(v))
+            flags = (lone @ np.array([1, 2, 4]) | rim[f] @ np.array([8, 16, 32])).astype(np.int32)
+        self._flags = wp.array(flags, dtype=wp.int32, device=self.device)
+        self.mesh = None
+        if len(f):
+            points = wp.array(v.astype(np.float32), dtype=wp.vec3, device=self.device)
+            indices = wp.array(f.astype(np.int32).ravel(), dtype=wp.int32, device=self.device)
+            self.mesh = wp.Mesh(points, indices, support_winding_number=self.closed)
+        low, high = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
+        diagonal = float(np.linalg.norm(high - low))
+        pad = (0.0 if closed else float(reach)) + 1e-6 * max(diagonal, 1e-30)  # and float32's rounding of it
+        self._box = (low - pad, high + pad)
+        self.reach = 2.0 * diagonal if closed else float(reach)  # a closed mesh's inside is within its size
+
+    def posed(self, matrix: np.ndarray | None) -> Any:
+        """The kernels' view of this mesh placed by ``matrix`` (4x4 of its own frame in the world; None: identity)."""
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        m = np.eye(4) if matrix is None else np.asarray(matrix, np.float64)
+        o = K.MeshObstacle()
+        o.mesh = self.mesh.id
+        o.inverse = wp.mat33(*m[:3, :3].T.ravel())  # the rotation's transpose: as its inverse
+        o.translation = wp.vec3(*m[:3, 3])
+        o.lower, o.upper = wp.vec3(*self._box[0]), wp.vec3(*self._box[1])
+        o.closed = int(self.closed)
+        o.reach = self.reach
+        o.flags = self._flags
+        return o
+
+    def depths(self, p: np.ndarray, matrix: np.ndarray | None) -> np.ndarray:
+        """Depth (m, float64; 0 outside) of each of the (n, 3) world points ``p`` in this mesh placed by ``matrix``."""
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        p = np.asarray(p, np.float32).reshape(-1, 3)
+        if self.mesh is None or len(p) == 0:
+            return np.zeros(len(p))
+        out = wp.empty(len(p), dtype=float, device=self.device)
+        points = wp.array(p, dtype=wp.vec3, device=self.device)
+        wp.launch(
+            K.obstacle_depths,
+            dim=len(p),
+            inputs=[points, self.posed(matrix), _ACCURACY],
+            outputs=[out],
+            device=self.device,
+        )
+        return out.numpy().astype(np.float64)
+
+    def fold(self, points: Any, matrix: np.ndarray | None, slot: int, deepest: Any) -> None:
+        """Fold the deepest of ``points`` (``wp.vec3`` on the CPU, m) in this mesh into ``deepest[slot]`` (m)."""
+        import warp as wp
+
+        from warpfem.kernels import penetration as K
+
+        if self.mesh is None or len(points) == 0:
+            return
+        wp.launch(
+            K.deepest_in_obstacle,
+            dim=len(points),
+            inputs=[points, self.posed(matrix), _ACCURACY, slot],
+            outputs=[deepest],
+            device=self.device,
+        )
 
 
-def _depth_behind(q: np.ndarray, v: np.ndarray, f: np.ndarray, reach: float) -> np.ndarray:
-    """Depth of each point behind an open mesh's faces (see :func:`_mesh_depth`)."""
-    import igl
+def _mesh_query(mesh: tuple[np.ndarray, np.ndarray, bool, float]) -> _MeshQuery:
+    """The query of an :class:`Obstacle`'s ``mesh``, built on its first use (a mesh checked frame after frame)."""
+    v = np.ascontiguousarray(mesh[0], np.float64)
+    f = np.ascontiguousarray(mesh[1], np.int64)
+    return _built_query(v.tobytes(), f.tobytes(), bool(mesh[2]), float(mesh[3]))
 
-    squared, face, nearest = igl.point_mesh_squared_distance(q, v, f)
-    a, b, c = (v[f[face, k]] for k in range(3))
-    normal = np.cross(b - a, c - a)
-    behind = np.einsum("ij,ij->i", q - nearest, normal) < 0
-    lone, rim = _open_edges(f.tobytes(), len(v))
-    w = igl.barycentric_coordinates(nearest, a, b, c) < 1e-5  # weights of a, b, c near 0: edge a-b has c's
-    lone, corner = lone[face], rim[f[face]]
-    on_open = (lone & w[:, [2, 0, 1]]).any(axis=1) | (corner & (w[:, [1, 2, 0]] & w[:, [2, 0, 1]])).any(axis=1)
-    depth = np.sqrt(squared)
-    return np.where(behind & ~on_open & (depth <= reach), depth, 0.0)
+
+@functools.lru_cache(maxsize=8)
+def _built_query(vertices: bytes, faces: bytes, closed: bool, reach: float) -> _MeshQuery:
+    """The query of a mesh given as its float64 vertices' and int64 faces' bytes (the cache's key)."""
+    v = np.frombuffer(vertices, np.float64).reshape(-1, 3)
+    return _MeshQuery(v, np.frombuffer(faces, np.int64).reshape(-1, 3), closed, reach)
+
+
+def _deepest_in_meshes(points: Sequence[np.ndarray], obstacles: Sequence[Obstacle]) -> list[float]:
+    """Per body, the deepest of its points (m) inside a mesh obstacle: folded by the kernels, read once."""
+    if not obstacles:
+        return [0.0] * len(points)
+    import warp as wp
+
+    queries = [_mesh_query(o.mesh) for o in obstacles]
+    deepest = wp.zeros(len(points), dtype=float, device=queries[0].device)
+    for slot, p in enumerate(points):
+        if len(p):
+            flat = wp.array(np.asarray(p, np.float32).reshape(-1, 3), dtype=wp.vec3, device=deepest.device)
+            for query, obstacle in zip(queries, obstacles, strict=True):
+                query.fold(flat, obstacle.matrix, slot, deepest)
+    return [float(d) for d in deepest.numpy()]
 
 
 @functools.lru_cache(maxsize=8)
@@ -299,9 +389,11 @@ class PenetrationCheck:
                 raise ValueError(f"boxes must be a ({len(points)}, 2, 3) array, got shape {np.shape(boxes)}")
             boxes = [(box[0], box[1]) if len(p) else None for p, box in zip(points, boxes, strict=True)]
         sizes = [float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0 for b in boxes]
+        shapes = [o for o in obstacles if o.mesh is None]  # spheres and boxes: NumPy costs less than a launch
+        in_meshes = _deepest_in_meshes(points, [o for o in obstacles if o.mesh is not None])
         worst = Penetration()
-        for p, box, size in zip(points, boxes, sizes, strict=True):
-            below = _below(p, ground, obstacles, box) if len(p) else 0.0
+        for p, box, size, in_mesh in zip(points, boxes, sizes, in_meshes, strict=True):
+            below = max(_below(p, ground, shapes, box), in_mesh) if len(p) else 0.0
             if below > 0 and below / max(size, 1e-30) > worst.below_relative:
                 worst = Penetration(below_ground=below, below_relative=below / max(size, 1e-30))
         if not bodies or sum(len(f) > 0 for f in self.faces) < 2:
@@ -557,20 +649,3 @@ def _below(
     for obstacle in obstacles:
         deepest = max(deepest, float(obstacle.depth(p).max()))
     return max(deepest, 0.0)
-
-
-def _depth_inside(query: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Each query point's distance to the surface (vertices, faces) where the surface winds around it, else 0."""
-    import igl
-
-    depth = np.zeros(len(query))
-    if len(query) == 0:
-        return depth
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    q = np.asarray(query, dtype=np.float64)
-    inside = igl.fast_winding_number(v, f, q) > 0.5
-    if inside.any():
-        distance, *_ = igl.signed_distance(q[inside], v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED)
-        depth[inside] = np.abs(distance)
-    return depth
