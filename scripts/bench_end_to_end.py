@@ -1,9 +1,13 @@
 """End-to-end benchmark: what a user waits for, the USD file written, beside the simulation alone.
 
 Each case runs in a child process through ``warpfem.run`` (the real writer on its background thread, to a
-real file), then writes the same bytes raw to the same folder (the floor any writer pays). Per frame: wall
-(first step to file written), simulate, write and check (on threads beside it), waiting for the writer,
-the raw write, and the time the writer processes spent authoring and exporting (summed over them, in
+real file). The floor any writer pays is measured in the same run: the writer's thread also writes each
+frame's points raw (one ``pwritev``) to a file in the same folder, timed apart, before the writer takes the
+frame on every other frame and after it on the rest, so that the floor waits for the interpreter lock and
+for a core beside the simulation as the writer does, at the same moments of the frame; the same bytes
+written again alone after the run are reported too (raw alone). Per frame: wall (first step to file
+written), simulate, write (wall and CPU) and check (on threads beside it), waiting for the writer, the raw
+write (wall and CPU), and the time the writer processes spent authoring and exporting (summed over them, in
 parallel with the rest); the child's peak resident memory and the largest of its writer processes'; the
 file's size on disk. One JSON per run under scripts/results/.
 
@@ -68,6 +72,59 @@ def raw_write_seconds(path: Path, frame_bytes: int, frames: int) -> float:
     return seconds
 
 
+class RawBeside:
+    """The raw floor in the run: each frame's points written again, raw, on the writer's thread beside it.
+
+    Installed by wrapping :class:`~warpfem.io.stream.FrameStream`'s ``write`` consumer; the frame stream times
+    both together, so the writer's own time is the stream's less :attr:`seconds`.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.fd, self.offset = path, -1, 0
+        self.seconds = self.cpu_seconds = 0.0
+
+    def install(self) -> None:
+        """Have every frame stream made from now on write the ``write`` consumer's frames raw too."""
+        from warpfem.io import stream
+
+        original, raw = stream.FrameStream.__init__, self
+
+        def init(self, sim, consumers, skippable=()):
+            consumers = [(name, raw.after(c) if name == "write" else c) for name, c in consumers]
+            original(self, sim, consumers, skippable)
+
+        stream.FrameStream.__init__ = init
+
+    def after(self, consume):
+        """``consume`` and the raw write of the frame's points, the raw write first on every other call."""
+        calls = [0]
+
+        def both(frame, points, boxes):
+            calls[0] += 1
+            if calls[0] % 2:
+                self.write(points)
+            consume(frame, points, boxes)
+            if not calls[0] % 2:
+                self.write(points)
+
+        return both
+
+    def write(self, points):
+        """Append ``points`` to the raw file with one ``pwritev``, timed."""
+        clock, cpu = time.perf_counter(), time.thread_time()
+        if self.fd < 0:
+            self.fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self.offset += os.pwritev(self.fd, points, self.offset)
+        self.seconds += time.perf_counter() - clock
+        self.cpu_seconds += time.thread_time() - cpu
+
+    def close(self) -> None:
+        """Close and remove the raw file."""
+        if self.fd >= 0:
+            os.close(self.fd)
+        self.path.unlink(missing_ok=True)
+
+
 def writer_case(vertices: int, args: argparse.Namespace) -> dict:
     """The writer alone: ``args.frames`` + 1 frames of one body of ``vertices`` points, as fast as it takes them.
 
@@ -93,7 +150,7 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
     after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the writer processes, waited for on closing
     writers_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
     raw = raw_write_seconds(out.with_suffix(".raw"), 12 * vertices, args.frames + 1)
-    per = {"wall": 1e3 * write / args.frames, "write": 1e3 * write / args.frames}
+    per = {"wall": 1e3 * write / args.frames, "write": 1e3 * write / args.frames, "write_cpu": 1e3 * cpu / args.frames}
     per.update(simulate=0.0, check=0.0, wait=0.0, write_workers=1e3 * writer.export_seconds / args.frames)
     return {
         "case": f"writer{vertices}",
@@ -101,6 +158,7 @@ def writer_case(vertices: int, args: argparse.Namespace) -> dict:
         "dense_vertices": vertices,
         "ms_per_frame": per,
         "raw_write_ms_per_frame": 1e3 * raw / args.frames,
+        "raw_alone_ms_per_frame": 1e3 * raw / args.frames,
         "write_over_raw": write / raw,
         "cpu_ms_per_frame": {"caller": 1e3 * cpu / args.frames, "writers": 1e3 * writers_cpu / args.frames},
         "writers": writer.workers,
@@ -126,14 +184,21 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
     scene = case_scene(case, args.assets, args.frames)
     folder = Path(args.workdir)
     out = folder / f"{case}.usdc"
+    beside = RawBeside(folder / f"{case}.beside.raw")
+    beside.install()
     clock = time.perf_counter()
-    summary = warpfem.run(scene, out, device=args.device, cache_dir=args.cache_dir, overwrite=True)
+    try:
+        summary = warpfem.run(scene, out, device=args.device, cache_dir=args.cache_dir, overwrite=True)
+    finally:
+        beside.close()
     command = time.perf_counter() - clock
-    written = summary.frames + 1
-    raw = raw_write_seconds(folder / f"{case}.raw", 12 * summary.dense_vertices, written)
+    seconds = dict(summary.seconds)
+    seconds["write"] -= beside.seconds  # the stream timed the raw write with the writer's
+    seconds["write_cpu"] -= beside.cpu_seconds
+    alone = raw_write_seconds(folder / f"{case}.raw", 12 * summary.dense_vertices, summary.frames + 1)
     clips = clips_folder(out)
     size = out.stat().st_size + (sum(p.stat().st_size for p in clips.glob("*")) if clips.is_dir() else 0)
-    per = {k: 1e3 * v / summary.frames for k, v in summary.seconds.items() if k not in ("prepare", "build")}
+    per = {k: 1e3 * v / summary.frames for k, v in seconds.items() if k not in ("prepare", "build")}
     return {
         "case": case,
         "frames": summary.frames,
@@ -141,11 +206,14 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "tets": summary.tets,
         "dense_vertices": summary.dense_vertices,
         "ms_per_frame": per,
-        "raw_write_ms_per_frame": 1e3 * raw / summary.frames,
-        "write_over_raw": summary.seconds["write"] / raw,
+        "raw_write_ms_per_frame": 1e3 * beside.seconds / summary.frames,
+        "raw_write_cpu_ms_per_frame": 1e3 * beside.cpu_seconds / summary.frames,
+        "raw_alone_ms_per_frame": 1e3 * alone / summary.frames,
+        "write_over_raw": seconds["write"] / beside.seconds,
+        "write_cpu_over_raw_cpu": seconds["write_cpu"] / beside.cpu_seconds,
+        "write_over_raw_alone": seconds["write"] / alone,
         "writers": usd.default_workers(12 * summary.dense_vertices),
-        "wall_over_larger_of_simulate_and_write": summary.seconds["wall"]
-        / max(summary.seconds["simulate"], summary.seconds["write"]),
+        "wall_over_larger_of_simulate_and_write": seconds["wall"] / max(seconds["simulate"], seconds["write"]),
         "seconds": {k: summary.seconds[k] for k in ("prepare", "build") if k in summary.seconds},
         "command_seconds": command,
         "file_bytes": size,
@@ -205,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
                 )
             print(
                 f"{case:11s} wall {ms['wall']:8.2f} ms/frame  simulate {ms['simulate']:7.2f}  write {ms['write']:7.2f}"
-                f"  raw {run['raw_write_ms_per_frame']:6.2f}  writers {run['writers']}"
+                f" (CPU {ms['write_cpu']:5.2f})  raw {run['raw_write_ms_per_frame']:5.2f}"
+                f" (alone {run['raw_alone_ms_per_frame']:5.2f})  write/raw {run['write_over_raw']:4.2f}"
+                f"  writers {run['writers']}"
                 f" {ms['write_workers']:7.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
                 f"  peak {run['peak_rss_mb']:5.0f} + {run['writers']} x {run['writer_peak_rss_mb']:4.0f} MB"
                 f"  file {run['file_bytes'] / 2**20:7.0f} MB"

@@ -53,6 +53,7 @@ def test_every_frame_reaches_every_consumer_in_order_with_its_points(device):
         assert all((p == frame // 2).all() for p in points)
     assert threads == {"warpfem-a", "warpfem-b"}
     assert stream.seconds["a"] >= 20 * 0.002 and stream.seconds["b"] >= 20 * 0.002
+    assert 0 < stream.cpu_seconds["a"] < stream.seconds["a"] / 2  # sleeping takes no CPU
 
 
 def test_a_skippable_consumer_behind_takes_the_newest_frame_and_always_the_last(device):
@@ -179,4 +180,5 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
             np.testing.assert_array_equal(np.array(attr.Get(frame)), points[i].astype(np.float32))
     s = summary.seconds
     assert s["wall"] > 0 and s["write"] > 0 and summary.ms_per_frame == pytest.approx(1e3 * s["wall"] / 12)
+    assert 0 < s["write_cpu"] <= s["write"] + 0.01
     assert s["write_workers"] > 0 and (summary.writer_peak_bytes > 0) == (writers > 0)

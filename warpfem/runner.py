@@ -46,8 +46,10 @@ class RunSummary:
             is above the tolerance the run warned, and ``cg_residual_max`` understates the systems' residual.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
             write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
-            for the writer), and wall (from the first step to the file written); write_workers: time spent authoring and
-            exporting chunks, summed over the writer processes (beside the run; on the writer's thread with none).
+            for the writer), and wall (from the first step to the file written); write_cpu: the CPU time of write
+            (its wall time less the waits for the interpreter lock and for a core); write_workers: time spent
+            authoring and exporting chunks, summed over the writer processes (beside the run; on the writer's
+            thread with none).
         step_ms: Milliseconds per frame inside the step: elastic, collision, solve (measured on frames run
             with a device synchronisation at each phase boundary: every frame on the CPU, the first on CUDA,
             whose later frames replay a captured graph).
@@ -225,8 +227,9 @@ def record(
         started = check.started = time.perf_counter()
         with FrameStream(sim, [("write", write), ("check", check.ground)], skippable=("check",)) as stream:
             _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
-        clock = time.perf_counter()  # the writer writes what is left on leaving this block
+        clock, cpu = time.perf_counter(), time.thread_time()  # the writer writes what is left on leaving this block
     seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
+    seconds["write_cpu"] = stream.cpu_seconds["write"] + time.thread_time() - cpu
     seconds["write_workers"] = writer.export_seconds
     seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited

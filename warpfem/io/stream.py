@@ -49,6 +49,8 @@ class FrameStream:
 
     Attributes:
         seconds: Wall time per consumer name (s), spent on its thread.
+        cpu_seconds: CPU time of each consumer's calls (s): its wall time less the waits for the interpreter
+            lock (held by the other threads) and for a core.
         skipped: Frames each consumer skipped (only a ``skippable`` one skips).
         waited: Wall time the caller spent waiting for a free buffer (s).
         on_device: The last submitted frame's dense points and boxes on the device (the flat ``wp.vec3``
@@ -79,6 +81,7 @@ class FrameStream:
         for i in range(count):
             self._free.put(i)
         self.seconds = {name: 0.0 for name, _ in self._consumers}
+        self.cpu_seconds = {name: 0.0 for name, _ in self._consumers}
         self.skipped = {name: 0 for name, _ in self._consumers}
         self.waited = 0.0
         self.on_device: tuple[wp.array, wp.array] | None = None
@@ -143,9 +146,10 @@ class FrameStream:
                     if self._cuda:
                         wp.synchronize_event(self._events[slot])
                     flat, boxes = self._slots[slot].numpy(), self._boxes[slot].numpy().reshape(-1, 2, 3)
-                    clock = time.perf_counter()
+                    clock, cpu = time.perf_counter(), time.thread_time()
                     consume(frame, [flat[start:end] for start, end in self._ranges], boxes)
                     self.seconds[name] += time.perf_counter() - clock
+                    self.cpu_seconds[name] += time.thread_time() - cpu
             except BaseException as err:  # handed to the simulating thread at its next submit or close
                 with self._lock:
                     self._error = self._error or err
