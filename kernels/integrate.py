@@ -58,7 +58,8 @@ class Colliders:
     frame), ``center_next`` and ``rotation_next`` at the step's end (the same for a collider that does not
     move, ``moving`` 0). ``size``: a plane's normal, a sphere's radius, a box's half extents, a mesh's query
     radius (m, in ``size[0]``: as far as it acts behind its surface). ``response``: penalty per unit mass
-    (1/s^2) and friction. ``mesh``: the ``wp.Mesh`` id of a mesh collider (0 for the others).
+    (1/s^2), friction, and the offset: how far above its surface the penalty starts, as a share of the
+    touching body's size (``body_size``, m). ``mesh``: the ``wp.Mesh`` id of a mesh collider (0 for the others).
     ``open_edges[face_start[o] + f]``: which edges of the mesh's face f bound an open mesh (bit 0: corners
     0-1, bit 1: 1-2, bit 2: 2-0) and which of its corners lie on such an edge (bits 3-5: corners 0-2).
     """
@@ -70,7 +71,8 @@ class Colliders:
     rotation_next: wp.array(dtype=wp.quat)
     moving: wp.array(dtype=wp.int32)
     size: wp.array(dtype=wp.vec3)
-    response: wp.array(dtype=wp.vec2)
+    response: wp.array(dtype=wp.vec3)
+    body_size: wp.array(dtype=float)
     mesh: wp.array(dtype=wp.uint64)
     face_start: wp.array(dtype=wp.int32)
     open_edges: wp.array(dtype=wp.int32)
@@ -167,6 +169,16 @@ def collider_velocity(c: Colliders, o: int, p: wp.vec3, dt: float) -> wp.vec3:
 
 
 @wp.func
+def offset_depth(c: Colliders, o: int, distance: float, body: int) -> float:
+    """Depth (m) of a point of ``body`` at signed ``distance`` from collider ``o``'s surface, below its offset.
+
+    The penalty starts the offset (a share of the body's size) above the surface, so the give a penalty
+    needs to hold a load is spent in that gap rather than below the visible surface.
+    """
+    return c.response[o][2] * c.body_size[body] - distance
+
+
+@wp.func
 def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: float) -> bool:
     """Whether a point ``depth`` below a collider's surface (normal ``n``) acts with it this step.
 
@@ -177,19 +189,20 @@ def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: floa
 
 
 @wp.func
-def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, dt: float):
-    """Collider ``o``'s penalty force and matrix term on a point of mass ``m`` (both zero if none).
+def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float):
+    """Collider ``o``'s penalty force and matrix term on a point of mass ``m`` of body ``body`` (zero if none).
 
     The collider (stiffness k per unit mass and friction mu in its ``response``) acts on a point below its
     surface, or about to cross it within this step at its own speed or at its body's, which drags it along,
     relative to the surface's own speed v_c (speculative contact): the penalty k m (depth + dt n.v_c) n and
     dt^2 k m n n^T in the matrix, which hold the depth the step ends at (above the surface only the velocity
     terms act: they damp the approach and never attract), and implicit friction dt c (I - n n^T) towards the
-    surface's tangential speed, c = mu k m depth / |v_t|.
+    surface's tangential speed, c = mu k m depth / |v_t|. The depth counts from the collider's offset above its
+    surface (:func:`offset_depth`).
     """
     dn = collider_distance(c, o, p)
     n = wp.vec3(dn[1], dn[2], dn[3])
-    depth = -dn[0]
+    depth = offset_depth(c, o, dn[0], body)
     force = wp.vec3()
     block = wp.mat33()
     vc = collider_velocity(c, o, p, dt)
@@ -312,7 +325,7 @@ def build_system(
     v_body = body_momentum[b] / body_mass[b]
     if vertex_depth[i] >= 0.0:
         for o in range(colliders.kind.shape[0]):
-            f, s = static_contact(colliders, o, xi, vi, v_body, m, dt)
+            f, s = static_contact(colliders, o, xi, vi, v_body, m, b, dt)
             rhs += dt * f
             block += s
 
@@ -385,7 +398,7 @@ def skin_colliders(
     body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
     for o in range(colliders.kind.shape[0]):
-        f, s = static_contact(colliders, o, xp, vp, v_body, skin_mass[i], dt)
+        f, s = static_contact(colliders, o, xp, vp, v_body, skin_mass[i], body, dt)
         if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
@@ -393,7 +406,9 @@ def skin_colliders(
 
 
 @wp.func
-def late_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, vp_new: wp.vec3, v_body: wp.vec3, m: float, dt: float):
+def late_contact(
+    c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, vp_new: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float
+):
     """A static contact the step's first solve would cross without having counted it (zero force and block if none).
 
     A point that :func:`static_contact` left free (not within one step of the surface at the step's start
@@ -404,7 +419,7 @@ def late_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, vp_new: wp.vec3,
     """
     dn = collider_distance(c, o, p)
     n = wp.vec3(dn[1], dn[2], dn[3])
-    depth = -dn[0]
+    depth = offset_depth(c, o, dn[0], body)
     force = wp.vec3()
     block = wp.mat33()
     vc = collider_velocity(c, o, p, dt)
@@ -447,7 +462,7 @@ def late_vertex_contacts(
     b = vertex_body[i]
     v_body = body_momentum[b] / body_mass[b]
     for o in range(colliders.kind.shape[0]):
-        f, s = late_contact(colliders, o, x[i], v[i], v_new[i], v_body, mass[i], dt)
+        f, s = late_contact(colliders, o, x[i], v[i], v_new[i], v_body, mass[i], b, dt)
         if wp.trace(s) > 0.0:
             rhs_out[i] = rhs_out[i] + dt * f
             matrix_out[diag_slot[i]] = matrix_out[diag_slot[i]] + s
@@ -504,6 +519,7 @@ def late_skin_contacts(
             interpolate(v_new, t, w),
             v_body,
             skin_mass[i],
+            body,
             dt,
         )
         if wp.trace(s) > 0.0:

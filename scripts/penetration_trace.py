@@ -90,11 +90,27 @@ def main(argv: list[str] | None = None) -> int:
     t = sim.totals
     print(
         f"worst inside {100 * inside:.2f} %, below {100 * below:.3f} %; at the end {100 * r.relative:.2f} % and "
-        f"{100 * r.below_relative:.3f} %; CG {t.cg_iterations / t.steps:.1f} iterations and "
+        f"{100 * r.below_relative:.3f} %, the lowest point {lowest_point(sim)}; "
+        f"CG {t.cg_iterations / t.steps:.1f} iterations and "
         f"{t.cg_solves / t.steps:.2f} solves a step, at its cap in {t.cg_capped_frames} frames; "
         f"{time.perf_counter() - clock:.0f} s"
     )
     return 0
+
+
+def lowest_point(sim) -> str:
+    """The lowest dense point above the ground (mm, and % of its body's size): how far a resting body floats."""
+    import numpy as np
+
+    scene = sim.scene
+    axis = 1 if scene.up_axis == "Y" else 2
+    heights = []
+    for name in sim.body_names:
+        p = np.asarray(sim.dense_points(name), np.float64)
+        size = float(np.linalg.norm(np.ptp(p, axis=0)))
+        heights.append((float(p[:, axis].min()) - scene.ground.height, size))
+    height, size = min(heights)
+    return f"{1000 * height:+.2f} mm ({100 * height / size:+.3f} %)"
 
 
 if __name__ == "__main__":

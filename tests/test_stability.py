@@ -14,6 +14,7 @@ import pytest
 
 from warpfem.build import add_body
 from warpfem.prep.shapes import box_tet_mesh
+from warpfem.presets import STATIC_OFFSET
 from warpfem.sim.model import ModelBuilder, lame
 from warpfem.sim.solver import Ground, Solver
 
@@ -251,11 +252,15 @@ def test_a_stiff_body_comes_to_rest_on_the_ground(device):
     """The default scene's bunny made 1 GPa, nu 0.49, at 24 steps a second: float32 rounding of its stiffness
     outweighs its mass, so CG cannot resolve its rigid motions, and on the ground its contacts are part of
     them. It lands and comes to rest on its visible surface: from 1 s on, its lowest dense point stays within
-    0.1 % of its size of the ground (the dense mesh against the plane) and it no longer moves."""
+    0.1 % of its size of the ground (the dense mesh against the plane) and it no longer moves. The ground's
+    penalty starts at its surface (offset 0), as when this bound was set: how such a body rocks after its landing
+    depends on the landing itself, and the same drop 0.5 or 1.1 mm higher dips 0.21 % in its second second (so
+    does the default offset, 0.13 %: docs/decisions.md, "Static contacts from an offset")."""
     import warpfem
 
     doc = {
         "scene": {"frames": 48, "fps": 24.0, "substeps": 1},
+        "ground": {"offset": 0.0},
         "object": [
             {
                 "name": "bunny",
@@ -294,7 +299,8 @@ def test_a_stiff_body_comes_to_rest_on_the_ground(device):
 @pytest.mark.parametrize("quadratic", [False, True], ids=["linear", "quadratic"])
 def test_a_stiff_cube_lands_and_stays_put(device, quadratic):
     """A 0.2 m, 1 GPa, nu 0.49 cube dropped 5 cm onto the ground at 24 steps a second: after 2 s it rests
-    flat on the ground where it landed, not sliding: the rigid correction balances its contacts too."""
+    flat on the ground where it landed, not sliding: the rigid correction balances its contacts too. It rests on
+    the ground's offset (its penalty starts that share of the body's size above the plane), within 0.1 mm."""
     V, T = box_tet_mesh((0, 0.05, 0), (SIZE, 0.05 + SIZE, SIZE), (2, 2, 2))
     b = ModelBuilder()
     add_body(b, "stiff", V, T, 1e9, 0.49, RHO, quadratic=quadratic)
@@ -307,5 +313,6 @@ def test_a_stiff_cube_lands_and_stays_put(device, quadratic):
     x, v = s0.x.numpy().astype(float), s0.v.numpy().astype(float)
     assert solver.first_bad_vertex() is None
     assert np.abs(v).max() < 1e-3
-    assert -1e-4 < x[:, 1].min() < 1e-4  # on the ground, within 0.1 mm
+    gap = STATIC_OFFSET * model.bodies[0].size
+    assert -1e-4 < x[:, 1].min() - gap < 1e-4  # on the ground's offset, within 0.1 mm
     np.testing.assert_allclose(x[: len(V), [0, 2]], V[:, [0, 2]], atol=1e-3)  # where it was dropped

@@ -293,3 +293,45 @@ def test_an_armadillo_rests_on_the_ground_with_its_visible_surface(device, asset
         sim.step_frame()
         below = max(below, warpfem.frame_penetration(sim).below_relative)
     assert below < (0.001 if elements == "linear" else 0.002), below
+
+
+def _rest_height(device: str, collider: str, offset: float) -> tuple[float, float]:
+    """A bunny (0.8 m, 400 coarse faces) set down on the ground or on a box obstacle (the ground off) with the
+    collider's ``offset``: the lowest dense point above the collider's top after it has settled (m), and the
+    body's size (its tet mesh's rest diagonal, which the offset is a share of)."""
+    bunny = {
+        "name": "bunny",
+        "mesh": "builtin:bunny",
+        "faces": 400,
+        "scale": 0.5,
+        "translate": [0.0, 0.0, 0.0],
+        "young": 2e5,
+        "damping_mass": 20.0,
+    }
+    doc = {"scene": {"frames": 45}, "object": [bunny]}
+    top = 0.0
+    if collider == "ground":
+        doc["ground"] = {"offset": offset}
+    else:
+        top = -0.2
+        doc["ground"] = {"enabled": False}
+        doc["obstacle"] = [
+            {"kind": "box", "center": [0.0, top - 0.5, 0.0], "half_extents": [2.0, 0.5, 2.0], "offset": offset}
+        ]
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="rest"), device=device)
+    for _ in range(45):
+        sim.step_frame()
+    return float(sim.dense_points("bunny")[:, 1].min()) - top, sim.model.bodies[0].size
+
+
+@pytest.mark.parametrize("collider", ["ground", "box"])
+def test_a_resting_body_floats_by_the_offset_and_never_below(device, collider):
+    """A static collider's penalty starts its ``offset`` (a share of the body's size) above its surface, so the
+    give it needs to hold the body is spent in that gap: a resting body's visible surface lies above the
+    surface and at most the offset above it; raising the offset by 0.002 of the size lifts the resting body
+    by that much (the same load, the same give), to within a tenth."""
+    base, size = _rest_height(device, collider, 0.001)
+    raised, _ = _rest_height(device, collider, 0.003)
+    assert 0.0 <= base <= 0.001 * size, (base, size)
+    assert 0.0 <= raised <= 0.003 * size, (raised, size)
+    assert raised - base == pytest.approx(0.002 * size, rel=0.1), (base, raised, size)

@@ -241,7 +241,7 @@ def ground_of(scene: Scene) -> Ground | None:
         return None
     up = (0.0, 1.0, 0.0) if scene.up_axis == "Y" else (0.0, 0.0, 1.0)
     g = scene.ground
-    return Ground(height=g.height, stiffness=g.stiffness, friction=g.friction, up=up)
+    return Ground(height=g.height, stiffness=g.stiffness, friction=g.friction, up=up, offset=g.offset)
 
 
 def keyed_motion(keys: list, pivot: np.ndarray) -> Motion:
@@ -261,8 +261,8 @@ def obstacle_of(scene: Scene, index: int) -> Sphere | Box | MeshCollider:
     if o.kind != "mesh":
         motion = None if o.keys is None else keyed_motion(o.keys, np.asarray(o.center))
         if o.kind == "sphere":
-            return Sphere(o.center, o.radius, o.stiffness, o.friction, motion)
-        return Box(o.center, o.half_extents, o.stiffness, o.friction, motion)
+            return Sphere(o.center, o.radius, o.stiffness, o.friction, motion, o.offset)
+        return Box(o.center, o.half_extents, o.stiffness, o.friction, motion, o.offset)
     try:
         vertices, faces, closed = read_triangles(o.mesh, o.prim)
     except InputError as err:
@@ -273,7 +273,9 @@ def obstacle_of(scene: Scene, index: int) -> Sphere | Box | MeshCollider:
     placed = vertices @ rotation.T + translation
     pivot = 0.5 * (placed.min(axis=0) + placed.max(axis=0))
     motion = None if o.keys is None else keyed_motion(o.keys, pivot)
-    return MeshCollider(vertices, faces, rotation, tuple(translation), o.stiffness, o.friction, motion, closed)
+    return MeshCollider(
+        vertices, faces, rotation, tuple(translation), o.stiffness, o.friction, motion, closed, o.offset
+    )
 
 
 def obstacles_of(scene: Scene) -> list[Sphere | Box | MeshCollider]:

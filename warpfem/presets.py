@@ -51,6 +51,13 @@ FIXED_CG_ITERATIONS = 100
 """CG's iteration count in ``cg_mode = "fixed"`` where the scene gives none (``cg_iterations``' default, 400, is
 a cap meant for tolerance mode, which a converging solve never reaches)."""
 
+STATIC_OFFSET = 8.0e-4
+"""How far above a static collider's surface (the ground, an obstacle) its penalty starts by default, as a share of
+the touching body's size (its tet mesh's rest bounding-box diagonal): a penalty holds a load at some depth, and
+this gap takes that depth instead of the visible surface; a body that gives nothing floats under 0.1 % of its
+visible size above the collider. Chosen by measurement (docs/decisions.md, "Static contacts from an
+offset")."""
+
 
 def apply_mode_default(doc: dict[str, Any]) -> None:
     """Give a scene document's fixed-mode solver without ``cg_iterations`` :data:`FIXED_CG_ITERATIONS`."""

@@ -13,109 +13,32 @@ import dataclasses
 import difflib
 import importlib.resources
 import math
-import operator
-import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
-from warpfem.presets import PRESETS, apply_mode_default
+from warpfem.presets import PRESETS, STATIC_OFFSET, apply_mode_default
+from warpfem.scene_checks import (
+    _NAME_RE,
+    _check_choice,
+    _check_float,
+    _check_int,
+    _check_range,
+    _check_vec3,
+    _is_number,
+    _object_table,
+    _Problem,
+    _shown,
+    _table,
+)
 
 Vec3 = tuple[float, float, float]
 
 #: The mesh value that names the Stanford bunny shipped with Warp instead of a file.
 BUILTIN_BUNNY = "builtin:bunny"
 BUILTIN_MESHES = (BUILTIN_BUNNY,)
-
-_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-
-
-class _Problem:
-    """Builds the one-line error messages of one table of one scene file."""
-
-    def __init__(self, origin: str, prefix: str):
-        self.origin = origin
-        self.prefix = prefix
-
-    def __call__(self, key: str, problem: str) -> InputError:
-        return InputError(f"{self.origin}: {self.prefix}{key} {problem}".replace("\n", " "))
-
-
-def _table(origin: str, name: str) -> _Problem:
-    """The error builder for a plain table: keys read ``solver.cg_mode``."""
-    return _Problem(origin, f"{name}.")
-
-
-def _object_table(origin: str, index: int, name: object) -> _Problem:
-    """The error builder for ``object[index]``: keys read ``object[0] 'bunny': young``."""
-    label = f"object[{index}] '{name}'" if isinstance(name, str) and name else f"object[{index}]"
-    return _Problem(origin, f"{label}: ")
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _shown(value: object) -> str:
-    """A value as the user wrote it, with its type when that is the problem."""
-    if isinstance(value, str):
-        return f'"{value}" (a string)'
-    if isinstance(value, bool):
-        return f"{str(value).lower()} (a boolean)"
-    if isinstance(value, dict):
-        return "a table"
-    return repr(value)
-
-
-def _check_int(err: _Problem, key: str, value: object, lo: int, hi: int | None = None) -> None:
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise err(key, f"must be an integer, got {_shown(value)}")
-    if value < lo or (hi is not None and value > hi):
-        bound = f">= {lo}" if hi is None else f"in {lo}..{hi}"
-        raise err(key, f"must be {bound}, got {value}")
-
-
-def _check_float(err: _Problem, key: str, value: object) -> None:
-    if not _is_number(value):
-        raise err(key, f"must be a number, got {_shown(value)}")
-    if not math.isfinite(value):
-        raise err(key, f"must be finite, got {value}")
-
-
-def _check_range(
-    err: _Problem,
-    key: str,
-    value: object,
-    unit: str = "",
-    *,
-    gt: float | None = None,
-    ge: float | None = None,
-    lt: float | None = None,
-    le: float | None = None,
-) -> None:
-    """Check a finite number against the bounds given (``gt``: >, ``ge``: >=, ``lt``: <, ``le``: <=)."""
-    _check_float(err, key, value)
-    checks = [(">", gt, operator.gt), (">=", ge, operator.ge), ("<", lt, operator.lt), ("<=", le, operator.le)]
-    checks = [(op, bound, holds) for op, bound, holds in checks if bound is not None]
-    if not all(holds(value, bound) for _, bound, holds in checks):
-        bounds = " and ".join(f"{op} {bound:g}" for op, bound, _ in checks)
-        suffix = f" {unit}" if unit else ""
-        raise err(key, f"must be {bounds}{suffix}, got {value}")
-
-
-def _check_vec3(err: _Problem, key: str, value: object) -> None:
-    if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(_is_number(v) for v in value):
-        raise err(key, f"must be a list of 3 numbers, got {_shown(value)}")
-    if not all(math.isfinite(v) for v in value):
-        raise err(key, f"must hold finite numbers, got {list(value)}")
-
-
-def _check_choice(err: _Problem, key: str, value: object, choices: tuple[str, ...]) -> None:
-    if value not in choices or not isinstance(value, str):
-        allowed = " or ".join(f'"{c}"' for c in choices)
-        raise err(key, f"must be {allowed}, got {_shown(value)}")
 
 
 def _apply_preset(doc: dict[str, Any], origin: str) -> None:
@@ -189,12 +112,16 @@ class GroundConfig:
         stiffness: Penalty per unit mass (1/s^2): a vertex at depth d below the ground is pushed
             back with acceleration ``stiffness * d`` (> 0).
         friction: Coulomb friction coefficient (>= 0).
+        offset: How far above the plane the penalty starts, as a share of the touching body's size (its tet
+            mesh's bounding-box diagonal; 0 <= offset <= 0.05): under load a body rests in this gap rather than
+            with its visible surface below the ground.
     """
 
     enabled: bool = True
     height: float = 0.0
     stiffness: float = 1e7
     friction: float = 0.5
+    offset: float = STATIC_OFFSET
 
     def validate(self, origin: str = "<scene>") -> None:
         """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
@@ -204,6 +131,7 @@ class GroundConfig:
         _check_float(err, "height", self.height)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
+        _check_range(err, "offset", self.offset, ge=0.0, le=0.05)
 
 
 @dataclass
@@ -281,6 +209,7 @@ class ObstacleConfig:
             (a mesh's: the centre of its placed bounding box), or None: it stays.
         stiffness: Penalty per unit mass (1/s^2, > 0).
         friction: Coulomb friction coefficient (>= 0).
+        offset: As the ground's: how far out from its surface the penalty starts, a share of the body's size.
         name: Its name in output (default ``obstacle<index>``).
     """
 
@@ -296,6 +225,7 @@ class ObstacleConfig:
     keys: list | None = None
     stiffness: float = 1e7
     friction: float = 0.5
+    offset: float = STATIC_OFFSET
     name: str | None = None
 
     def validate(self, origin: str = "<scene>", index: int = 0) -> None:
@@ -331,6 +261,7 @@ class ObstacleConfig:
             _check_keys(err, "keys", self.keys)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
+        _check_range(err, "offset", self.offset, ge=0.0, le=0.05)
 
     def _validate_mesh(self, err: _Problem) -> None:
         for key in ("center", "radius", "half_extents"):

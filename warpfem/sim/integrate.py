@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
+from warpfem.presets import STATIC_OFFSET
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.drive import Motion, quat_of_matrix
 from warpfem.sim.launch import spread_block_dim
@@ -24,12 +25,14 @@ class Ground:
         stiffness: Penalty stiffness per unit vertex mass (1/s^2); resting penetration is about g / stiffness.
         friction: Coulomb friction coefficient.
         up: Unit normal of the plane, pointing into the free half-space.
+        offset: How far above the plane its penalty starts, as a share of the touching body's size (>= 0).
     """
 
     height: float = 0.0
     stiffness: float = 1.0e7
     friction: float = 0.5
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    offset: float = STATIC_OFFSET
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,7 @@ class Sphere:
     """A sphere collider: ``center`` (m), ``radius`` (m), penalty ``stiffness`` (1/s^2), ``friction``.
 
     ``motion``: a rigid motion of it (about its centre, as the motion's pivot says), or None: it stays.
+    ``offset``: as :class:`Ground`'s.
     """
 
     center: tuple[float, float, float]
@@ -44,13 +48,14 @@ class Sphere:
     stiffness: float = 1.0e7
     friction: float = 0.5
     motion: Motion | None = None
+    offset: float = STATIC_OFFSET
 
 
 @dataclass(frozen=True)
 class Box:
     """A box collider, axis-aligned at rest: ``center`` and ``half_extents`` (m), ``stiffness`` (1/s^2), ``friction``.
 
-    ``motion``: a rigid motion of it (which may turn it), or None: it stays.
+    ``motion``: a rigid motion of it (which may turn it), or None: it stays. ``offset``: as :class:`Ground`'s.
     """
 
     center: tuple[float, float, float]
@@ -58,6 +63,7 @@ class Box:
     stiffness: float = 1.0e7
     friction: float = 0.5
     motion: Motion | None = None
+    offset: float = STATIC_OFFSET
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,6 +84,7 @@ class MeshCollider:
         friction: Coulomb friction coefficient.
         motion: Its rigid motion, or None.
         closed: Whether it is closed (every edge shared by two faces).
+        offset: As :class:`Ground`'s.
     """
 
     vertices: np.ndarray
@@ -88,6 +95,7 @@ class MeshCollider:
     friction: float = 0.5
     motion: Motion | None = None
     closed: bool = True
+    offset: float = STATIC_OFFSET
 
 
 Collider = Ground | Sphere | Box | MeshCollider
@@ -146,9 +154,10 @@ class StaticColliders:
 
     ``arrays`` is the :class:`warpfem.kernels.integrate.Colliders` the kernels take; ``moving`` lists the
     moving colliders as ``(index, motion, rest rotation, rest translation)`` for :class:`~warpfem.sim.drive.Drive`.
+    ``body_size``: each body's size (m), which the colliders' offsets are shares of.
     """
 
-    def __init__(self, colliders: Sequence[Collider], device) -> None:
+    def __init__(self, colliders: Sequence[Collider], device, body_size: Sequence[float]) -> None:
         self.colliders = list(colliders)
         kind, center, rotation, size, response, meshes, self.moving = [], [], [], [], [], [], []
         face_start, open_edges = [], [np.zeros(0, np.int32)]
@@ -180,7 +189,7 @@ class StaticColliders:
             meshes.append(self.meshes[-1].id if kind[-1] == int(K.MESH) else 0)
             center.append(t)
             rotation.append(quat_of_matrix(r))
-            response.append((c.stiffness, c.friction))
+            response.append((c.stiffness, c.friction, c.offset))
             if getattr(c, "motion", None) is not None:
                 self.moving.append((index, c.motion, r, t))
 
@@ -195,7 +204,8 @@ class StaticColliders:
         a.rotation, a.rotation_next = arr(rotation, wp.quat, 4), arr(rotation, wp.quat, 4)
         a.moving = arr([int(getattr(c, "motion", None) is not None) for c in colliders], wp.int32, 0)
         a.size = arr(size, wp.vec3, 3)
-        a.response = arr(response, wp.vec2, 2)
+        a.response = arr(response, wp.vec3, 3)
+        a.body_size = wp.array(np.asarray(body_size, np.float32), dtype=float, device=device)
         a.mesh = arr(meshes, wp.uint64, 0)
         a.face_start = arr(face_start, wp.int32, 0)
         a.open_edges = wp.array(np.concatenate(open_edges).astype(np.int32), dtype=wp.int32, device=device)

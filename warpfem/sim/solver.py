@@ -107,7 +107,9 @@ class Solver:
         self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
         self.momentum = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
-        self.colliders = StaticColliders([*([ground] if ground is not None else []), *obstacles], dev)
+        self.colliders = StaticColliders(
+            [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies]
+        )
         self.obstacles = list(obstacles)
         self.handles = list(handles)
         moving = self.colliders.moving
