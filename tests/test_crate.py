@@ -105,3 +105,35 @@ def test_a_stream_checks_its_attributes_and_times(tmp_path):
         stream.add(2.0, [np.zeros((2, 3), np.float32)] * 2)
     stream.discard()
     assert not (tmp_path / "y.usdc").exists()
+
+
+def test_short_writes_and_one_system_call_per_frame(tmp_path, monkeypatch):
+    """Where ``pwritev`` writes less than asked (at most 1,000 bytes a call, cutting through values), the file
+    still reads back bitwise; where it writes everything, each frame costs one call and closing two."""
+    import os
+
+    from pxr import Usd
+
+    attributes = _attributes(["a", "b"], ["obstacles/o"])
+    samples = _samples(np.random.default_rng(4), 3, [1, 700], 1)
+    calls, pwritev = [], os.pwritev
+
+    def short(fd, buffers, offset):
+        calls.append(offset)
+        return pwritev(fd, [memoryview(b"".join(bytes(b) for b in buffers)[:limit])], offset)
+
+    for limit, name in ((1000, "short.usdc"), (1 << 30, "whole.usdc")):
+        calls.clear()
+        monkeypatch.setattr(os, "pwritev", short)
+        stream = CrateStream(tmp_path / name, attributes)
+        for f, values in enumerate(samples):
+            stream.add(float(f), values)
+        stream.close()
+        monkeypatch.setattr(os, "pwritev", pwritev)
+        if limit > 1000:
+            assert len(calls) == len(samples) + 2
+        stage = Usd.Stage.Open(str(tmp_path / name))
+        for (path, _), column in zip(attributes, zip(*samples, strict=True), strict=True):
+            for f, expected in enumerate(column):
+                got = np.array(stage.GetAttributeAtPath(path).Get(float(f)))
+                np.testing.assert_array_equal(got.reshape(expected.shape).astype(expected.dtype), expected)

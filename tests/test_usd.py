@@ -601,3 +601,30 @@ def test_writer_processes_only_for_large_frames(monkeypatch):
     assert usd_workers.default_workers(20 * 2**20) == 4
     assert usd_workers.default_workers(2**20) == 0
     assert usd_workers.default_workers() == 4
+
+
+def test_a_runs_prop_transforms_are_the_simulations_matrices(tmp_path):
+    """The transforms a run writes each frame (worked out without building the props' meshes) are the matrices
+    of ``obstacles_at`` and ``handles_at``: a keyed box, a still sphere and a keyed, turning handle."""
+    import trimesh
+
+    import warpfem
+    from warpfem.runner import _props
+
+    trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
+    (tmp_path / "scene.toml").write_text(
+        '[scene]\nframes = 4\n\n[[object]]\nname = "ball"\nmesh = "ball.obj"\nfaces = 120\nscale = 0.2\n\n'
+        '[[obstacle]]\nkind = "box"\ncenter = [0.0, -0.5, 0.0]\nhalf_extents = [0.5, 0.1, 0.5]\n'
+        "keys = [[0.0, 0, 0, 0, 0, 0, 0], [0.1, 0.0, 0.3, 0.0, 0, 0, 0]]\n\n"
+        '[[obstacle]]\nkind = "sphere"\ncenter = [2.0, 0.0, 0.0]\nradius = 0.25\n\n'
+        '[[handle]]\nname = "top"\nobject = "ball"\nmin = [-1.0, 0.1, -1.0]\nmax = [1.0, 1.0, 1.0]\n'
+        "keys = [[0.0, 0, 0, 0, 0, 0, 0], [0.05, 0.1, 0.0, 0.0, 0, 0, 90]]\n"
+    )
+    scene = warpfem.load_scene(tmp_path / "scene.toml")
+    sim = warpfem.Simulation(scene, device="cpu", cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
+    props, poses = _props(sim)
+    assert [p.path for p in props] == ["obstacles/obstacle0", "obstacles/obstacle1", "handles/top"]
+    for time in (0.0, 0.02, 0.07, 0.5):
+        expected = [p.matrix for p in (*sim.obstacles_at(time), *sim.handles_at(time))]
+        np.testing.assert_array_equal(np.array(poses(time)), np.array(expected))
+    assert not np.allclose(poses(0.03)[2][:3, :3], np.eye(3))  # the handle turns

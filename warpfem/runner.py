@@ -240,16 +240,24 @@ def record(
 
 
 def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:
-    """The obstacles and handles to write beside the bodies, and their transforms at a time (s)."""
+    """The obstacles and handles to write beside the bodies, and their transforms at a time (s).
+
+    The transforms are the matrices of ``sim.obstacles_at`` and ``sim.handles_at``, worked out without the
+    meshes those build: the writer's thread asks for them every frame, holding the interpreter lock.
+    """
     from warpfem.io.usd import Prop
+    from warpfem.sim.integrate import collider_pose
 
     props = [Prop(f"obstacles/{o.name}", o.vertices, o.faces) for o in sim.obstacles_at(0.0)]
     props += [Prop(f"handles/{h.name}", h.vertices, h.faces, guide=True) for h in sim.handles_at(0.0)]
+    obstacles, handles = list(sim.solver.obstacles), [h.motion for h in sim.solver.handles]
 
     def poses(time: float) -> list[np.ndarray]:
-        if not props:
-            return []
-        return [posed.matrix for posed in (*sim.obstacles_at(time), *sim.handles_at(time))]
+        matrices = [collider_pose(c, time) for c in obstacles]
+        for motion in handles:
+            matrices.append(np.eye(4))
+            matrices[-1][:3, :3], matrices[-1][:3, 3] = motion.at(time)
+        return matrices
 
     return props, poses
 

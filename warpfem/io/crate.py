@@ -35,6 +35,7 @@ _SPEC_ATTRIBUTE, _SPEC_PRIM, _SPEC_PSEUDO_ROOT = 1, 6, 7  # SdfSpecType
 _SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
 
 _IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
+_PADS = [bytes(n) for n in range(8)]
 
 TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
 """The attribute types a stream holds, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
@@ -44,6 +45,9 @@ float64 in USD's row-vector convention."""
 def _rep(kind: int, payload: int, inlined: bool = False, array: bool = False) -> int:
     """A ValueRep: the type in bits 48-55, flags in the top bits, an offset or inlined value below."""
     return (_ARRAY_BIT if array else 0) | (_INLINED_BIT if inlined else 0) | (kind << 48) | payload
+
+
+_VEC3F_ARRAY = _rep(_VEC3F, 0, array=True)  # a float3 array's ValueRep, less its offset
 
 
 def lz4_literal_block(data: bytes) -> bytes:
@@ -116,11 +120,12 @@ class CrateStream:
             leaf = _Node(name, type_name)
             node.children.append(leaf)
             self._attributes.append(leaf)
+        self._kinds = [TYPES[node.attribute] for node in self._attributes]
         self._reps: list[list[int]] = [[] for _ in self._attributes]
         self._times: list[float] = []
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        self._offset = 0
-        self._write(bytes(_BOOTSTRAP_BYTES))
+        self._offset = _BOOTSTRAP_BYTES  # the header's room, written on closing (zeros until then)
+        self._tail = bytearray()  # what closing adds, written with one call
 
     @property
     def last_time(self) -> float:
@@ -139,37 +144,38 @@ class CrateStream:
             raise ValueError(f"time {time} after {self._times[-1]}: times must increase")
         reps, parts = [], []  # the frame counts only once all its values are written
         end = self._offset  # where the next part goes
-        for node, value in zip(self._attributes, values, strict=True):
-            if TYPES[node.attribute] == _MATRIX4D:
+        for kind, value in zip(self._kinds, values, strict=True):
+            if kind == _MATRIX4D:
                 reps.append(_rep(_MATRIX4D, end))
-                new = [np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes()]
-            elif len(value):
+                parts.append(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+                end += 128
+                continue
+            array = np.ascontiguousarray(value, dtype="<f4")  # no copy of a C-contiguous float32 array
+            if len(array):
                 pad = -end % 8  # arrays start 8-byte aligned, so a reader may map them in place
-                reps.append(_rep(_VEC3F, end + pad, array=True))
-                array = memoryview(np.ascontiguousarray(value, dtype="<f4")).cast("B")
-                new = [bytes(pad) + struct.pack("<Q", len(value)), array]
+                reps.append(_VEC3F_ARRAY | (end + pad))
+                parts += (_PADS[pad] + len(array).to_bytes(8, "little"), array)
+                end += pad + 8 + array.nbytes
             else:
-                reps.append(_rep(_VEC3F, 0, array=True))  # an empty array: payload 0, nothing in the file
-                new = []
-            parts += new
-            end += sum(len(part) for part in new)
-        self._write_parts(parts)
+                reps.append(_VEC3F_ARRAY)  # an empty array: payload 0, nothing in the file
+        _pwrite_all(self._fd, parts, self._offset, end - self._offset)  # one system call per frame
+        self._offset = end
         for column, rep in zip(self._reps, reps, strict=True):
             column.append(rep)
         self._times.append(float(time))
 
     def _write(self, data: bytes) -> None:
-        """Append ``data``."""
-        self._write_parts([data])
-
-    def _write_parts(self, parts: list[bytes | memoryview]) -> None:
-        """Append ``parts`` in order (one system call for up to 1,024 of them)."""
-        _pwrite_all(self._fd, parts, self._offset)
-        self._offset += sum(len(part) for part in parts)
+        """Append ``data`` to what closing writes (at :attr:`_offset`, which it advances)."""
+        self._tail += data
+        self._offset += len(data)
 
     def close(self) -> None:
-        """Write the time-sample records and the structural sections, then the header: the file is complete."""
-        times = self._offset
+        """Write the time-sample records and the structural sections, then the header: the file is complete.
+
+        They are gathered in memory and written with two system calls: each one lets the other threads take
+        the interpreter lock, and waiting to take it back costs the writer far more than the call.
+        """
+        start = times = self._offset
         self._write(struct.pack("<Q", len(self._times)) + np.asarray(self._times, "<f8").tobytes())
         for node, reps in zip(self._attributes, self._reps, strict=True):
             node.samples = self._offset
@@ -179,7 +185,10 @@ class CrateStream:
         toc = self._offset
         entries = b"".join(struct.pack("<16sqq", name, start, size) for name, start, size in sections)
         self._write(struct.pack("<Q", len(sections)) + entries)
-        _pwrite_all(self._fd, [b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc)], 0)
+        _pwrite_all(self._fd, [self._tail], start, len(self._tail))
+        header = b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc)
+        _pwrite_all(self._fd, [header], 0, len(header))
+        self._tail = bytearray()
         self._release()
 
     def discard(self) -> None:
@@ -282,14 +291,25 @@ class CrateStream:
         return sections
 
 
-def _pwrite_all(fd: int, parts: Sequence[bytes | memoryview], offset: int) -> None:
-    """Write ``parts`` one after the other from ``offset`` (``pwritev`` may write less than asked: go on)."""
+def _pwrite_all(fd: int, parts: Sequence[bytes | memoryview | np.ndarray], offset: int, size: int = -1) -> None:
+    """Write ``parts`` (C-contiguous buffers) one after the other from ``offset``, ``size`` bytes in all if known.
+
+    One ``pwritev`` where it writes them all, as it does for a frame; it may write less than asked: go on.
+    """
+    if 0 <= size and len(parts) <= _IOV_MAX:
+        written = os.pwritev(fd, parts, offset) if parts else 0
+        if written == size:
+            return
+    else:
+        written = 0
     views = [memoryview(part).cast("B") for part in parts if len(part)]
     while views:
-        written = os.pwritev(fd, views[:_IOV_MAX], offset)
-        offset += written
         while views and written >= views[0].nbytes:
             written -= views[0].nbytes
+            offset += views[0].nbytes
             views.pop(0)
         if written:
-            views[0] = views[0][written:]
+            offset += written
+            views[0], written = views[0][written:], 0
+        if views:
+            written = os.pwritev(fd, views[:_IOV_MAX], offset)

@@ -76,6 +76,9 @@ class FrameStream:
         self._boxes = [
             wp.empty(2 * len(self._ranges), dtype=wp.vec3, device="cpu", pinned=self._cuda) for _ in range(count)
         ]
+        flats = [slot.numpy() for slot in self._slots]  # each slot's host views, made once
+        self._views = [[flat[start:end] for start, end in self._ranges] for flat in flats]
+        self._box_views = [boxes.numpy().reshape(-1, 2, 3) for boxes in self._boxes]
         self._events = [wp.Event(sim.device) if self._cuda else None for _ in range(count)]
         self._stream = sim.device.stream if self._cuda else None
         for i in range(count):
@@ -145,9 +148,8 @@ class FrameStream:
                 if self._error is None:
                     if self._cuda:
                         wp.synchronize_event(self._events[slot])
-                    flat, boxes = self._slots[slot].numpy(), self._boxes[slot].numpy().reshape(-1, 2, 3)
                     clock, cpu = time.perf_counter(), time.thread_time()
-                    consume(frame, [flat[start:end] for start, end in self._ranges], boxes)
+                    consume(frame, list(self._views[slot]), self._box_views[slot])
                     self.seconds[name] += time.perf_counter() - clock
                     self.cpu_seconds[name] += time.thread_time() - cpu
             except BaseException as err:  # handed to the simulating thread at its next submit or close

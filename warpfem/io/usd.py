@@ -125,6 +125,7 @@ class UsdWriter:
         self._bodies: list[tuple[str, np.ndarray]] = []
         self._min_vertices: list[int] = []
         self._vertices: list[int | None] = []
+        self._frame_bytes = 0  # a frame's point bytes, once the first frame fixed them
         self._last_frame: int | None = None
         self._frames_added = 0
         self._closed = False
@@ -227,20 +228,32 @@ class UsdWriter:
             extents = [extent(p) for p in arrays]
         boxes = None if extents is None else self._checked_extents(frame, extents)
         matrices = _checked_transforms(transforms, len(self._props))
-        with _held_signals(), self._aborting_on_failure():
-            self._pool.add(self._cuts, int(frame), arrays, matrices, boxes)
+        if threading.current_thread() is threading.main_thread():
+            with _held_signals():
+                self._add(int(frame), arrays, matrices, boxes)
+        else:  # no signal handler runs here: nothing to hold (a frame stream's writer thread, every frame)
+            self._add(int(frame), arrays, matrices, boxes)
+
+    def _add(self, frame: int, arrays: list[np.ndarray], matrices: list[np.ndarray], boxes: np.ndarray | None) -> None:
+        """Hand a checked frame to the pool and cut a chunk when one is due; a failed write (OSError) aborts."""
+        try:
+            self._pool.add(self._cuts, frame, arrays, matrices, boxes)
             if self._chunk_first is None:
-                self._chunk_first = int(frame)
-            for i, p in enumerate(arrays):
-                self._vertices[i] = len(p)
-            self._last_frame = int(frame)
+                self._chunk_first = frame
+            if self._vertices[0] is None:  # the first frame fixes each body's point count
+                self._vertices = [len(p) for p in arrays]
+                self._frame_bytes = sum(p.nbytes for p in arrays)
+            self._last_frame = frame
             self._frames_added += 1
-            self._chunk_bytes += sum(p.nbytes for p in arrays)
+            self._chunk_bytes += self._frame_bytes
             if self._save_every is not None and time.monotonic() - self._saved_at >= self._save_every:
                 self.save()
             elif self._chunk_bytes >= self._chunk_limit:
                 self._cut_chunk()
             self._place_exported(block=False)
+        except OSError:
+            self.abort()
+            raise
 
     @contextlib.contextmanager
     def _aborting_on_failure(self) -> Iterator[None]:
@@ -279,9 +292,8 @@ class UsdWriter:
         boxes = np.asarray(extents, dtype=np.float32)
         if boxes.shape != (len(self._bodies), 2, 3):
             raise ValueError(f"extents must be a ({len(self._bodies)}, 2, 3) array, got shape {boxes.shape}")
-        finite = np.isfinite(boxes).all(axis=(1, 2))
-        if not finite.all():
-            name = self._bodies[int(np.argmin(finite))][0]
+        if not np.isfinite(boxes).all():
+            name = self._bodies[int(np.argmin(np.isfinite(boxes).all(axis=(1, 2))))][0]
             raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
         return boxes
 
