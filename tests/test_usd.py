@@ -628,3 +628,20 @@ def test_a_runs_prop_transforms_are_the_simulations_matrices(tmp_path):
         expected = [p.matrix for p in (*sim.obstacles_at(time), *sim.handles_at(time))]
         np.testing.assert_array_equal(np.array(poses(time)), np.array(expected))
     assert not np.allclose(poses(0.03)[2][:3, :3], np.eye(3))  # the handle turns
+
+
+def test_a_one_chunk_file_streamed_holds_what_a_writer_process_exports(tmp_path):
+    """A run of one chunk, streamed and completed in place (its samples not written again), holds exactly the
+    layer a writer process authors and exports from the same frames, props included (usd-core's text of both)."""
+    from pxr import Sdf
+
+    bodies, frames = bodies_and_frames(6)
+    box = Prop("obstacles/box", np.eye(3), np.array([[0, 1, 2]]))
+    texts = []
+    for workers in (0, 1):
+        path = tmp_path / f"w{workers}.usdc"
+        with UsdWriter(path, bodies, fps=24.0, props=[box], workers=workers) as writer:
+            for f, points in enumerate(frames):
+                writer.add_frame(f, points, [np.diag([1.0, 2.0, 3.0, 1.0]) + f])
+        texts.append(Sdf.Layer.OpenAsAnonymous(str(path)).ExportToString())
+    assert texts[0] == texts[1]

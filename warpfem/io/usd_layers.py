@@ -170,6 +170,33 @@ def export(layer: object, path: Path) -> None:
     raise OSError(f"{path}: USD export failed: {reason}")
 
 
+def complete_single(
+    path: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo, end: int
+) -> None:
+    """Make the crate of samples at ``path`` self-contained in place: :func:`export_single`'s layer, same file.
+
+    usd-core saves a crate to the file it was read from by appending what changed (the topology, the metadata
+    and new tables) and keeping the samples where they are, where an export would copy every sample again.
+
+    Raises:
+        OSError: The save failed, with usd-core's last reason in one line.
+    """
+    from pxr import Sdf, Tf
+
+    try:
+        target = Sdf.Layer.FindOrOpen(str(path))
+        if target is None:
+            raise OSError(f"{path}: usd-core could not read the chunk written")
+        add_topology(target, bodies, props)
+        info.author(target, end)
+        if target.Save():
+            return
+        reason = "nothing written"
+    except Tf.ErrorException as err:
+        reason = str(err).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
+    raise OSError(f"{path}: USD export failed: {reason}")
+
+
 def vec3f_array(points: np.ndarray) -> object:
     """A ``Vt.Vec3fArray`` of contiguous (n, 3) float32 ``points``.
 

@@ -37,6 +37,7 @@ from warpfem.io.usd_layers import (
     Prop,
     StageInfo,
     animated_attributes,
+    complete_single,
     export,
     export_single,
     write_clip_files,
@@ -166,10 +167,10 @@ class InlinePool(_StagedClipFiles):
     def single(
         self, chunk: int, tmp: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo
     ) -> None:
-        """Export chunk ``chunk`` to ``tmp`` as a self-contained file.
+        """Write chunk ``chunk`` to ``tmp`` as a self-contained file.
 
-        The chunk's file is completed, opened by usd-core, given the topology and the metadata and exported in
-        ``tmp``'s format.
+        The chunk's file is completed and opened by usd-core, which adds the topology and the metadata: in place
+        for a crate ``tmp`` (its samples are not written again), exported in ``tmp``'s format otherwise.
         """
         from pxr import Sdf
 
@@ -178,10 +179,14 @@ class InlinePool(_StagedClipFiles):
         stream.close()
         last = int(stream.last_time)
         try:
-            layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
-            if layer is None:
-                raise OSError(f"{stream.path}: usd-core could not read the chunk written")
-            export_single(layer, tmp, bodies, props, info, last)
+            if tmp.suffix.lower() != ".usda":
+                complete_single(stream.path, bodies, props, info, last)
+                os.replace(stream.path, tmp)
+            else:
+                layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
+                if layer is None:
+                    raise OSError(f"{stream.path}: usd-core could not read the chunk written")
+                export_single(layer, tmp, bodies, props, info, last)
         finally:
             stream.path.unlink(missing_ok=True)
             self._drop_staged()
