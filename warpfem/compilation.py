@@ -18,6 +18,9 @@ from warpfem.sim.modules import STEP_MODULES, ModuleLoad, load_modules
 OUTPUT_MODULES = {"warpfem.kernels.penetration": (WIDE_BLOCK,), "warpfem.kernels.render": (WIDE_BLOCK,)}
 """The run's penetration check and the preview renderer, on the simulation's device."""
 
+HOST_MODULES = {"warpfem.kernels.penetration": (WIDE_BLOCK,)}
+"""What a run on a GPU also loads on the CPU: the penetration check's mesh obstacles, on the check's thread."""
+
 PREP_MODULES = {
     "warpfem.kernels.distance": (WIDE_BLOCK,),
     "warpfem.kernels.embedding": (WIDE_BLOCK,),
@@ -30,7 +33,8 @@ def warmup(devices: Sequence[str] | None = None, notify: Callable[[str], None] |
     """Compile (or load, where Warp's kernel cache has them) every Warp module of warpfem on ``devices``.
 
     Each device gets every block-size variant of the simulation's modules, the penetration check's and the
-    renderer's; the CPU also gets preprocessing's.
+    renderer's; the CPU also gets preprocessing's, and where only GPUs are named, the CPU still gets the
+    penetration check's (a run checks its mesh obstacles there).
 
     Args:
         devices: Warp device names; None: every device here (the CPU and each GPU).
@@ -49,4 +53,6 @@ def warmup(devices: Sequence[str] | None = None, notify: Callable[[str], None] |
     wp.init()
     chosen = [wp.get_device(name) for name in devices] if devices else wp.get_devices()
     plan = [(d, STEP_MODULES | OUTPUT_MODULES | (PREP_MODULES if d.is_cpu else {})) for d in chosen]
+    if not any(d.is_cpu for d in chosen):
+        plan.append((wp.get_device("cpu"), HOST_MODULES))
     return load_modules(plan, notify)
