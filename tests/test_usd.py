@@ -604,12 +604,13 @@ def test_writer_processes_only_for_large_frames(monkeypatch):
 
 
 def test_a_runs_prop_transforms_are_the_simulations_matrices(tmp_path):
-    """The transforms a run writes each frame (worked out without building the props' meshes) are the matrices
-    of ``obstacles_at`` and ``handles_at``: a keyed box, a still sphere and a keyed, turning handle."""
+    """The transforms a run writes each frame (worked out without building the props' meshes, a block of frames
+    at a time) are the matrices of ``obstacles_at`` and ``handles_at``: a keyed box, a still sphere and a keyed,
+    turning handle."""
     import trimesh
 
     import warpfem
-    from warpfem.runner import _props
+    from warpfem.runner import _by_frame, _props
 
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
     (tmp_path / "scene.toml").write_text(
@@ -628,6 +629,9 @@ def test_a_runs_prop_transforms_are_the_simulations_matrices(tmp_path):
         expected = [p.matrix for p in (*sim.obstacles_at(time), *sim.handles_at(time))]
         np.testing.assert_array_equal(np.array(poses(time)), np.array(expected))
     assert not np.allclose(poses(0.03)[2][:3, :3], np.eye(3))  # the handle turns
+    by_frame = _by_frame(poses, 60.0, 3)  # what the writer's thread takes: frames 0, 3, ... and the last
+    for frame in (0, 3, 6, 190, 192, 200, 201):
+        np.testing.assert_array_equal(np.array(by_frame(frame)), np.array(poses(frame / 60.0)))
 
 
 def test_a_one_chunk_file_streamed_holds_what_a_writer_process_exports(tmp_path):

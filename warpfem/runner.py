@@ -216,8 +216,10 @@ def record(
     except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
 
+    transforms = _by_frame(poses, scene.fps, every) if props else lambda frame: []
+
     def write(frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
-        writer.add_frame(frame, points, poses(frame / scene.fps), extents=boxes)
+        writer.add_frame(frame, points, transforms(frame), extents=boxes)
 
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
     with writer:  # an error before the first frame leaves nothing, the writer's staged files included
@@ -260,6 +262,23 @@ def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarr
         return matrices
 
     return props, poses
+
+
+def _by_frame(poses: Callable[[float], list[np.ndarray]], fps: float, every: int) -> Callable[[int], list[np.ndarray]]:
+    """``poses`` at a frame's time (``frame / fps``), worked out for the next 64 written frames at a time.
+
+    The writer's thread asks for them between frames, when its code and data have left the caches: a block of
+    frames costs about what one frame did there.
+    """
+    block: dict[int, list[np.ndarray]] = {}
+
+    def at(frame: int) -> list[np.ndarray]:
+        if frame not in block:
+            block.clear()
+            block.update((f, poses(f / fps)) for f in range(frame, frame + 64 * every, every))
+        return block[frame]
+
+    return at
 
 
 def _stream_frames(

@@ -36,6 +36,7 @@ _SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
 
 _IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
 _PADS = [bytes(n) for n in range(8)]
+_FLOAT32 = np.dtype("<f4")
 
 TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
 """The attribute types a stream holds, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
@@ -150,7 +151,7 @@ class CrateStream:
                 parts.append(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
                 end += 128
                 continue
-            array = np.ascontiguousarray(value, dtype="<f4")  # no copy of a C-contiguous float32 array
+            array = np.ascontiguousarray(value, dtype=_FLOAT32)  # no copy of a C-contiguous float32 array
             if len(array):
                 pad = -end % 8  # arrays start 8-byte aligned, so a reader may map them in place
                 reps.append(_VEC3F_ARRAY | (end + pad))

@@ -24,6 +24,7 @@ complete file. What survives a stop:
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import shutil
@@ -292,7 +293,7 @@ class UsdWriter:
         boxes = np.asarray(extents, dtype=np.float32)
         if boxes.shape != (len(self._bodies), 2, 3):
             raise ValueError(f"extents must be a ({len(self._bodies)}, 2, 3) array, got shape {boxes.shape}")
-        if not np.isfinite(boxes).all():
+        if not math.isfinite(boxes.sum(dtype=np.float64)):  # one reduction: float32 values cannot overflow it
             name = self._bodies[int(np.argmin(np.isfinite(boxes).all(axis=(1, 2))))][0]
             raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
         return boxes
