@@ -91,15 +91,15 @@ def pile_body(
 
 
 def override(doc: dict, setting: str) -> None:
-    """Apply ``section.key=value`` to a scene document (``object.key`` sets it on every object)."""
+    """Apply ``section.key=value`` to a scene document (``object.key``, ``obstacle.key``: on every one)."""
     name, _, text = setting.partition("=")
     section, _, key = name.partition(".")
     if not key or not text:
         raise SystemExit(f"--set {setting!r}: expected section.key=value")
     value = tomllib.loads(f"v = {text}")["v"]
-    if section == "object":
-        for obj in doc.get("object", []):
-            obj[key] = value
+    if isinstance(doc.get(section), list):
+        for entry in doc[section]:
+            entry[key] = value
     else:
         doc.setdefault(section, {})[key] = value
 
