@@ -316,8 +316,9 @@ class _Check:
     """The independent penetration check along a run.
 
     The ground, spheres and boxes on every written frame it keeps up with (it skips to the newest when frames
-    wait for it, the last always), on a thread of its own (NumPy only), and there too
-    mesh obstacles on the last frame and on frames spaced so that they take about a tenth of the run's time.
+    wait for it, the last always), on a thread of its own (NumPy), and there too mesh obstacles (Warp's CPU
+    kernels, which release the interpreter lock) on the last frame and on frames spaced so that they take about
+    a tenth of the run's time.
     Bodies inside each other the same way, on the simulation's device, launched from the stepping thread
     between frames and read at the next check. Only the stepping thread touches the device: Warp's reads of
     CUDA arrays swap the device's current stream, a state of the whole device, which a second thread doing
@@ -333,6 +334,8 @@ class _Check:
         from warpfem.kernels import penetration
 
         wp.load_module(penetration, device=sim.device)  # compiled here, not inside the first check's time
+        if not sim.device.is_cpu and any(o.kind == "mesh" for o in sim.scene.obstacles):
+            wp.load_module(penetration, device="cpu")  # the mesh obstacles' check runs there
         self.body_check = PenetrationCheck([b.dense_faces for b in sim.model.bodies], sim.body_names, sim.device)
         self.counts = [b.dense_count for b in sim.model.bodies]
         self.sim = sim
