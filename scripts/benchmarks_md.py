@@ -296,7 +296,9 @@ def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[s
         f"`warpfem run` of {data['frames']} frames to a real file, each case in a fresh process. Per frame: "
         "wall from the first step to the file written; simulate (the stepping thread, including its waits for "
         "the interpreter lock); write and check, each on a thread of its own beside it; raw, writing the same "
-        "bytes with plain writes to the same disk; peak resident memory of the whole process; the file with its clips.",
+        "bytes with one plain write a frame to the same disk on the writer's thread in the same run (in "
+        "parentheses: written again alone after the run, where the JSON has it), and write / raw against each; "
+        "peak resident memory of the whole process; the file with its clips.",
         "",
         "The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.",
         "",
@@ -324,7 +326,11 @@ def end_to_end_row(r: dict) -> str:
     peak = f"{r['peak_rss_mb'] / 1024:.2f} + {r.get('writer_peak_rss_mb', 0) / 1024:.2f} GB"
     file = f"{r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''}"
     cells = [r["case"], bodies, f"{r['dense_vertices']:,}", str(r.get("writers", 0)), wall, simulate, write, check]
-    cells += [f"{r['raw_write_ms_per_frame']:.2f}", ratio, f"{r['write_over_raw']:.1f}", peak, file]
+    raw, over = f"{r['raw_write_ms_per_frame']:.2f}", f"{r['write_over_raw']:.1f}"
+    if "raw_alone_ms_per_frame" in r and "bodies" in r:
+        alone = r["raw_alone_ms_per_frame"]
+        raw, over = f"{raw} ({alone:.2f})", f"{over} ({ms['write'] / max(alone, 1e-9):.1f})"
+    cells += [raw, ratio, over, peak, file]
     return "| " + " | ".join(cells) + " |"
 
 
