@@ -88,12 +88,7 @@ class Solver:
         rotation_updates: int = DEFAULT_ROTATION_UPDATES,
         rotation_tolerance: float = DEFAULT_ROTATION_TOLERANCE,
     ) -> None:
-        if contact_passes < 0:
-            raise ValueError(f"contact_passes must be >= 0, got {contact_passes}")
-        if rotation_updates < 0:
-            raise ValueError(f"rotation_updates must be >= 0, got {rotation_updates}")
-        if not rotation_tolerance >= 0.0:
-            raise ValueError(f"rotation_tolerance must be >= 0 rad, got {rotation_tolerance}")
+        _check_counts(contact_passes, rotation_updates, rotation_tolerance)
         self._rotation_updates, self.rotation_tolerance = rotation_updates, float(rotation_tolerance)
         self.model = model
         dev = model.device
@@ -115,21 +110,41 @@ class Solver:
         moving = self.colliders.moving
         self.drive = Drive(model, handles, moving, self.colliders.poses) if handles or moving else None
         self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
+        self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
+        self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
         self.held_v = self.drive.held_v if self.drive is not None else self._no_vec3
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
         static = self.colliders.kind.shape[0] > 0
         self._contact_passes = contact_passes if static or self.collider is not None else 0
-        # with rotation updates the elastic part is kept apart from the rest of the system, so that a step
-        # re-linearised about new rotations is assembled afresh (differences of stiff blocks lose the mass term
-        # in float32); without, the elastic launch adds straight into the system
-        self.apart = apart = rotation_updates > 0
+        self._allocate_apart(rotation_updates > 0)
+        self._allocate_flags(rotation_updates, static)
+        # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
+        self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
+        # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
+        self.grad = self.collider.grad if self.collider is not None else self._no_vec3
+        self._list_cleared()
+        self.cg = _cg_solver(model, cg_iterations, cg_tolerance, cg_path, self.collider)
+        self.set_gravity(gravity)
+
+    def _allocate_apart(self, apart: bool) -> None:
+        """The system's elastic part apart from the rest, where rotation updates re-assemble it each update.
+
+        A step re-linearised about new rotations is assembled afresh (differences of stiff blocks lose the mass
+        term in float32); without updates the elastic launch adds straight into the system.
+        """
+        model, dev, n = self.model, self.model.device, self.model.vertex_count
+        self.apart = apart
         self.elastic_force = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self.force
         self.elastic_matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.matrix_base = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev) if apart else self.matrix
         self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
-        self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
-        self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
+        self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
+        """Momentum of bodies no other body touches, kept exact where float32 loses it (with ``apart`` only)."""
+
+    def _allocate_flags(self, rotation_updates: int, static: bool) -> None:
+        """The step's conditions (rotation updates, late-contact passes) and the late static contacts' marks."""
+        dev, n = self.model.device, self.model.vertex_count
         self.flags = wp.zeros(rotation_updates + self._contact_passes, dtype=wp.int32, device=dev)
         """The step's conditions, each its own slot so one launch clears them all at the step's start."""
         self.turned = [self.flags[k : k + 1] for k in range(rotation_updates)]
@@ -138,17 +153,16 @@ class Solver:
         """Late contacts the k-th pass added (the condition of its solve)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
-            wp.zeros(model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
+            wp.zeros(self.model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
-        self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
-        """Momentum of bodies no other body touches, kept exact where float32 loses it (with ``apart`` only)."""
-        # the stream the collision stage's preparation runs on alongside the elastic launch (see phases)
-        self._side = wp.Stream(dev) if dev.is_cuda and self.collider is not None else None
-        coupling = self.collider.coupling if self.collider is not None else None
-        # the rotated distance gradients the contacts read, summed by the elastic launch (none without contacts)
-        self.grad = self.collider.grad if self.collider is not None else self._no_vec3
-        collider = self.collider
+
+    def _list_cleared(self) -> None:
+        """List what a step zeroes before it accumulates and counts, in one launch.
+
+        In ``kernels.integrate.clear_step``'s order; the matrix itself is the base when nothing is apart.
+        """
+        collider, apart = self.collider, self.apart
         self._cleared = [
             self.force,
             self.grad,
@@ -161,24 +175,7 @@ class Solver:
             collider.counts if collider is not None else self._no_int,
             self.flags,
         ]
-        """What a step zeroes before it accumulates and counts, in one launch (``kernels.integrate.clear_step``'s
-        order; the matrix itself is the base when nothing is apart)."""
         self._cleared_dim = max(a.shape[0] for a in self._cleared)
-        mode, _, blocks = (cg_path or "").partition(":")
-        if blocks and (mode != "grid" or not blocks.isdigit()):
-            raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
-        self.cg = CGSolver(
-            model.row_start,
-            model.cols,
-            model.free,
-            cg_iterations,
-            dev,
-            coupling=coupling,
-            mode=mode or None,
-            grid_blocks=int(blocks) if blocks else None,
-        )
-        self.cg.configure(cg_iterations, cg_tolerance)
-        self.set_gravity(gravity)
 
     def set_gravity(self, gravity: tuple[float, float, float]) -> None:
         """Set gravity (m/s^2); takes effect in captured graphs too."""
@@ -371,3 +368,34 @@ def _lowered(name: str, value: int, allocated: int) -> int:
     if not 0 <= value <= allocated:
         raise ValueError(f"{name} can be lowered after construction, to 0-{allocated}, not set to {value}")
     return value
+
+
+def _check_counts(contact_passes: int, rotation_updates: int, rotation_tolerance: float) -> None:
+    """Raise ValueError for a negative pass or update count or rotation tolerance."""
+    if contact_passes < 0:
+        raise ValueError(f"contact_passes must be >= 0, got {contact_passes}")
+    if rotation_updates < 0:
+        raise ValueError(f"rotation_updates must be >= 0, got {rotation_updates}")
+    if not rotation_tolerance >= 0.0:
+        raise ValueError(f"rotation_tolerance must be >= 0 rad, got {rotation_tolerance}")
+
+
+def _cg_solver(
+    model: Model, iterations: int, tolerance: float, cg_path: str | None, collider: Collider | None
+) -> CGSolver:
+    """The step's CG solver on ``model``'s pattern, run as ``cg_path`` says (see :class:`Solver`)."""
+    mode, _, blocks = (cg_path or "").partition(":")
+    if blocks and (mode != "grid" or not blocks.isdigit()):
+        raise ValueError(f"cg_path must be 'grid', 'grid:B' (B blocks), 'launches' or None, got {cg_path!r}")
+    cg = CGSolver(
+        model.row_start,
+        model.cols,
+        model.free,
+        iterations,
+        model.device,
+        coupling=collider.coupling if collider is not None else None,
+        mode=mode or None,
+        grid_blocks=int(blocks) if blocks else None,
+    )
+    cg.configure(iterations, tolerance)
+    return cg
