@@ -71,6 +71,29 @@ class CGStats:
     short: int = 0
 
 
+def _check_options(mode: str, grid_blocks: int | None, product: str | None) -> None:
+    """Raise ValueError for an unknown solve mode or product, or fewer than one grid block."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if grid_blocks is not None and grid_blocks < 1:
+        raise ValueError(f"grid_blocks must be at least 1, got {grid_blocks}")
+    if product not in (None, *PRODUCTS):
+        raise ValueError(f"product must be one of {PRODUCTS} or None, got {product!r}")
+
+
+def _no_coupling(device) -> Coupling:
+    """An empty matrix-free term: no pairs, and a count of zero."""
+    zero = dict(shape=0, device=device)
+    return Coupling(
+        wp.zeros(1, dtype=wp.int32, device=device),
+        wp.zeros(dtype=wp.vec4i, **zero),
+        wp.zeros(dtype=wp.vec4, **zero),
+        wp.zeros(dtype=wp.vec4i, **zero),
+        wp.zeros(dtype=wp.vec4, **zero),
+        wp.zeros(dtype=wp.mat33, **zero),
+    )
+
+
 class CGSolver:
     """Solves A x = b for a 3x3-block CSR matrix with a fixed structure.
 
@@ -119,18 +142,31 @@ class CGSolver:
         self.unroll = int(unroll)
         n = free.shape[0]
         self.mode = mode or DEFAULT_MODE
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if grid_blocks is not None and grid_blocks < 1:
-            raise ValueError(f"grid_blocks must be at least 1, got {grid_blocks}")
-        if product not in (None, *PRODUCTS):
-            raise ValueError(f"product must be one of {PRODUCTS} or None, got {product!r}")
+        _check_options(self.mode, grid_blocks, product)
         # the CPU runs the product on one thread, where atomic adds cost no more than stores: half the reads win
         gather_default = self.device.is_cuda and n <= GATHER_MAX_ROWS
         self.product = product or ("gather" if gather_default else "scatter")
         self.padded = -(-n // BLOCK) * BLOCK  # whole blocks for the tile reductions
         self.capacity = int(max_iterations)
         self.chunk = chunk or CHUNK["cuda" if self.device.is_cuda else "cpu"]
+        chunks = self._lay_out_product(row_start, cols, n)
+        coupling = coupling if coupling is not None else _no_coupling(self.device)
+        self.pairs = Pairs()
+        self.pairs.count = coupling.count
+        self.pairs.verts_a, self.pairs.weights_a = coupling.verts_a, coupling.weights_a
+        self.pairs.verts_b, self.pairs.weights_b = coupling.verts_b, coupling.weights_b
+        self.pairs.matrix = coupling.matrix
+        # one thread per chunk, then up to PAIR_THREADS threads striding over the live pairs
+        threads = chunks + min(coupling.matrix.shape[0], PAIR_THREADS)
+        self._apply_threads = threads
+        self._apply_dim = max(BLOCK, -(-threads // BLOCK) * BLOCK)
+        self._allocate(n)
+        self._size_grid(n, chunks, coupling.matrix.shape[0], grid_blocks, hold_chunks)
+        self._plans: dict[tuple, tuple[list, list, list]] = {}
+        self.configure(max_iterations, 0.0)
+
+    def _lay_out_product(self, row_start: wp.array, cols: wp.array, n: int) -> int:
+        """The product's entries (gathered rows, or the stored blocks) cut into chunks; returns how many chunks."""
         starts, cols_host = row_start.numpy(), cols.numpy()
         if self.product == "gather":
             # each row's entries: its stored (upper) blocks, then the mirrors of the blocks above it
@@ -155,53 +191,44 @@ class CGSolver:
         self.chunk_row = wp.array(rows, dtype=wp.int32, device=self.device)
         self.chunk_start = wp.array(first.astype(np.int32), dtype=wp.int32, device=self.device)
         self.chunk_end = wp.array(last.astype(np.int32), dtype=wp.int32, device=self.device)
-        if coupling is None:
-            zero = dict(shape=0, device=self.device)
-            coupling = Coupling(
-                wp.zeros(1, dtype=wp.int32, device=self.device),
-                wp.zeros(dtype=wp.vec4i, **zero),
-                wp.zeros(dtype=wp.vec4, **zero),
-                wp.zeros(dtype=wp.vec4i, **zero),
-                wp.zeros(dtype=wp.vec4, **zero),
-                wp.zeros(dtype=wp.mat33, **zero),
-            )
-        self.pairs = Pairs()
-        self.pairs.count = coupling.count
-        self.pairs.verts_a, self.pairs.weights_a = coupling.verts_a, coupling.weights_a
-        self.pairs.verts_b, self.pairs.weights_b = coupling.verts_b, coupling.weights_b
-        self.pairs.matrix = coupling.matrix
-        # one thread per chunk, then up to PAIR_THREADS threads striding over the live pairs
-        threads = len(rows) + min(coupling.matrix.shape[0], PAIR_THREADS)
-        self._apply_threads = threads
-        self._apply_dim = max(BLOCK, -(-threads // BLOCK) * BLOCK)
-        self.r = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        return len(rows)
+
+    def _allocate(self, n: int) -> None:
+        """The solve's vectors, its per-iteration scalars and counters, and the grid solve's sums and barriers."""
+        dev = self.device
+        self.r = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.u = wp.zeros_like(self.r)
         self.p = wp.zeros_like(self.r)
         self.s = wp.zeros_like(self.r)
         self.w = wp.zeros_like(self.r)
         slots = self.capacity + self.unroll + 2
-        self.gamma = wp.zeros(slots, dtype=float, device=self.device)
+        self.gamma = wp.zeros(slots, dtype=float, device=dev)
         self.delta = wp.zeros_like(self.gamma)
         self.alpha = wp.zeros_like(self.gamma)
-        self.bz = wp.zeros(1, dtype=float, device=self.device)
-        self.scratch = wp.zeros(1, dtype=float, device=self.device)
-        self.project = wp.zeros(3, dtype=float, device=self.device)  # d.(b - A x), d.A d, d.M d
-        self.no_direction = wp.zeros(n, dtype=wp.vec3, device=self.device)
-        self.no_mass = wp.zeros(n, dtype=float, device=self.device)
-        self.iteration = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.done = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.cond = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.tolerance = wp.zeros(1, dtype=float, device=self.device)
-        self.max_iterations = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.counts = wp.zeros(3, dtype=wp.int32, device=self.device)  # solves, iterations, stopped short
-        self.residual_max = wp.zeros(1, dtype=float, device=self.device)
+        self.bz = wp.zeros(1, dtype=float, device=dev)
+        self.scratch = wp.zeros(1, dtype=float, device=dev)
+        self.project = wp.zeros(3, dtype=float, device=dev)  # d.(b - A x), d.A d, d.M d
+        self.no_direction = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.no_mass = wp.zeros(n, dtype=float, device=dev)
+        self.iteration = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.done = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.cond = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.tolerance = wp.zeros(1, dtype=float, device=dev)
+        self.max_iterations = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.counts = wp.zeros(3, dtype=wp.int32, device=dev)  # solves, iterations, stopped short
+        self.residual_max = wp.zeros(1, dtype=float, device=dev)
         # the grid solve's side sums (three, and gamma per iteration where held) and barriers with their sums
         # (kernels.grid.grid_total): three to start, then two per iteration (one where held, plus one)
-        self.totals = wp.zeros(3 + self.capacity, dtype=float, device=self.device)
-        self.words = wp.zeros(4 + 2 * self.capacity, dtype=wp.uint64, device=self.device)
-        self.stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
-        # where every chunk has a thread, the grid solve keeps each thread's chunk in registers for the whole
-        # solve (cg_solve_held): an iteration loads only the vector and meets at one barrier instead of two
+        self.totals = wp.zeros(3 + self.capacity, dtype=float, device=dev)
+        self.words = wp.zeros(4 + 2 * self.capacity, dtype=wp.uint64, device=dev)
+        self.stalled = wp.zeros(1, dtype=wp.int32, device=dev)
+
+    def _size_grid(self, n: int, chunks: int, pairs_capacity: int, grid_blocks: int | None, hold_chunks: bool) -> None:
+        """The grid solve's blocks, and whether it holds each thread's chunk in registers (``held``).
+
+        Where every chunk has a thread, the grid solve keeps each thread's chunk in registers for the whole
+        solve (``cg_solve_held``): an iteration loads only the vector and meets at one barrier instead of two.
+        """
         holdable = (
             hold_chunks
             and self.device.is_cuda
@@ -210,25 +237,22 @@ class CGSolver:
             and self.chunk <= OWN_CHUNK_ENTRIES
         )
         # the held solve's coupling pairs take blocks of their own at the end of the grid, PAIR_LANES lanes a pair
-        pairs_capacity = coupling.matrix.shape[0]
         pair_blocks = min(HELD_PAIR_BLOCKS, -(-pairs_capacity * PAIR_LANES // BLOCK)) if holdable else 0
         if self.device.is_cuda:
             # a thread per row or chunk, and the pair blocks (else one block more, the pairs start past the chunks)
-            chunk_blocks = -(-max(n, len(rows), 1) // BLOCK)
+            chunk_blocks = -(-max(n, chunks, 1) // BLOCK)
             extra = pair_blocks if holdable else int(pairs_capacity > 0)
             wanted = grid_blocks if grid_blocks is not None else chunk_blocks + extra
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
         else:
             self.grid_blocks = 1
         self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
-        self.held = bool(holdable and (self.grid_blocks - pair_blocks) * BLOCK >= len(rows))
+        self.held = bool(holdable and (self.grid_blocks - pair_blocks) * BLOCK >= chunks)
         self.pair_lanes = pair_blocks * BLOCK if self.held else 0
         if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
             self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.m3 = wp.zeros(3 * n, dtype=wp.vec3, device=self.device)
-        self._plans: dict[tuple, tuple[list, list, list]] = {}
-        self.configure(max_iterations, 0.0)
 
     def configure(self, max_iterations: int, tolerance: float) -> None:
         """Set the iteration cap and relative tolerance (0: always run ``max_iterations``).
@@ -287,57 +311,59 @@ class CGSolver:
         Replaying recorded launches skips the argument packing of ``wp.launch``, which counts on the CPU,
         where every iteration is launched from Python.
         """
-        n = self.free.shape[0]
-        dev = self.device
-        vectors = [x, self.r, self.u, self.p, self.s, self.w]
         if self.mode == "grid":
-            threads = self.grid_threads
-            reset = wp.launch(
-                K.cg_solve_reset,
-                dim=max(n, self.words.shape[0]),
-                inputs=[n],
-                outputs=[self.w, self.s, self.totals, self.words],
-                device=dev,
-                record_cmd=True,
-            )
-            shape = [threads, self.grid_blocks]
-            system = [self._matrix(values), self.pairs, diag_inv, self.free, b, direction, mass]
-            limits = [self.tolerance, self.max_iterations, self.words, self.totals]
-            stats = [self.counts, self.residual_max, self.stalled]
-            if self.held:
-                kernel = K.cg_solve_held
-                shape.append(self.pair_lanes)
-                outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
-            else:
-                kernel = K.cg_solve
-                outputs = [*vectors, *stats]
-            solve = wp.launch(
-                kernel,
-                dim=threads,
-                block_dim=BLOCK if dev.is_cuda else 1,
-                inputs=[*shape, *system, *limits],
-                outputs=outputs,
-                device=dev,
-                record_cmd=True,
-            )
-            return [reset, solve], [], []
+            return self._plan_grid(values, diag_inv, b, x, direction, mass), [], []
+        before = self._plan_start(values, diag_inv, b, x, direction, mass)
+        return before, self._plan_body(values, diag_inv, x), self._plan_finish()
+
+    def _plan_grid(
+        self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
+    ) -> list:
+        """The grid solve: a reset, then the whole solve as one persistent launch (held or not)."""
+        n, dev, threads = self.free.shape[0], self.device, self.grid_threads
+        reset = wp.launch(
+            K.cg_solve_reset,
+            dim=max(n, self.words.shape[0]),
+            inputs=[n],
+            outputs=[self.w, self.s, self.totals, self.words],
+            device=dev,
+            record_cmd=True,
+        )
+        shape = [threads, self.grid_blocks]
+        system = [self._matrix(values), self.pairs, diag_inv, self.free, b, direction, mass]
+        limits = [self.tolerance, self.max_iterations, self.words, self.totals]
+        stats = [self.counts, self.residual_max, self.stalled]
+        if self.held:
+            kernel = K.cg_solve_held
+            shape.append(self.pair_lanes)
+            outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
+        else:
+            kernel = K.cg_solve
+            outputs = [x, self.r, self.u, self.p, self.s, self.w, *stats]
+        solve = wp.launch(
+            kernel,
+            dim=threads,
+            block_dim=BLOCK if dev.is_cuda else 1,
+            inputs=[*shape, *system, *limits],
+            outputs=outputs,
+            device=dev,
+            record_cmd=True,
+        )
+        return [reset, solve]
+
+    def _plan_start(
+        self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
+    ) -> list:
+        """The launched solve's start: reset, the start's projection along ``direction``, r, u, p and the check."""
+        n, dev = self.free.shape[0], self.device
         limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
-        before = [
+        scalars = [self.w, self.s, self.gamma, self.delta, self.bz, self.scratch, self.project, self.iteration]
+        return [
             wp.launch(
                 K.cg_reset,
                 dim=max(self.padded, self.gamma.shape[0]),
                 inputs=[n],
-                outputs=[
-                    self.w,
-                    self.s,
-                    self.gamma,
-                    self.delta,
-                    self.bz,
-                    self.scratch,
-                    self.project,
-                    self.iteration,
-                    self.done,
-                ],
+                outputs=[*scalars, self.done],
                 device=dev,
                 record_cmd=True,
             ),
@@ -364,6 +390,12 @@ class CGSolver:
             self._apply(values, self.u, 1, 0, self.delta),
             wp.launch(K.cg_start, dim=1, inputs=limits, outputs=[self.cond], device=dev, record_cmd=True),
         ]
+
+    def _plan_body(self, values: wp.array, diag_inv: wp.array, x: wp.array) -> list:
+        """One pass of the launched solve's loop: ``unroll`` iterations (an update and a product each), a check."""
+        n, dev = self.free.shape[0], self.device
+        limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
+        vectors = [x, self.r, self.u, self.p, self.s, self.w]
         body = []
         for step in range(self.unroll):
             body.append(
@@ -388,17 +420,20 @@ class CGSolver:
                 record_cmd=True,
             )
         )
-        after = [
+        return body
+
+    def _plan_finish(self) -> list:
+        """The launched solve's end: its statistics."""
+        return [
             wp.launch(
                 K.cg_finish,
                 dim=1,
                 inputs=[self.gamma, self.bz, self.done, self.tolerance],
                 outputs=[self.counts, self.residual_max],
-                device=dev,
+                device=self.device,
                 record_cmd=True,
             )
         ]
-        return before, body, after
 
     def solve(
         self,
