@@ -9,7 +9,8 @@ written again alone after the run are reported too (raw alone). Per frame: wall 
 written), simulate, write (wall and CPU) and check (on threads beside it), waiting for the writer, the raw
 write (wall and CPU), and the time the writer processes spent authoring and exporting (summed over them, in
 parallel with the rest); the child's peak resident memory and the largest of its writer processes'; the
-file's size on disk. One JSON per run under scripts/results/.
+file's size on disk; per run, close: the ms from the last frame's hand-over to the file written (part of wall).
+One JSON per run under scripts/results/.
 
     python scripts/bench_end_to_end.py --quick                # CPU: the default scene and paper C, 30 frames
     python scripts/bench_end_to_end.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU: all cases
@@ -206,6 +207,7 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         "tets": summary.tets,
         "dense_vertices": summary.dense_vertices,
         "ms_per_frame": per,
+        "close_ms": 1e3 * seconds.get("close", 0.0),
         "raw_write_ms_per_frame": 1e3 * beside.seconds / summary.frames,
         "raw_write_cpu_ms_per_frame": 1e3 * beside.cpu_seconds / summary.frames,
         "raw_alone_ms_per_frame": 1e3 * alone / summary.frames,
@@ -277,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
                 f" (alone {run['raw_alone_ms_per_frame']:5.2f})  write/raw {run['write_over_raw']:4.2f}"
                 f"  writers {run['writers']}"
                 f" {ms['write_workers']:7.2f}  check {ms['check']:7.2f}  wait {ms['wait']:6.2f}"
+                f"  close {run.get('close_ms', 0.0):6.1f} ms"
                 f"  peak {run['peak_rss_mb']:5.0f} + {run['writers']} x {run['writer_peak_rss_mb']:4.0f} MB"
                 f"  file {run['file_bytes'] / 2**20:7.0f} MB"
             )

@@ -295,20 +295,22 @@ def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[s
         f"`{path.name}` ({env['device']}, {machine}, Warp {env['warp']}, commit `{env['commit'][:10]}`): "
         f"`warpfem run` of {data['frames']} frames to a real file, each case in a fresh process. Per frame: "
         "wall from the first step to the file written; simulate (the stepping thread, including its waits for "
-        "the interpreter lock); write and check, each on a thread of its own beside it; raw, writing the same "
-        "bytes with one plain write a frame to the same disk on the writer's thread in the same run (in "
+        "the interpreter lock); write and check, each on a thread of its own beside it; close, the ms of the "
+        "run from the last frame's hand-over to the file written (part of wall, where the JSON has it); raw, "
+        "writing the same bytes with one plain write a frame to the same disk on the writer's thread in the "
+        "same run (in "
         "parentheses: written again alone after the run, where the JSON has it), and write / raw against each; "
         "peak resident memory of the whole process; the file with its clips.",
         "",
         "The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.",
         "",
-        "| case | bodies | dense vertices | writer processes | wall ms | simulate | write | check | raw write "
-        "| wall / max(simulate, write) | write / raw | peak memory (caller + each process) | file |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| case | bodies | dense vertices | writer processes | wall ms | simulate | write | check | close ms "
+        "| raw write | wall / max(simulate, write) | write / raw | peak memory (caller + each process) | file |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in data["runs"]:
         if "error" in r:
-            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 11)
+            lines.append(f"| {r['case']} | failed: {' '.join(r['error'])} |" + " |" * 12)
             continue
         lines.append(end_to_end_row(r))
     return lines
@@ -325,7 +327,9 @@ def end_to_end_row(r: dict) -> str:
         simulate = check = bodies = ratio = "-"
     peak = f"{r['peak_rss_mb'] / 1024:.2f} + {r.get('writer_peak_rss_mb', 0) / 1024:.2f} GB"
     file = f"{r['file_bytes'] / 2**20:,.0f} MB{' (clips)' if r['clips'] else ''}"
+    close = f"{r['close_ms']:.1f}" if "close_ms" in r else "-"
     cells = [r["case"], bodies, f"{r['dense_vertices']:,}", str(r.get("writers", 0)), wall, simulate, write, check]
+    cells.append(close)
     raw, over = f"{r['raw_write_ms_per_frame']:.2f}", f"{r['write_over_raw']:.1f}"
     if "raw_alone_ms_per_frame" in r and "bodies" in r:
         alone = r["raw_alone_ms_per_frame"]

@@ -182,3 +182,32 @@ def test_a_run_in_clips_reads_back_the_simulated_positions_at_every_frame(device
     assert s["wall"] > 0 and s["write"] > 0 and summary.ms_per_frame == pytest.approx(1e3 * s["wall"] / 12)
     assert 0 < s["write_cpu"] <= s["write"] + 0.01
     assert s["write_workers"] > 0 and (summary.writer_peak_bytes > 0) == (writers > 0)
+
+
+@pytest.mark.parametrize("save_every", [None, 0.0], ids=["one file", "a chunk per frame"])
+def test_a_run_reports_its_close_and_its_file_is_complete_when_record_returns(device, tmp_path, save_every):
+    """The writer finishes the file on its thread as the last frame comes: ``close`` (last hand-over to the
+    file written) is part of the wall time, and the file read back holds every simulated frame to the last."""
+    from pathlib import Path
+
+    from pxr import Usd, UsdGeom
+
+    import warpfem
+    from warpfem.runner import record
+
+    root = Path(__file__).resolve().parents[1]
+    scene = warpfem.load_scene(root / "tests" / "data" / "golden" / "two_balls.toml").with_frames(6)
+    sim = warpfem.Simulation(scene, device=device, cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
+    held = {}
+    out = tmp_path / "a.usdc"
+    summary = record(sim, out, save_every=save_every, on_points=lambda frame, points: held.__setitem__(frame, points))
+    s = summary.seconds
+    assert 0 <= s["close"] <= s["wall"]
+    assert (tmp_path / "a.clips").is_dir() == (save_every is not None)
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetEndTimeCode() == 6.0
+    for i, name in enumerate(sim.body_names):
+        attr = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}")).GetPointsAttr()
+        assert attr.GetTimeSamples() == [float(f) for f in range(7)]
+        for frame, points in held.items():
+            np.testing.assert_array_equal(np.array(attr.Get(frame)), points[i].astype(np.float32))

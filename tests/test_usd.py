@@ -649,3 +649,32 @@ def test_a_one_chunk_file_streamed_holds_what_a_writer_process_exports(tmp_path)
                 writer.add_frame(f, points, [np.diag([1.0, 2.0, 3.0, 1.0]) + f])
         texts.append(Sdf.Layer.OpenAsAnonymous(str(path)).ExportToString())
     assert texts[0] == texts[1]
+
+
+@pytest.mark.parametrize("workers", [0, 2], ids=["inline", "2 writer processes"])
+@pytest.mark.parametrize("ext", [".usdc", ".usda"])
+@pytest.mark.parametrize("final", [5, 3, 9], ids=["the last frame added", "too early", "never reached"])
+def test_a_top_level_layer_written_ahead_is_the_one_closing_exports(tmp_path, monkeypatch, ext, workers, final):
+    """With ``final_frame`` the top-level layer is written ahead as each chunk opens, and closing only moves it
+    into place where it holds: the file is byte for byte the one written without it, whether the hint holds or
+    not, and no temporary file is left."""
+    import warpfem.io.usd as usd
+
+    exported = []
+    export = usd.export
+    monkeypatch.setattr(usd, "export", lambda layer, path: (exported.append(path.name), export(layer, path))[1])
+    bodies, frames = bodies_and_frames(6)
+    files = []
+    for hint in (None, final):
+        folder = tmp_path / str(hint)
+        folder.mkdir()
+        exported.clear()
+        with UsdWriter(folder / f"out{ext}", bodies, fps=30.0, chunk_bytes=300, workers=workers, final_frame=hint) as w:
+            for f, points in enumerate(frames):
+                w.add_frame(f, points)
+        assert [p.name for p in folder.rglob("*") if ".tmp-" in p.name] == []
+        files.append((folder / f"out{ext}").read_bytes())
+        assert len(list((folder / "out.clips").glob("out.*.usdc"))) == 3
+        tops = [name for name in exported if "-final" not in name]
+        assert len(tops) == (3 if hint in (None, 9) else 2)  # one moved into place where the hint came true
+    assert files[0] == files[1]

@@ -46,7 +46,9 @@ class RunSummary:
             is above the tolerance the run warned, and ``cg_residual_max`` understates the systems' residual.
         seconds: Wall time (s) per phase: prepare, build, simulate, map (hand-over of frames to the writer),
             write and check (on the writer's thread, overlapping the simulation), wait (the simulation waiting
-            for the writer), and wall (from the first step to the file written); write_cpu: the CPU time of write
+            for the writer), wall (from the first step to the file written) and close (from the last frame's
+            hand-over to the file written: its body check, the writer's last frame and finishing the file,
+            waiting for the threads; part of wall); write_cpu: the CPU time of write
             (its wall time less the waits for the interpreter lock and for a core); write_workers: time spent
             authoring and exporting chunks, summed over the writer processes (beside the run; on the writer's
             thread with none).
@@ -212,6 +214,7 @@ def record(
             overwrite=overwrite,
             save_every=save_every,
             props=props,
+            final_frame=scene.frames,
         )
     except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
@@ -220,22 +223,27 @@ def record(
 
     def write(frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
         writer.add_frame(frame, points, transforms(frame), extents=boxes)
+        if frame == scene.frames:  # the file is finished here, beside the last frame's body check
+            writer.close()
 
     seconds = {**sim.seconds, "simulate": 0.0, "map": 0.0}
     with writer:  # an error before the first frame leaves nothing, the writer's staged files included
         clock = time.perf_counter()
         sim.capture()  # before the writer's thread waits on the device: no capture may be active then
+        stream = FrameStream(sim, [("write", write), ("check", check.ground)], skippable=("check",))
         seconds["build"] = seconds.get("build", 0.0) + time.perf_counter() - clock
         started = check.started = time.perf_counter()
-        with FrameStream(sim, [("write", write), ("check", check.ground)], skippable=("check",)) as stream:
-            _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
-        clock, cpu = time.perf_counter(), time.thread_time()  # the writer writes what is left on leaving this block
-    seconds["write"] = stream.seconds["write"] + time.perf_counter() - clock
+        with stream:
+            handed_over = _stream_frames(sim, stream, check, seconds, on_frame, on_points, every)
+        clock, cpu = time.perf_counter(), time.thread_time()  # after an early stop the writer writes what is left here
+    ended = time.perf_counter()
+    seconds["write"] = stream.seconds["write"] + ended - clock
     seconds["write_cpu"] = stream.cpu_seconds["write"] + time.thread_time() - cpu
     seconds["write_workers"] = writer.export_seconds
     seconds["check"] = stream.seconds["check"] + check.seconds
     seconds["wait"] = stream.waited
-    seconds["wall"] = time.perf_counter() - started
+    seconds["wall"] = ended - started
+    seconds["close"] = ended - handed_over
     summary = _summary(sim, out, seconds, check)
     summary.writer_peak_bytes = writer.writer_peak_bytes
     return summary
@@ -289,12 +297,13 @@ def _stream_frames(
     on_frame: Callable[[], None] | None,
     on_points: Callable[[int, list[np.ndarray]], None] | None,
     every: int,
-) -> None:
+) -> float:
     """Step every frame of ``sim``'s scene, handing frame 0, every ``every``-th and the last to ``stream``.
 
     The bodies are checked against each other where ``check`` says so, after the frame is handed over.
+    Returns when (``time.perf_counter``) the last frame was handed over.
     """
-    frames = sim.scene.frames
+    frames, handed_over = sim.scene.frames, 0.0
     for frame in range(frames + 1):
         t0 = time.perf_counter()
         if frame:
@@ -303,13 +312,15 @@ def _stream_frames(
         seconds["simulate"] += t1 - t0
         if frame % every == 0 or frame == frames:
             stream.submit(frame)
-            seconds["map"] += time.perf_counter() - t1
+            handed_over = time.perf_counter()
+            seconds["map"] += handed_over - t1
             if check.bodies_due(frame):
                 check.bodies_now(frame, *stream.on_device)
             if on_points:
                 on_points(frame, sim.dense_points())
         if frame and on_frame:
             on_frame()
+    return handed_over
 
 
 class _Check:

@@ -86,6 +86,7 @@ class UsdWriter:
         chunk_bytes: int = CHUNK_BYTES,
         props: Sequence[Prop] = (),
         workers: int | None = None,
+        final_frame: int | None = None,
     ):
         """Check the arguments, start the writer processes or stage the clips' topology (nothing visible is written).
 
@@ -105,6 +106,9 @@ class UsdWriter:
                 ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
             workers: Writer processes that author and export chunks, several at once (0: on the calling
                 thread); None: :func:`~warpfem.io.usd_workers.default_workers` for the bodies' frame size.
+            final_frame: The last frame the caller will add, where it knows it: once a run is in clips, the
+                top-level layer listing each chunk as the last one to this frame is written ahead as the chunk
+                opens, so that closing only moves it into place (the same layer closing would export).
 
         Raises:
             ValueError: A bad extension, name, face array, fps, up axis, ``save_every``, ``chunk_bytes``, prop or
@@ -121,6 +125,9 @@ class UsdWriter:
         if not overwrite and (self.path.exists() or self.clips_dir.exists()):
             raise FileExistsError(f"{self.path}: the file exists (overwriting was not asked for)")
         self._tmp = self.path.with_name(f".{self.path.stem}.tmp-{os.getpid()}{self.path.suffix}")
+        self._final_top = self.path.with_name(f".{self.path.stem}.tmp-{os.getpid()}-final{self.path.suffix}")
+        self._final_frame = final_frame
+        self._final_key: tuple | None = None  # the clips and last frame the top-level layer written ahead lists
         self._fps = float(fps)
         self._up_axis = up_axis
         self._bodies: list[tuple[str, np.ndarray]] = []
@@ -241,6 +248,7 @@ class UsdWriter:
             self._pool.add(self._cuts, frame, arrays, matrices, boxes)
             if self._chunk_first is None:
                 self._chunk_first = frame
+                self._stage_final_top(frame)
             if self._vertices[0] is None:  # the first frame fixes each body's point count
                 self._vertices = [len(p) for p in arrays]
                 self._frame_bytes = sum(p.nbytes for p in arrays)
@@ -321,7 +329,7 @@ class UsdWriter:
             return
         if not self._clips and not self._cut:
             self._start_clips()
-        name = self.clips_dir / f"{self.path.stem}.{self._chunk_first:06d}.usdc"
+        name = self.clips_dir / self._clip_name(self._chunk_first)
         tmp = name.with_name(f".{name.stem}.tmp-{os.getpid()}{name.suffix}")
         self._pool.cut(self._cuts, tmp)
         self._cut[self._cuts] = (self._chunk_first, tmp)
@@ -355,26 +363,51 @@ class UsdWriter:
         self._pool.clip_files(folder)
 
     def _write_top(self) -> None:
-        """Replace the top-level layer: metadata, the topology as a sublayer and the clips written so far."""
+        """Replace the top-level layer with one listing the clips placed so far (the one written ahead if it does)."""
+        try:
+            if self._final_key == (tuple(self._clips), self._clips_end):
+                os.replace(self._final_top, self._tmp)
+                self._final_key = None
+            else:
+                export(self._top_layer(self._clips, self._clips_end), self._tmp)
+            self._place()
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
+
+    def _stage_final_top(self, first: int) -> None:
+        """Write ahead the top-level layer as it will be if the chunk opened at frame ``first`` is the last.
+
+        Only in a run in clips (a chunk cut before), with the final frame (``final_frame``) still to come.
+        """
+        if self._final_frame is None or first >= self._final_frame or not (self._clips or self._cut):
+            return
+        cut = [(start, f"./{self.clips_dir.name}/{self._clip_name(start)}") for start, _ in self._cut.values()]
+        clips = [*self._clips, *sorted(cut), (first, f"./{self.clips_dir.name}/{self._clip_name(first)}")]
+        self._final_key = None
+        export(self._top_layer(clips, self._final_frame), self._final_top)
+        self._final_key = (tuple(clips), self._final_frame)
+
+    def _top_layer(self, clips: Sequence[tuple[int, str]], end: int) -> object:
+        """The top-level layer: metadata to frame ``end``, the topology as a sublayer and ``clips`` (first, path)."""
         from pxr import Sdf, Vt
 
         top = Sdf.Layer.CreateAnonymous(f"top.{_FORMATS[self.path.suffix.lower()]}")
         top.subLayerPaths.append(f"./{self.clips_dir.name}/topology.usdc")
         world = Sdf.PrimSpec(top, "World", Sdf.SpecifierOver)
-        clips = {
-            "assetPaths": Sdf.AssetPathArray([path for _, path in self._clips]),
+        info = {
+            "assetPaths": Sdf.AssetPathArray([path for _, path in clips]),
             "primPath": "/World",
-            "active": Vt.Vec2dArray([(float(first), float(i)) for i, (first, _) in enumerate(self._clips)]),
+            "active": Vt.Vec2dArray([(float(first), float(i)) for i, (first, _) in enumerate(clips)]),
             "manifestAssetPath": Sdf.AssetPath(f"./{self.clips_dir.name}/manifest.usda"),
         }
-        world.SetInfo("clips", {"default": clips})
-        StageInfo(self._up_axis, self._fps).author(top, self._clips_end)
-        try:
-            export(top, self._tmp)
-            self._place()
-        except BaseException:
-            self._tmp.unlink(missing_ok=True)
-            raise
+        world.SetInfo("clips", {"default": info})
+        StageInfo(self._up_axis, self._fps).author(top, end)
+        return top
+
+    def _clip_name(self, first: int) -> str:
+        """The file name of the chunk whose first frame is ``first``."""
+        return f"{self.path.stem}.{first:06d}.usdc"
 
     def _place(self) -> None:
         """Move the exported temporary file onto the target (never over a foreign file without ``overwrite``)."""
@@ -411,6 +444,7 @@ class UsdWriter:
                 else:
                     self._write_single()
                 self._pool.stop()
+                self._final_top.unlink(missing_ok=True)
         except BaseException:
             self.abort()
             raise
@@ -431,6 +465,7 @@ class UsdWriter:
         self._closed = True
         self._pool.kill()
         self._tmp.unlink(missing_ok=True)
+        self._final_top.unlink(missing_ok=True)
         if self.clips_dir.is_dir():
             for leftover in self.clips_dir.glob(f".*.tmp-{os.getpid()}.*"):
                 leftover.unlink(missing_ok=True)
