@@ -573,6 +573,43 @@ def _build(
     dense_to_coarse, coarse_to_dense = hausdorff(unit.vertices, unit.faces, coarse_v, coarse_f)
     seconds["hausdorff"] = time.perf_counter() - clock
 
+    stats = _build_stats(
+        unit, scale, (coarse_v, coarse_f, tet_v, tets), (embed_tet, embed_bary, depth), quality, sized,
+        (index, failures, dense_pairs, dense_to_coarse, coarse_to_dense),
+    )  # fmt: skip
+    stats.update({f"seconds_{stage}": value for stage, value in seconds.items()})
+    arrays = {
+        "coarse_vertices": coarse_v * scale + center,
+        "coarse_faces": coarse_f,
+        "boundary_faces": boundary,
+        "tet_vertices": tet_v * scale + center,
+        "tets": tets,
+        "embed_tet": embed_tet.astype(np.int32),
+        "embed_bary": embed_bary,
+        "vertex_depth": depth * scale,
+        "vertex_grad": grad,
+        "face_depth": face_depth * scale,
+    }
+    return arrays, stats
+
+
+def _build_stats(
+    unit: Surface,
+    scale: float,
+    meshes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    embedded: tuple[np.ndarray, np.ndarray, np.ndarray],
+    quality: dict,
+    sized: dict,
+    outcome: tuple[int, list[str], int, float, float],
+) -> dict[str, float | int | str]:
+    """Return :func:`_build`'s statistics in the caller's units.
+
+    The rung, the meshes' sizes and quality, the sizing, the Hausdorff distances and how well the embedding
+    rebuilds the dense vertices.
+    """
+    coarse_v, coarse_f, tet_v, tets = meshes
+    embed_tet, embed_bary, depth = embedded
+    index, failures, dense_pairs, dense_to_coarse, coarse_to_dense = outcome
     rebuilt = np.einsum("nk,nkj->nj", embed_bary, tet_v[tets[embed_tet]])
     stats: dict[str, float | int | str] = {
         "rung": f"{index + 1} ({LADDER[index].label})",
@@ -597,20 +634,7 @@ def _build(
     }
     if sized:
         stats["thickness"] = sized["thickness_relative"] * scale
-    stats.update({f"seconds_{stage}": value for stage, value in seconds.items()})
-    arrays = {
-        "coarse_vertices": coarse_v * scale + center,
-        "coarse_faces": coarse_f,
-        "boundary_faces": boundary,
-        "tet_vertices": tet_v * scale + center,
-        "tets": tets,
-        "embed_tet": embed_tet.astype(np.int32),
-        "embed_bary": embed_bary,
-        "vertex_depth": depth * scale,
-        "vertex_grad": grad,
-        "face_depth": face_depth * scale,
-    }
-    return arrays, stats
+    return stats
 
 
 def default_cache_dir() -> Path:
@@ -680,14 +704,7 @@ def prepare(
     """
     say = progress or (lambda _message: None)
     started = time.perf_counter()
-    if budget_s is not None and not budget_s > 0:
-        raise InputError(f"{mesh}: budget_s must be positive, got {budget_s}")
-    if faces < 4:
-        raise InputError(f"{mesh}: faces must be >= 4, got {faces}")
-    if not maxh > 0:
-        raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
-    if not (0 <= across < float("inf")) or (across and max_tets < 1):
-        raise InputError(f"{mesh}: across must be >= 0 and finite and max_tets >= 1, got {across} and {max_tets}")
+    _check_prepare(mesh, faces, maxh, budget_s, across, max_tets)
     clock = time.perf_counter()
     say(f"{mesh}: loading")
     options = f"shells={shells!r} max_hole={max_hole!r}" + (f" prim={prim!r}" if prim is not None else "")
@@ -730,6 +747,20 @@ def prepare(
         _write_cache(path, body)
         _remember(index, path)
     return body
+
+
+def _check_prepare(
+    mesh: str | Path, faces: int, maxh: float, budget_s: float | None, across: float, max_tets: int
+) -> None:
+    """Raise InputError (one line, naming the mesh) for a parameter :func:`prepare` cannot work with."""
+    if budget_s is not None and not budget_s > 0:
+        raise InputError(f"{mesh}: budget_s must be positive, got {budget_s}")
+    if faces < 4:
+        raise InputError(f"{mesh}: faces must be >= 4, got {faces}")
+    if not maxh > 0:
+        raise InputError(f"{mesh}: maxh must be positive, got {maxh}")
+    if not (0 <= across < float("inf")) or (across and max_tets < 1):
+        raise InputError(f"{mesh}: across must be >= 0 and finite and max_tets >= 1, got {across} and {max_tets}")
 
 
 def _hit(
