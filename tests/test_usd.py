@@ -192,6 +192,39 @@ def test_other_exception_after_frames_closes(tmp_path):
     assert Usd.Stage.Open(str(path)).GetEndTimeCode() == 0.0
 
 
+def test_an_interrupt_while_another_thread_closes_waits_for_that_close(tmp_path, monkeypatch):
+    """A run's writer thread closes the file as the last frame comes; a Ctrl-C reaching the caller meanwhile
+    leaves the writer's context with that close still going: it waits for it rather than closing a second
+    time, and the file holds every frame."""
+    import threading
+    import time
+
+    from pxr import Usd
+
+    bodies, frames = bodies_and_frames(3)
+    path = tmp_path / "x.usdc"
+    writer = UsdWriter(path, bodies, fps=60.0, workers=0)
+    slow, calls = writer._write_single, []
+
+    def write_single():
+        calls.append(1)
+        time.sleep(0.3)
+        slow()
+
+    monkeypatch.setattr(writer, "_write_single", write_single)
+    with pytest.raises(KeyboardInterrupt):
+        with writer:
+            for f, points in enumerate(frames):
+                writer.add_frame(f, points)
+            closing = threading.Thread(target=writer.close)
+            closing.start()
+            time.sleep(0.05)
+            raise KeyboardInterrupt
+    closing.join()
+    assert calls == [1]
+    assert Usd.Stage.Open(str(path)).GetEndTimeCode() == float(len(frames) - 1)
+
+
 @pytest.mark.parametrize("error", [ZeroDivisionError, KeyboardInterrupt])
 def test_exception_before_any_frame_aborts(tmp_path, error):
     bodies, _ = bodies_and_frames(1)

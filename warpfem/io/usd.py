@@ -137,6 +137,7 @@ class UsdWriter:
         self._last_frame: int | None = None
         self._frames_added = 0
         self._closed = False
+        self._closing = threading.Lock()  # one close at a time: a run's writer thread closes, its caller may too
         self._overwrite = overwrite
         self._save_every = save_every
         self._chunk_limit = chunk_bytes
@@ -432,6 +433,11 @@ class UsdWriter:
             OSError: An export or a move failed (temporary files are removed; the target keeps the chunks
                 written before, if any).
         """
+        with self._closing:
+            return self._close()
+
+    def _close(self) -> Path:
+        """:meth:`close`, with the closing lock held."""
         if self._closed:
             raise RuntimeError(f"{self.path}: UsdWriter is already closed")
         if self._last_frame is None:
@@ -479,12 +485,13 @@ class UsdWriter:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if self._closed:
-            return
-        if exc_type is None or self._last_frame is not None:
-            self.close()
-        else:
-            self.abort()
+        with self._closing:  # a close under way on another thread finishes first
+            if self._closed:
+                return
+            if exc_type is None or self._last_frame is not None:
+                self._close()
+            else:
+                self.abort()
 
 
 @contextlib.contextmanager
