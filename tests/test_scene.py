@@ -54,7 +54,7 @@ def test_every_default_applied(tmp_path):
     assert scene.gravity == (0.0, -9.81, 0.0)
     assert scene.up_axis == "Y"
     assert scene.solver == SolverConfig(cg_mode="tolerance", cg_iterations=400, cg_tolerance=1e-4)
-    assert scene.ground == GroundConfig(enabled=True, height=0.0, stiffness=1e7, friction=0.5)
+    assert scene.ground == GroundConfig(enabled=True, height=0.0, stiffness=1e7, friction=0.5, offset=0.0008)
     assert scene.collision == CollisionConfig(enabled=True, stiffness=1e7, friction=0.5)
     assert scene.camera == CameraConfig(position=None, target=None, fov=35.0)
     assert scene.obstacles == []
@@ -177,6 +177,14 @@ ERRORS = [
     ("rotation_tolerance nan", "[solver]\nrotation_tolerance = nan\n" + OBJ, "solver.rotation_tolerance", "finite"),
     ("ground stiffness 0", "[ground]\nstiffness = 0\n" + OBJ, "ground.stiffness", "> 0 1/s^2"),
     ("ground friction < 0", "[ground]\nfriction = -0.1\n" + OBJ, "ground.friction", ">= 0"),
+    ("ground offset < 0", "[ground]\noffset = -0.001\n" + OBJ, "ground.offset", ">= 0 and <= 0.05"),
+    ("ground offset 0.1", "[ground]\noffset = 0.1\n" + OBJ, "ground.offset", "<= 0.05"),
+    (
+        "obstacle offset 1",
+        '[[obstacle]]\nkind = "sphere"\ncenter = [0, 0, 0]\nradius = 0.5\noffset = 1\n' + OBJ,
+        "obstacle[0]: offset",
+        "<= 0.05",
+    ),
     (
         "missing mesh file",
         '[[object]]\nname = "a"\nmesh = "nowhere.obj"\n',
