@@ -295,26 +295,14 @@ def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, to
     The collision samples are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a tip or an
     edge between grid points (an ear, a finger, a thin bar's corner) would otherwise sink into another body
     unseen. The skin, for the static colliders, to ``tolerance`` (m); its denser grid bounds how far a dense
-    vertex lies from a skin point, so a tilted patch between them dips less. The skin also holds every vertex
-    of the dense surface's convex hull, so that the point of the surface farthest along any direction (the
-    lowest, on a ground) is one of its points at rest, whatever the vertex normals say.
+    vertex lies from a skin point, so a tilted patch between them dips less.
     """
     x = np.asarray(positions, np.float64)
     normal = vertex_normals(x, faces)
     size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
     collision = refined(x, normal, grid_picks(x, spacing), spacing, COLLISION_TOLERANCE * size)
     skin = refined(x, normal, np.union1d(collision, grid_picks(x, spacing / 2.0)), spacing, tolerance)
-    return SurfaceSamples(collision, np.union1d(skin, hull_vertices(x)))
-
-
-def hull_vertices(x: np.ndarray) -> np.ndarray:
-    """Indices of the points ``x`` (n, 3) on their convex hull; none where the points span no volume."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    try:
-        return np.asarray(ConvexHull(x).vertices, np.int64)
-    except (QhullError, ValueError):
-        return np.zeros(0, np.int64)
+    return SurfaceSamples(collision, skin)
 
 
 def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: float, tolerance: float) -> np.ndarray:
