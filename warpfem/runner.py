@@ -263,11 +263,7 @@ def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarr
     obstacles, handles = list(sim.solver.obstacles), [h.motion for h in sim.solver.handles]
 
     def poses(time: float) -> list[np.ndarray]:
-        matrices = [collider_pose(c, time) for c in obstacles]
-        for motion in handles:
-            matrices.append(np.eye(4))
-            matrices[-1][:3, :3], matrices[-1][:3, 3] = motion.at(time)
-        return matrices
+        return [*(collider_pose(c, time) for c in obstacles), *(motion.matrix(time) for motion in handles)]
 
     return props, poses
 

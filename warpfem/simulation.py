@@ -308,10 +308,7 @@ class Simulation:
         for handle in self.solver.handles:
             rest = self._rest_x[handle.vertices]
             vertices, faces = box_surface(rest.min(axis=0), rest.max(axis=0))
-            r, t = handle.motion.at(time)
-            matrix = np.eye(4)
-            matrix[:3, :3], matrix[:3, 3] = r, t
-            out.append(Posed(handle.name, "handle", vertices, faces, matrix, {}))
+            out.append(Posed(handle.name, "handle", vertices, faces, handle.motion.matrix(time), {}))
         return out
 
     def step_frame(self, profile: bool = False) -> FrameStats:

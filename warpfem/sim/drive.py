@@ -111,6 +111,12 @@ class Motion:
         pivot = np.asarray(self.pivot, np.float64)
         return r, pivot + move - r @ pivot
 
+    def matrix(self, time: float) -> np.ndarray:
+        """:meth:`at` as one 4x4 matrix (column vectors)."""
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = self.at(time)
+        return pose
+
 
 @dataclass(frozen=True)
 class Handle:
