@@ -70,6 +70,32 @@ def test_skin_samples_hold_the_surface_up_in_every_direction():
         assert gap_skin.max() < 2 * tolerance and gap_grid.max() > 5 * tolerance
 
 
+def test_collision_samples_cover_the_dense_surface(prep_cache):
+    """On the builtin bunny, with the default spacing: every dense vertex lies within half the spacing of a
+    collision sample (brute-force distances, NumPy), where a grid of that spacing picking one vertex per cell
+    leaves vertices nearly twice as far; the cover's picks lie at least that far apart, and refinement only
+    adds to them."""
+    from warpfem.prep.geometry import DEFAULT_SPACING, SKIN_SPACING, covering_picks, grid_picks, surface_samples
+
+    body = warpfem.prepare("builtin:bunny", faces=400, cache_dir=prep_cache)
+    x = np.asarray(body.dense_vertices, np.float64)
+    size = float(np.linalg.norm(np.ptp(x, axis=0)))
+    spacing = DEFAULT_SPACING * size
+
+    def nearest(picks):  # each dense vertex's distance to its nearest pick
+        return np.concatenate(
+            [np.sqrt(((x[i : i + 2048, None] - x[picks][None]) ** 2).sum(-1)).min(1) for i in range(0, len(x), 2048)]
+        )
+
+    samples = surface_samples(x, body.dense_faces, spacing, 2e-4 * size, SKIN_SPACING * size)
+    assert nearest(samples.collision).max() <= 0.5 * spacing * (1 + 1e-9)
+    assert nearest(grid_picks(x, spacing)).max() > 0.9 * spacing
+    picks = covering_picks(x, 0.5 * spacing)
+    assert np.isin(picks, samples.collision).all()
+    apart = np.sqrt(((x[picks][:, None] - x[picks][None]) ** 2).sum(-1)) + np.eye(len(picks)) * size
+    assert apart.min() >= 0.5 * spacing
+
+
 def _head_on(
     device: str,
     speed: float,

@@ -16,6 +16,7 @@ import numpy as np
 from warpfem.errors import InputError
 from warpfem.prep.geometry import (
     DEFAULT_SPACING,
+    SKIN_SPACING,
     SKIN_TOLERANCE,
     BodyGeometry,
     SurfaceSamples,
@@ -90,9 +91,10 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
     for obj, body in zip(scene.objects, prepared, strict=True):
         size = float(np.linalg.norm(np.ptp(body.tet_vertices, axis=0)))
         spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else DEFAULT_SPACING * size
+        skin_spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else SKIN_SPACING * size
         key = (id(body), spacing)
         if key not in done:
-            done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir)
+            done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)
             if scene.solver.elements == "quadratic":
                 done[key] = SurfaceSamples(done[key].collision, np.arange(len(body.dense_vertices)))
         samples.append(done[key])

@@ -78,10 +78,14 @@ def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.einsum("sk,fkd->fsd", w, np.asarray(vertices, np.float64)[np.asarray(faces)])
 
 
-DEFAULT_SPACING = 0.02
-"""Collision samples of a dense surface every this fraction of the body's bounding-box diagonal, when the
-scene sets no spacing: a crossing of two thin parts then overlaps by at most about a sample gap, 1-2 % of
-the size (docs/decisions.md)."""
+DEFAULT_SPACING = 0.016
+"""Collision samples of a dense surface about this fraction of the body's bounding-box diagonal apart, when
+the scene sets no spacing: every dense vertex lies within half of it of a sample, so two surfaces pressed
+together bulge past each other's samples by little (docs/decisions.md)."""
+
+SKIN_SPACING = 0.02
+"""The skin's coarser grid, a fraction of the size, when the scene sets no collision spacing (the skin also
+takes every vertex of a grid of half of it, then refines)."""
 
 
 def body_geometry(
@@ -102,8 +106,9 @@ def body_geometry(
         vertices: (p, 3) tet vertex positions (m).
         tets: (q, 4) positive tets.
         collision_spacing: Spacing of collision samples (m). With ``dense``: of the dense vertices used as
-            collision points (0: :data:`DEFAULT_SPACING` of the size). Without: of extra samples on the tet
-            mesh's surface triangles (0: its vertices only, the paper's method).
+            collision points (0: :data:`DEFAULT_SPACING` of the size, and the skin's grid
+            :data:`SKIN_SPACING`). Without: of extra samples on the tet mesh's surface triangles (0: its
+            vertices only, the paper's method).
         surface_faces: Outward boundary triangles (default: the tet mesh's boundary).
         vertex_depth: Signed distance below the visible surface at each vertex (m); computed from the tet
             mesh's surface when not given.
@@ -127,7 +132,8 @@ def body_geometry(
         if samples is None:
             size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
             spacing = collision_spacing or DEFAULT_SPACING * size
-            samples = surface_samples(dense[0], dense_faces, spacing, SKIN_TOLERANCE * size)
+            skin_spacing = collision_spacing or SKIN_SPACING * size
+            samples = surface_samples(dense[0], dense_faces, spacing, SKIN_TOLERANCE * size, skin_spacing)
         points = dense_samples(samples.collision, dense[1], dense[2], tets)
         skin = dense_samples(samples.skin, dense[1], dense[2], tets)
     start, flat = tet_surface_faces(tets, faces, len(vertices))
@@ -289,19 +295,43 @@ def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
     return np.sort(pick)
 
 
-def surface_samples(positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float) -> SurfaceSamples:
-    """Collision samples every ``spacing`` (m) and skin samples every half of it, each set refined.
+def covering_picks(positions: np.ndarray, radius: float) -> np.ndarray:
+    """Vertices chosen so that every vertex lies within ``radius`` of one and no two lie closer (sorted indices).
 
-    The collision samples are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a tip or an
-    edge between grid points (an ear, a finger, a thin bar's corner) would otherwise sink into another body
-    unseen. The skin, for the static colliders, to ``tolerance`` (m); its denser grid bounds how far a dense
-    vertex lies from a skin point, so a tilted patch between them dips less.
+    Greedy in index order. For the same count it leaves a vertex about half as far from its nearest pick as
+    one vertex per grid cell does, since a grid picks whatever vertex comes first in a cell.
+    """
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(positions, np.float64)
+    tree, covered, picks = cKDTree(x), np.zeros(len(x), bool), []
+    for i in range(len(x)):
+        if not covered[i]:
+            picks.append(i)
+            covered[tree.query_ball_point(x[i], radius)] = True
+    return np.asarray(picks, np.int64)
+
+
+def surface_samples(
+    positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float, skin_spacing: float | None = None
+) -> SurfaceSamples:
+    """Collision samples about ``spacing`` (m) apart and the skin, each refined.
+
+    The collision samples cover the surface (every dense vertex within half of ``spacing`` of one,
+    :func:`covering_picks`), then are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a
+    tip or an edge between them (an ear, a finger, a thin bar's corner) would otherwise sink into another
+    body unseen. The skin, for the static colliders, takes a grid every ``skin_spacing`` (default:
+    ``spacing``) refined to the collision tolerance and a grid every half of it, refined to ``tolerance``
+    (m); its denser grid bounds how far a dense vertex lies from a skin point, so a tilted patch between them
+    dips less.
     """
     x = np.asarray(positions, np.float64)
     normal = vertex_normals(x, faces)
     size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
-    collision = refined(x, normal, grid_picks(x, spacing), spacing, COLLISION_TOLERANCE * size)
-    skin = refined(x, normal, np.union1d(collision, grid_picks(x, spacing / 2.0)), spacing, tolerance)
+    grid = skin_spacing or spacing
+    collision = refined(x, normal, covering_picks(x, spacing / 2.0), spacing, COLLISION_TOLERANCE * size)
+    coarse = refined(x, normal, grid_picks(x, grid), grid, COLLISION_TOLERANCE * size)
+    skin = refined(x, normal, np.union1d(coarse, grid_picks(x, grid / 2.0)), grid, tolerance)
     return SurfaceSamples(collision, skin)
 
 

@@ -289,16 +289,17 @@ SAMPLES_FORMAT = 1
 
 
 def cached_surface_samples(
-    body: PreparedBody, spacing: float, tolerance: float, cache_dir: Path | None
+    body: PreparedBody, spacing: float, tolerance: float, cache_dir: Path | None, skin_spacing: float | None = None
 ) -> SurfaceSamples:
     """:func:`~warpfem.prep.geometry.surface_samples` of ``body``'s dense mesh, read from ``cache_dir`` when there.
 
-    Keyed by the dense mesh's bytes, ``spacing``, ``tolerance`` (mesh units) and the geometry module's
-    source; None: computed, nothing stored.
+    Keyed by the dense mesh's bytes, ``spacing``, ``tolerance``, ``skin_spacing`` (mesh units) and the geometry
+    module's source; None: computed, nothing stored.
     """
     if cache_dir is None:
-        return surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance)
-    digest = hashlib.sha256(f"warpfem-samples v{SAMPLES_FORMAT} {spacing!r} {tolerance!r}\n".encode())
+        return surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance, skin_spacing)
+    key = f"{spacing!r} {tolerance!r} {skin_spacing!r}"
+    digest = hashlib.sha256(f"warpfem-samples v{SAMPLES_FORMAT} {key}\n".encode())
     digest.update(Path(geometry.__file__).read_bytes())
     digest.update(np.ascontiguousarray(body.dense_vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(body.dense_faces, dtype="<i4").tobytes())
@@ -311,7 +312,7 @@ def cached_surface_samples(
             return found
     except Exception:  # absent, or damaged anywhere from zipfile to the OS layer: compute it again
         pass
-    made = surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance)
+    made = surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance, skin_spacing)
     _save_atomically(path, lambda stream: np.savez(stream, collision=made.collision, skin=made.skin))
     return made
 
