@@ -11,8 +11,8 @@ import trimesh
 from mesh_kinds import cad_bracket, write_obj
 
 from warpfem.errors import InputError
-from warpfem.prep.geometry import surface_samples
 from warpfem.prep.pipeline import cached_surface_samples, prepare
+from warpfem.prep.samples import surface_samples
 from warpfem.prep.simplify import simplify
 from warpfem.prep.tetmesh import tet_quality, tet_signed_volumes, tetrahedralize
 

@@ -53,7 +53,7 @@ def test_skin_samples_hold_the_surface_up_in_every_direction():
     holds up is where the visible surface is; the plain grid of collision samples does not."""
     import trimesh
 
-    from warpfem.prep.geometry import surface_samples
+    from warpfem.prep.samples import surface_samples
 
     rng = np.random.default_rng(3)
     directions = rng.normal(size=(400, 3))
@@ -75,7 +75,7 @@ def test_collision_samples_cover_the_dense_surface(prep_cache):
     collision sample (brute-force distances, NumPy), where a grid of that spacing picking one vertex per cell
     leaves vertices nearly twice as far; the cover's picks lie at least that far apart, and refinement only
     adds to them."""
-    from warpfem.prep.geometry import DEFAULT_SPACING, SKIN_SPACING, covering_picks, grid_picks, surface_samples
+    from warpfem.prep.samples import DEFAULT_SPACING, SKIN_SPACING, covering_picks, grid_picks, surface_samples
 
     body = warpfem.prepare("builtin:bunny", faces=400, cache_dir=prep_cache)
     x = np.asarray(body.dense_vertices, np.float64)

@@ -14,15 +14,9 @@ from typing import Any
 import numpy as np
 
 from warpfem.errors import InputError
-from warpfem.prep.geometry import (
-    DEFAULT_SPACING,
-    SKIN_SPACING,
-    SKIN_TOLERANCE,
-    BodyGeometry,
-    SurfaceSamples,
-    body_geometry,
-)
+from warpfem.prep.geometry import BodyGeometry, body_geometry
 from warpfem.prep.pipeline import PreparedBody, cached_surface_samples, prepare
+from warpfem.prep.samples import DEFAULT_SPACING, SKIN_SPACING, SKIN_TOLERANCE, SurfaceSamples
 from warpfem.prep.surface import read_triangles
 from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
@@ -79,7 +73,7 @@ def prepare_scene(
 
 
 def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | None = None) -> list[SurfaceSamples]:
-    """Which dense vertices of each object collide (:func:`~warpfem.prep.geometry.surface_samples`).
+    """Which dense vertices of each object collide (:func:`~warpfem.prep.samples.surface_samples`).
 
     Chosen in the mesh's own coordinates, once per distinct mesh and spacing: a pile of one mesh pays once;
     read from the preprocessing cache ``cache_dir`` where it holds them (None: computed, not stored). With

@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from warpfem.errors import InputError
-from warpfem.prep import geometry
+from warpfem.prep import samples
 from warpfem.prep.embedding import embed
-from warpfem.prep.geometry import LATTICE_POINTS, SurfaceSamples, face_lattice, surface_samples
+from warpfem.prep.geometry import LATTICE_POINTS, face_lattice
+from warpfem.prep.samples import SurfaceSamples, surface_samples
 from warpfem.prep.sizing import DEFAULT_MAX_TETS, SIZING_FORMAT
 from warpfem.prep.surface import Surface, load_surface, source_file, subdivide_surface
 
@@ -52,14 +53,16 @@ PREP_KERNELS = ("distance", "embedding", "intersect", "thickness")
 def code_digest() -> str:
     """A digest of the preprocessing source and the kernels it runs: what decides a body besides its inputs.
 
-    Not the versions of the packages that make the meshes: a cache prepared where Netgen is installed is
+    Not :mod:`warpfem.prep.samples`, whose choice of collision samples is cached under a key of its own. Not the
+    versions of the packages that make the meshes: a cache prepared where Netgen is installed is
     read where it is not (a GPU machine), and an older Netgen's mesh is still a valid one.
     """
     from warpfem.kernels import embedding as kernel
 
     kernel_dir = Path(kernel.__file__).parent
     digest = hashlib.sha256()
-    files = sorted(Path(__file__).parent.glob("*.py")) + [kernel_dir / f"{k}.py" for k in PREP_KERNELS]
+    own = sorted(p for p in Path(__file__).parent.glob("*.py") if p.name != Path(samples.__file__).name)
+    files = own + [kernel_dir / f"{k}.py" for k in PREP_KERNELS]
     for path in files:
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
@@ -285,22 +288,22 @@ def _read_indexed(index: Path | None) -> tuple[Path, PreparedBody] | None:
 
 SAMPLES_FORMAT = 1
 """Version of the cached collision samples' layout; they are also keyed by the source of
-:mod:`warpfem.prep.geometry`, so a change to how samples are chosen never reads old ones."""
+:mod:`warpfem.prep.samples`, so a change to how samples are chosen never reads old ones."""
 
 
 def cached_surface_samples(
     body: PreparedBody, spacing: float, tolerance: float, cache_dir: Path | None, skin_spacing: float | None = None
 ) -> SurfaceSamples:
-    """:func:`~warpfem.prep.geometry.surface_samples` of ``body``'s dense mesh, read from ``cache_dir`` when there.
+    """:func:`~warpfem.prep.samples.surface_samples` of ``body``'s dense mesh, read from ``cache_dir`` when there.
 
-    Keyed by the dense mesh's bytes, ``spacing``, ``tolerance``, ``skin_spacing`` (mesh units) and the geometry
+    Keyed by the dense mesh's bytes, ``spacing``, ``tolerance``, ``skin_spacing`` (mesh units) and the samples
     module's source; None: computed, nothing stored.
     """
     if cache_dir is None:
         return surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance, skin_spacing)
     key = f"{spacing!r} {tolerance!r} {skin_spacing!r}"
     digest = hashlib.sha256(f"warpfem-samples v{SAMPLES_FORMAT} {key}\n".encode())
-    digest.update(Path(geometry.__file__).read_bytes())
+    digest.update(Path(samples.__file__).read_bytes())
     digest.update(np.ascontiguousarray(body.dense_vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(body.dense_faces, dtype="<i4").tobytes())
     path = Path(cache_dir) / f"samples-{digest.hexdigest()}.npz"

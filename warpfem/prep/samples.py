@@ -1,0 +1,128 @@
+"""Which dense vertices collide: collision samples that cover the surface, and the skin the static colliders use.
+
+Chosen once per distinct mesh and spacing and cached beside the prepared body under a key of their own (this
+module's source among it), so a change here never prepares a body again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_SPACING = 0.016
+"""Collision samples of a dense surface about this fraction of the body's bounding-box diagonal apart, when
+the scene sets no spacing: every dense vertex lies within half of it of a sample, so two surfaces pressed
+together bulge past each other's samples by little (docs/decisions.md)."""
+
+SKIN_SPACING = 0.02
+"""The skin's coarser grid, a fraction of the size, when the scene sets no collision spacing (the skin also
+takes every vertex of a grid of half of it, then refines)."""
+
+
+SKIN_TOLERANCE = 0.0002
+"""The static colliders act on dense vertices chosen so that none of the others sticks out past its nearest
+chosen ones, along its own normal, by more than this fraction of the body's size: between them a resting
+dense surface dips at most this far below what the ground holds (docs/decisions.md)."""
+
+SKIN_ROUNDS = 8
+"""Refinement rounds of the skin and collision samples (each adds the vertices that stick out most, a few per
+cell)."""
+
+COLLISION_TOLERANCE = 0.001
+"""The collision samples are refined until no dense vertex sticks out past its nearest ones, along its own
+normal, by more than this fraction of the body's size (docs/decisions.md)."""
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Dense vertices chosen to collide, as indices into the dense mesh.
+
+    Attributes:
+        collision: (c,) one per cell of a grid: the points tested against other bodies.
+        skin: (s,) the points the static colliders act on (the grid's, refined where the surface curves).
+    """
+
+    collision: np.ndarray
+    skin: np.ndarray
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    normal = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(normal, f[:, k], cross)
+    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+
+
+def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
+    """One vertex per occupied cell of a grid of ``spacing`` (the first in index order), sorted indices."""
+    cell = np.floor((positions - positions.min(axis=0)) / spacing).astype(np.int64)
+    _, pick = np.unique(cell, axis=0, return_index=True)
+    return np.sort(pick)
+
+
+def covering_picks(positions: np.ndarray, radius: float) -> np.ndarray:
+    """Vertices chosen so that every vertex lies within ``radius`` of one and no two lie closer (sorted indices).
+
+    Greedy in index order. For the same count it leaves a vertex about half as far from its nearest pick as
+    one vertex per grid cell does, since a grid picks whatever vertex comes first in a cell.
+    """
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(positions, np.float64)
+    tree, covered, picks = cKDTree(x), np.zeros(len(x), bool), []
+    for i in range(len(x)):
+        if not covered[i]:
+            picks.append(i)
+            covered[tree.query_ball_point(x[i], radius)] = True
+    return np.asarray(picks, np.int64)
+
+
+def surface_samples(
+    positions: np.ndarray, faces: np.ndarray, spacing: float, tolerance: float, skin_spacing: float | None = None
+) -> SurfaceSamples:
+    """Collision samples about ``spacing`` (m) apart and the skin, each refined.
+
+    The collision samples cover the surface (every dense vertex within half of ``spacing`` of one,
+    :func:`covering_picks`), then are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a
+    tip or an edge between them (an ear, a finger, a thin bar's corner) would otherwise sink into another
+    body unseen. The skin, for the static colliders, takes a grid every ``skin_spacing`` (default:
+    ``spacing``) refined to the collision tolerance and a grid every half of it, refined to ``tolerance``
+    (m); its denser grid bounds how far a dense vertex lies from a skin point, so a tilted patch between them
+    dips less.
+    """
+    x = np.asarray(positions, np.float64)
+    normal = vertex_normals(x, faces)
+    size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+    grid = skin_spacing or spacing
+    collision = refined(x, normal, covering_picks(x, spacing / 2.0), spacing, COLLISION_TOLERANCE * size)
+    coarse = refined(x, normal, grid_picks(x, grid), grid, COLLISION_TOLERANCE * size)
+    skin = refined(x, normal, np.union1d(coarse, grid_picks(x, grid / 2.0)), grid, tolerance)
+    return SurfaceSamples(collision, skin)
+
+
+def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: float, tolerance: float) -> np.ndarray:
+    """``chosen`` vertices of ``x`` (with unit normals ``normal``) plus those that stick out past them.
+
+    A vertex sticks out past the chosen ones by ``min (v - s) . n_v`` over its nearest chosen ``s``; each of
+    :data:`SKIN_ROUNDS` rounds adds, per cell of a quarter of ``spacing``, the vertex that sticks out most past
+    ``tolerance`` (m).
+    """
+    from scipy.spatial import cKDTree
+
+    for _ in range(SKIN_ROUNDS):
+        _, near = cKDTree(x[chosen]).query(x, k=min(8, len(chosen)))
+        near = near.reshape(len(x), -1)
+        out = np.einsum("vkj,vj->vk", x[:, None, :] - x[chosen][near], normal).min(axis=1)
+        bad = np.flatnonzero(out > tolerance)
+        if len(bad) == 0:
+            break
+        order = bad[np.argsort(-out[bad])]
+        cell = np.floor((x[order] - x.min(axis=0)) / (spacing / 4.0)).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        chosen = np.union1d(chosen, order[first])
+    return chosen
