@@ -12,28 +12,17 @@ cap. On CUDA runs differ (float atomics add in another order), so several runs s
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def one_run(device: str, offset: float) -> str:
     """One 2 s drop; its line of figures."""
-    import warpfem
+    from test_stability import stiff_drop
 
-    body = {"name": "bunny", "mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "scale": 0.5}
-    body.update(rotate=[15.0, 30.0, 0.0], translate=[0.0, 1.0, 0.0], young=1e9, poisson=0.49, damping_stiffness=0.005)
-    doc = {"scene": {"frames": 48, "fps": 24.0, "substeps": 1}, "ground": {"offset": offset}, "object": [body]}
-    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stiff"), device=device)
-    size = float(np.linalg.norm(np.ptp(sim.dense_points("bunny"), axis=0)))
-    lowest, previous = [], None
-    for frame in range(48):
-        sim.step_frame()
-        points = sim.dense_points("bunny")
-        if frame >= 24:
-            lowest.append(float(points[:, 1].min()))
-        if frame == 46:
-            previous = points
-    moved = float(np.abs(points - previous).max())
+    size, lowest, moved, sim = stiff_drop(device, offset)
     return (
         f"offset {offset}: lowest {100 * min(lowest) / size:+.3f} .. {100 * max(lowest) / size:+.3f} %, "
         f"moved {100 * moved / size:.4f} % in the last frame, CG at its cap in {sim.totals.cg_capped_frames} frames"
