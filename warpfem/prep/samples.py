@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from warpfem.prep.surface import vertex_normals
+
 DEFAULT_SPACING = 0.016
 """Collision samples of a dense surface about this fraction of the body's bounding-box diagonal apart, when
 the scene sets no spacing: every dense vertex lies within half of it of a sample, so two surfaces pressed
@@ -18,7 +20,6 @@ together bulge past each other's samples by little (docs/decisions.md)."""
 SKIN_SPACING = 0.02
 """The skin's coarser grid, a fraction of the size, when the scene sets no collision spacing (the skin also
 takes every vertex of a grid of half of it, then refines)."""
-
 
 SKIN_TOLERANCE = 0.0002
 """The static colliders act on dense vertices chosen so that none of the others sticks out past its nearest
@@ -39,23 +40,12 @@ class SurfaceSamples:
     """Dense vertices chosen to collide, as indices into the dense mesh.
 
     Attributes:
-        collision: (c,) one per cell of a grid: the points tested against other bodies.
+        collision: (c,) the points tested against other bodies: a cover of the surface, refined at tips.
         skin: (s,) the points the static colliders act on (the grid's, refined where the surface curves).
     """
 
     collision: np.ndarray
     skin: np.ndarray
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    normal = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(normal, f[:, k], cross)
-    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
 
 
 def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
