@@ -288,6 +288,12 @@ def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[s
     path, data = found
     env = data["environment"]
     machine = f"driver {env['driver']}" if env.get("driver") else f"Python {env.get('python', '?')}"
+    sampled = ""
+    if any("raw_sampled_frames" in r for r in data["runs"]):
+        sampled = (
+            ", per frame of the frames it was written beside: every frame up to 8 MB of points, one in"
+            " ceil(size / 8 MB) above, so that measuring it does not hold the writer up"
+        )
     lines = [
         "",
         f"## End to end: the file written{', ' + where if where else ''}",
@@ -298,12 +304,15 @@ def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[s
         "the interpreter lock); write and check, each on a thread of its own beside it; close, the ms of the "
         "run from the last frame's hand-over to the file written (part of wall, where the JSON has it); raw, "
         "writing the same bytes with one plain write a frame to the same disk on the writer's thread in the "
-        "same run (in "
+        f"same run{sampled} (in "
         "parentheses: written again alone after the run, where the JSON has it), and write / raw against each; "
         "peak resident memory of the whole process; the file with its clips.",
         "",
-        "The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.",
-        "",
+        *(
+            ["The writer cases (`writerN`) feed N points a frame to the writer alone, as fast as it takes them.", ""]
+            if any(r["case"].startswith("writer") for r in data["runs"])
+            else []
+        ),
         "| case | bodies | dense vertices | writer processes | wall ms | simulate | write | check | close ms "
         "| raw write | wall / max(simulate, write) | write / raw | peak memory (caller + each process) | file |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
