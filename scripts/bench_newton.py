@@ -199,7 +199,8 @@ def settle_deviation(objects, device, cache_dir: Path | None, frames: int, setti
     }
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The command line: the run, the piles and Newton's settings."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="CPU, N=1 small bunny, 3 frames: test the harness")
     parser.add_argument("--device", default=None)
@@ -227,14 +228,12 @@ def main(argv=None) -> int:
         default="1,4",
         help="comma list of pile sizes compared with a converged run ('' for none)",
     )
-    args = parser.parse_args(argv)
+    return parser
 
-    import newton
 
-    wp.config.log_level = wp.LOG_WARNING
-    wp.config.quiet = True
-    device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
-    settings = {
+def _settings(args: argparse.Namespace) -> dict:
+    """Newton's settings for the run, as the JSON records them."""
+    return {
         "solver": "SolverVBD",
         "substeps": args.substeps,
         "iterations": args.iterations,
@@ -252,6 +251,17 @@ def main(argv=None) -> int:
         "gravity": -9.81,
         "fps": FPS,
     }
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+
+    import newton
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
+    settings = _settings(args)
     env = environment(device)
     env["newton"] = getattr(newton, "__version__", "unknown")
     results = {"environment": env, "mode": "quick" if args.quick else "full", "settings": settings, "runs": []}

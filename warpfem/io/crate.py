@@ -205,57 +205,9 @@ class CrateStream:
 
     def _structure(self) -> list[tuple[bytes, int, int]]:
         """Write tokens, strings, fields, field sets, paths and specs; return ``(name, start, size)`` of each."""
-        tokens: dict[str, int] = {"": 0}
-
-        def token(text: str) -> int:
-            return tokens.setdefault(text, len(tokens))
-
-        fields: list[tuple[int, int]] = []
-        field_sets: list[int] = []
-        specs: list[tuple[int, int, int]] = []
-        paths: list[tuple[int, int]] = []  # (element token, or minus it for a property; jump)
-
-        def add_spec(kind: int, entries: list[tuple[str, int]]) -> None:
-            specs.append((len(paths) - 1, len(field_sets), kind))
-            for name, rep in entries:
-                field_sets.append(len(fields))
-                fields.append((token(name), rep))
-            field_sets.append(0xFFFFFFFF)
-
-        def token_vector(names: list[str]) -> int:
-            offset = self._offset
-            indices = [token(n) for n in names]
-            self._write(struct.pack("<Q", len(indices)) + struct.pack(f"<{len(indices)}I", *indices))
-            return _rep(_TOKEN_VECTOR, offset)
-
-        def visit(node: _Node, kind: int, last: bool) -> None:
-            index = len(paths)
-            paths.append((-token(node.name) if node.attribute else token(node.name), 0))
-            if node.attribute:
-                add_spec(
-                    _SPEC_ATTRIBUTE,
-                    [
-                        ("typeName", _rep(_TOKEN, token(node.attribute), inlined=True)),
-                        ("custom", _rep(_BOOL, 0, inlined=True)),
-                        ("variability", _rep(_VARIABILITY, _VARIABILITY_VARYING, inlined=True)),
-                        ("timeSamples", _rep(_TIME_SAMPLES, node.samples)),
-                    ],
-                )
-            else:
-                prims = [c.name for c in node.children if c.attribute is None]
-                props = [c.name for c in node.children if c.attribute is not None]
-                entries = [] if kind == _SPEC_PSEUDO_ROOT else [("specifier", _rep(_SPECIFIER, _SPECIFIER_OVER, True))]
-                entries += [("primChildren", token_vector(prims))] if prims else []
-                entries += [("properties", token_vector(props))] if props else []
-                add_spec(kind, entries)
-            for i, child in enumerate(node.children):
-                visit(child, _SPEC_PRIM, i == len(node.children) - 1)
-            has_child, has_sibling = bool(node.children), not last
-            jump = len(paths) - index if has_child and has_sibling else 0 if has_sibling else -1 if has_child else -2
-            paths[index] = (paths[index][0], jump)
-
-        visit(self._root, _SPEC_PSEUDO_ROOT, True)
-        names = list(tokens)
+        specs = _SpecTables(self)
+        specs.visit(self._root, _SPEC_PSEUDO_ROOT, True)
+        names = list(specs.tokens)
         sections: list[tuple[bytes, int, int]] = []
 
         def section(name: bytes, data: bytes) -> None:
@@ -266,6 +218,7 @@ class CrateStream:
         block = lz4_literal_block(text)
         section(b"TOKENS", struct.pack("<QQQ", len(names), len(text), len(block)) + block)
         section(b"STRINGS", struct.pack("<Q", 0))
+        fields, field_sets, paths = specs.fields, specs.field_sets, specs.paths
         reps = lz4_literal_block(np.asarray([r for _, r in fields], "<u8").tobytes())
         section(
             b"FIELDS",
@@ -284,12 +237,71 @@ class CrateStream:
         )
         section(
             b"SPECS",
-            struct.pack("<Q", len(specs))
-            + compressed_ints([p for p, _, _ in specs])
-            + compressed_ints([f for _, f, _ in specs])
-            + compressed_ints([k for _, _, k in specs]),
+            struct.pack("<Q", len(specs.specs))
+            + compressed_ints([p for p, _, _ in specs.specs])
+            + compressed_ints([f for _, f, _ in specs.specs])
+            + compressed_ints([k for _, _, k in specs.specs]),
         )
         return sections
+
+
+class _SpecTables:
+    """The crate's structural tables for a tree of prims and attributes, built by :meth:`visit`.
+
+    Token vectors (a prim's children and properties) are written to ``stream`` as they come; the rest is
+    kept here for :meth:`CrateStream._structure` to write as sections.
+    """
+
+    def __init__(self, stream: CrateStream) -> None:
+        self.stream = stream
+        self.tokens: dict[str, int] = {"": 0}
+        self.fields: list[tuple[int, int]] = []
+        self.field_sets: list[int] = []
+        self.specs: list[tuple[int, int, int]] = []
+        self.paths: list[tuple[int, int]] = []  # (element token, or minus it for a property; jump)
+
+    def token(self, text: str) -> int:
+        return self.tokens.setdefault(text, len(self.tokens))
+
+    def add_spec(self, kind: int, entries: list[tuple[str, int]]) -> None:
+        self.specs.append((len(self.paths) - 1, len(self.field_sets), kind))
+        for name, rep in entries:
+            self.field_sets.append(len(self.fields))
+            self.fields.append((self.token(name), rep))
+        self.field_sets.append(0xFFFFFFFF)
+
+    def token_vector(self, names: list[str]) -> int:
+        offset = self.stream._offset
+        indices = [self.token(n) for n in names]
+        self.stream._write(struct.pack("<Q", len(indices)) + struct.pack(f"<{len(indices)}I", *indices))
+        return _rep(_TOKEN_VECTOR, offset)
+
+    def visit(self, node: _Node, kind: int, last: bool) -> None:
+        """Add ``node``'s path and spec, then its children's, depth first (``last``: no sibling follows)."""
+        index = len(self.paths)
+        self.paths.append((-self.token(node.name) if node.attribute else self.token(node.name), 0))
+        if node.attribute:
+            self.add_spec(
+                _SPEC_ATTRIBUTE,
+                [
+                    ("typeName", _rep(_TOKEN, self.token(node.attribute), inlined=True)),
+                    ("custom", _rep(_BOOL, 0, inlined=True)),
+                    ("variability", _rep(_VARIABILITY, _VARIABILITY_VARYING, inlined=True)),
+                    ("timeSamples", _rep(_TIME_SAMPLES, node.samples)),
+                ],
+            )
+        else:
+            prims = [c.name for c in node.children if c.attribute is None]
+            props = [c.name for c in node.children if c.attribute is not None]
+            entries = [] if kind == _SPEC_PSEUDO_ROOT else [("specifier", _rep(_SPECIFIER, _SPECIFIER_OVER, True))]
+            entries += [("primChildren", self.token_vector(prims))] if prims else []
+            entries += [("properties", self.token_vector(props))] if props else []
+            self.add_spec(kind, entries)
+        for i, child in enumerate(node.children):
+            self.visit(child, _SPEC_PRIM, i == len(node.children) - 1)
+        has_child, has_sibling = bool(node.children), not last
+        jump = len(self.paths) - index if has_child and has_sibling else 0 if has_sibling else -1 if has_child else -2
+        self.paths[index] = (self.paths[index][0], jump)
 
 
 def _pwrite_all(fd: int, parts: Sequence[bytes | memoryview | np.ndarray], offset: int, size: int = -1) -> None:
