@@ -199,6 +199,11 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
         sys.setswitchinterval(args.switch_interval / 1e3)
     if args.writers is not None:  # what UsdWriter asks for by default
         usd.default_workers = lambda *_: args.writers
+    if args.queue_mb is not None:  # frames in flight: the stream's pinned buffers, the writers' shared memory
+        from warpfem.io import stream, usd_workers
+
+        stream.QUEUE_BYTES = args.queue_mb << 20
+        usd_workers.QUEUE_BYTES = args.queue_mb << 19
     if case.startswith("writer") and case[6:].isdigit():
         return writer_case(int(case[6:]), args)
     scene = case_scene(case, args.assets, args.frames)
@@ -259,6 +264,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
     parser.add_argument("--writers", type=int, help="writer processes (0: none)")
+    parser.add_argument(
+        "--queue-mb",
+        type=int,
+        help="MB of pinned buffers for frames in flight, and half that of the writers' shared memory (default 256)",
+    )
     parser.add_argument("--switch-interval", type=float, help="the interpreter's thread switch interval (ms)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -280,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
             cmd = [sys.executable, __file__, "--one", case, "--device", device.alias, "--frames", str(args.frames)]
             cmd += ["--assets", str(args.assets), "--cache-dir", str(args.cache_dir), "--workdir", folder]
             cmd += [] if args.writers is None else ["--writers", str(args.writers)]
+            cmd += [] if args.queue_mb is None else ["--queue-mb", str(args.queue_mb)]
             cmd += [] if args.switch_interval is None else ["--switch-interval", str(args.switch_interval)]
             done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if done.returncode != 0:
