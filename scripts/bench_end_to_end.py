@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--queue-mb",
         type=int,
-        help="MB of pinned buffers for frames in flight, and half that of the writers' shared memory (default 256)",
+        help="MB of pinned buffers for frames in flight, and half that of the writers' shared memory (default 768)",
     )
     parser.add_argument("--switch-interval", type=float, help="the interpreter's thread switch interval (ms)")
     parser.add_argument("--one", help=argparse.SUPPRESS)

@@ -43,7 +43,7 @@ from warpfem.io.usd_layers import (
     write_clip_files,
 )
 
-QUEUE_BYTES = 128 << 20
+QUEUE_BYTES = 384 << 20
 """Shared memory for frames on their way to the writer processes (bytes); 2 to 8 frames whatever their size."""
 
 MAX_WORKERS = 4
