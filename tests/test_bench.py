@@ -164,3 +164,38 @@ def test_a_bad_set_is_a_one_line_error_before_anything_runs(tmp_path, setting, m
         bench.main(["--quick", "--out", str(tmp_path), "--cache-dir", str(tmp_path / "cache"), "--set", setting])
     assert "\n" not in str(stop.value)
     assert not list(tmp_path.iterdir())
+
+
+def _floor_beside(path: Path, vertices: int, frames: int):
+    """scripts/bench_end_to_end.py's RawBeside around a writer taking ``frames`` frames of ``vertices`` points:
+    the floor, the order of the writes ("raw" and "writer", in turn) and the raw file's size."""
+    import bench_end_to_end as e2e
+
+    beside = e2e.RawBeside(path)
+    order: list[str] = []
+    write = beside.write
+    beside.write = lambda points: (order.append("raw"), write(points))
+    both = beside.after(lambda frame, points, boxes: order.append("writer"))
+    points = [np.zeros((vertices, 3), np.float32)]
+    for frame in range(frames):
+        both(frame, points, None)
+    size = path.stat().st_size
+    beside.close()
+    return beside, order, size
+
+
+def test_end_to_end_floor_is_written_beside_a_sample_of_large_frames(tmp_path, monkeypatch):
+    """scripts/bench_end_to_end.py's raw floor: beside every frame up to its sample size, beside one frame in
+    ceil(size / sample size) above, alternately before and after the writer takes the frame, and reported per
+    frame it was written beside (the bytes on disk count the frames)."""
+    import bench_end_to_end as e2e
+
+    monkeypatch.setattr(e2e, "RAW_SAMPLE_BYTES", 1000)
+    for vertices, sampled in [(50, range(8)), (100, (0, 2, 4, 6))]:  # 600 and 1,200 bytes a frame
+        beside, order, size = _floor_beside(tmp_path / f"{vertices}.raw", vertices, 8)
+        assert beside.samples == len(sampled) and size == len(sampled) * 12 * vertices
+        writers = [k for k, what in enumerate(order) if what == "writer"]
+        raws = [k for k, what in enumerate(order) if what == "raw"]
+        for n, frame in enumerate(sampled):  # before the writer's frame on every other sample, after it on the rest
+            assert raws[n] == (writers[frame] - 1 if n % 2 == 0 else writers[frame] + 1)
+        assert beside.per_frame_ms()[0] == pytest.approx(1e3 * beside.seconds / len(sampled))
