@@ -44,8 +44,8 @@ PAPER = {"a": "paper_a_armadillo_stack", "b": "paper_b_four_horses", "c": "paper
 
 RAW_SAMPLE_BYTES = 8 << 20
 """Frames of points up to this size get the raw floor written beside every frame; larger ones beside one frame
-in ``ceil(size / RAW_SAMPLE_BYTES)``: written beside every frame, a pile of 256 armadillos' 80 MB took the
-writer's thread 51 ms a frame, longer than the run's own writing, and the wall time measured the floor."""
+in ``ceil(size / RAW_SAMPLE_BYTES)``, so that the floor's own writes do not hold up the writer's thread they are
+set against (docs/performance.md)."""
 
 
 def case_scene(case: str, assets: Path, frames: int):

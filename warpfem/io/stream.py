@@ -24,8 +24,8 @@ from warpfem.io.penetration import BodyBounds
 
 QUEUE_BYTES = 768 << 20
 """Pinned host memory for frames in flight (bytes); at least :data:`MIN_SLOTS` frames whatever their size.
-Enough for a few frames of a large pile, whose writer processes keep up on average but not frame by frame
-(256 armadillos, 80 MB a frame: docs/performance.md)."""
+Enough for several frames of a large scene, whose writer processes keep up on average but not frame by frame
+(docs/performance.md)."""
 
 MIN_SLOTS = 2
 MAX_SLOTS = 8
