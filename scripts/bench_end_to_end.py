@@ -20,7 +20,7 @@ One JSON per run under scripts/results/.
 Cases: the paper scenes (a, b, c), piles of N armadillos (pile64, pile256...), any shipped scene by name
 (default, shake, slide), or the writer alone taking frames of N points as fast as it can (writerN; the
 default scene has 97602), with the CPU time of the caller and of the writer processes. Meshes must
-already be in the preprocessing cache where Netgen is not installed (``scripts/bench.py --prepare-only``).
+already be in the preprocessing cache where Netgen is not installed (``--prepare-only`` fills it here).
 """
 
 from __future__ import annotations
@@ -253,6 +253,18 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
     }
 
 
+def prepare_cases(args: argparse.Namespace) -> int:
+    """Fill ``args.cache_dir`` with all the cases need (prepared meshes, collision samples), each built on the CPU,
+    for a machine without Netgen."""
+    import warpfem
+
+    for case in args.cases.split(","):
+        if not (case.startswith("writer") and case[6:].isdigit()):
+            warpfem.Simulation(case_scene(case, args.assets, 1), device="cpu", cache_dir=args.cache_dir)
+            print(f"{case}: prepared", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="CPU: the default scene and paper C, 30 frames")
@@ -270,10 +282,17 @@ def main(argv: list[str] | None = None) -> int:
         help="MB of pinned buffers for frames in flight, and half that of the writers' shared memory (default 768)",
     )
     parser.add_argument("--switch-interval", type=float, help="the interpreter's thread switch interval (ms)")
+    parser.add_argument(
+        "--prepare-only",
+        action="store_true",
+        help="prepare every case's meshes and collision samples into --cache-dir (on the CPU) and stop",
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.quick:
         args.device, args.frames, args.cases = args.device or "cpu", 30, "default,c"
+    if args.prepare_only:
+        return prepare_cases(args)
     if args.one:
         print(json.dumps(run_case(args.one, args)))
         return 0
