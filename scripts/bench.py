@@ -7,8 +7,8 @@ collisions and dense mapping on the device (a captured CUDA graph on GPUs), file
     python scripts/bench.py --quick                  # CPU, under a minute: tests the harness itself
     python scripts/bench.py --assets ../shared/assets --cache-dir .warpfem-cache   # the full run (GPU)
 
-Meshes must already be in the preprocessing cache where Netgen is not installed (the GPU machine):
-``--prepare-only`` fills it here.
+Meshes and collision samples must already be in the preprocessing cache where Netgen is not installed (the GPU
+machine): ``--prepare-only`` fills it here.
 """
 
 from __future__ import annotations
@@ -687,10 +687,11 @@ def main(argv=None) -> int:
         work, frames, cg_cells = _full_work(args, skip, scene_defaults), args.frames, (60, 60, 52)
     work = _set_and_vary(work, args)
     results["settings"] = args.set
-    if args.prepare_only:
+    if args.prepare_only:  # the meshes and the collision samples a run builds from (as warpfem.Simulation does)
+        from warpfem.build import prepare_scene, scene_samples
+
         for _, _, scene in work:
-            for o in {(o.mesh, o.faces, o.subdivide, o.maxh) for o in scene.objects}:
-                warpfem.prepare(o[0], faces=o[1], subdivide=o[2], maxh=o[3], cache_dir=args.cache_dir)
+            scene_samples(scene, prepare_scene(scene, args.cache_dir), args.cache_dir)
         return 0
     results["runs"] = _time_all(work, cg_paths, args, device, frames)
     if "cg" not in skip:
