@@ -254,15 +254,31 @@ def run_case(case: str, args: argparse.Namespace) -> dict:
 
 
 def prepare_cases(args: argparse.Namespace) -> int:
-    """Fill ``args.cache_dir`` with all the cases need (prepared meshes, collision samples), each built on the CPU,
-    for a machine without Netgen."""
-    import warpfem
+    """Fill ``args.cache_dir`` with what the cases build from (prepared meshes, collision samples), as
+    ``scripts/bench.py --prepare-only`` does, for a machine without Netgen."""
+    from warpfem.build import prepare_scene, scene_samples
 
     for case in args.cases.split(","):
         if not (case.startswith("writer") and case[6:].isdigit()):
-            warpfem.Simulation(case_scene(case, args.assets, 1), device="cpu", cache_dir=args.cache_dir)
+            scene = case_scene(case, args.assets, 1)
+            scene_samples(scene, prepare_scene(scene, args.cache_dir), args.cache_dir)
             print(f"{case}: prepared", flush=True)
     return 0
+
+
+def at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got '{text}'")
+        return value
+
+    return parse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -272,13 +288,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
     parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
-    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--frames", type=at_least(1), default=120)
     parser.add_argument("--cases", default="a,b,c,default,shake,slide,pile64,pile256")
     parser.add_argument("--workdir", type=Path, default=None, help="where the files go (default: a temp folder)")
-    parser.add_argument("--writers", type=int, help="writer processes (0: none)")
+    parser.add_argument("--writers", type=at_least(0), help="writer processes (0: none)")
     parser.add_argument(
         "--queue-mb",
-        type=int,
+        type=at_least(1),
         help="MB of pinned buffers for frames in flight, and half that of the writers' shared memory (default 768)",
     )
     parser.add_argument("--switch-interval", type=float, help="the interpreter's thread switch interval (ms)")

@@ -72,6 +72,9 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--cg-paths", "grid:0"], "--cg-paths"),
         ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
         ("bench_newton.py", ["--piles", "1.5"], "--piles"),
+        ("bench_end_to_end.py", ["--queue-mb", "-1"], "--queue-mb"),
+        ("bench_end_to_end.py", ["--writers", "two"], "--writers"),
+        ("bench_end_to_end.py", ["--frames", "0"], "--frames"),
     ],
 )
 def test_bad_arguments_are_one_line_errors_and_write_nothing(tmp_path, script, args, named):
