@@ -16,7 +16,7 @@ import numpy as np
 from warpfem.errors import InputError
 from warpfem.prep.geometry import BodyGeometry, body_geometry
 from warpfem.prep.pipeline import PreparedBody, cached_surface_samples, prepare
-from warpfem.prep.samples import DEFAULT_SPACING, SKIN_SPACING, SKIN_TOLERANCE, SurfaceSamples
+from warpfem.prep.samples import SKIN_TOLERANCE, SurfaceSamples, spacings
 from warpfem.prep.surface import read_triangles
 from warpfem.scene import HandleConfig, ObjectConfig, ObstacleConfig, Scene
 from warpfem.sim.collision import CollisionSettings
@@ -84,8 +84,7 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
     samples = []
     for obj, body in zip(scene.objects, prepared, strict=True):
         size = float(np.linalg.norm(np.ptp(body.tet_vertices, axis=0)))
-        spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else DEFAULT_SPACING * size
-        skin_spacing = obj.collision_spacing / obj.scale if obj.collision_spacing else SKIN_SPACING * size
+        spacing, skin_spacing = spacings(obj.collision_spacing / obj.scale, size)  # in the mesh's units
         key = (id(body), spacing)
         if key not in done:
             done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)

@@ -15,7 +15,7 @@ import numpy as np
 from warpfem.kernels.distance import LATTICE, LATTICE_POINTS
 from warpfem.prep.distance import distance_field
 from warpfem.prep.embedding import boundary_face_tets
-from warpfem.prep.samples import DEFAULT_SPACING, SKIN_SPACING, SKIN_TOLERANCE, SurfaceSamples, surface_samples
+from warpfem.prep.samples import SKIN_TOLERANCE, SurfaceSamples, spacings, surface_samples
 from warpfem.prep.tetmesh import boundary_faces
 
 LEAF_TETS = 4
@@ -122,8 +122,7 @@ def body_geometry(
     else:
         if samples is None:
             size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-            spacing = collision_spacing or DEFAULT_SPACING * size
-            skin_spacing = collision_spacing or SKIN_SPACING * size
+            spacing, skin_spacing = spacings(collision_spacing, size)
             samples = surface_samples(dense[0], dense_faces, spacing, SKIN_TOLERANCE * size, skin_spacing)
         points = dense_samples(samples.collision, dense[1], dense[2], tets)
         skin = dense_samples(samples.skin, dense[1], dense[2], tets)

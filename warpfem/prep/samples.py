@@ -35,6 +35,16 @@ COLLISION_TOLERANCE = 0.001
 normal, by more than this fraction of the body's size (docs/decisions.md)."""
 
 
+def spacings(collision_spacing: float, size: float) -> tuple[float, float]:
+    """The collision samples' spacing and the skin's grid for a body of ``size``, in the same units.
+
+    A scene's ``collision_spacing`` sets both; 0 takes :data:`DEFAULT_SPACING` and :data:`SKIN_SPACING` of the size.
+    """
+    if collision_spacing:
+        return collision_spacing, collision_spacing
+    return DEFAULT_SPACING * size, SKIN_SPACING * size
+
+
 @dataclass(frozen=True)
 class SurfaceSamples:
     """Dense vertices chosen to collide, as indices into the dense mesh.
