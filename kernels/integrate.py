@@ -62,6 +62,7 @@ class Colliders:
     touching body's size (``body_size``, m). ``mesh``: the ``wp.Mesh`` id of a mesh collider (0 for the others).
     ``open_edges[face_start[o] + f]``: which edges of the mesh's face f bound an open mesh (bit 0: corners
     0-1, bit 1: 1-2, bit 2: 2-0) and which of its corners lie on such an edge (bits 3-5: corners 0-2).
+    ``gravity[0]``: the scene's gravity (m/s^2), which the speculative contact test adds to a point's motion.
     """
 
     kind: wp.array(dtype=wp.int32)
@@ -76,6 +77,7 @@ class Colliders:
     mesh: wp.array(dtype=wp.uint64)
     face_start: wp.array(dtype=wp.int32)
     open_edges: wp.array(dtype=wp.int32)
+    gravity: wp.array(dtype=wp.vec3)
 
 
 @wp.func
@@ -179,22 +181,34 @@ def offset_depth(c: Colliders, o: int, distance: float, body: int) -> float:
 
 
 @wp.func
-def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, dt: float) -> bool:
+def lands(depth: float, n: wp.vec3, v: wp.vec3, g: wp.vec3, dt: float) -> bool:
+    """Whether a point ``depth`` below a collider's surface (normal ``n``), moving at ``v``, ends the step below it.
+
+    The speculative contact test. A point on or below the surface also falls under gravity ``g`` meanwhile: it
+    stays in contact unless it leaves faster than gravity brings it back within the step. (Released earlier,
+    a resting point pushed out of its depth at that depth's speed flew off, fell back a step later and
+    bounced again, a cycle a stiff body at long steps never left.)
+    """
+    fall = wp.where(depth >= 0.0, dt * g, wp.vec3(0.0))
+    return depth - dt * wp.dot(n, v + fall) > 0.0
+
+
+@wp.func
+def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, g: wp.vec3, dt: float) -> bool:
     """Whether a point ``depth`` below a collider's surface (normal ``n``) acts with it this step.
 
-    Below the surface, or crossing it within the step at its own speed or at its body's, which drags it
-    along: the speculative contact test.
+    It :func:`lands` at its own speed or at its body's, which drags it along.
     """
-    return depth - dt * wp.min(wp.dot(n, vp), wp.dot(n, v_body)) > 0.0
+    return lands(depth, n, vp, g, dt) or lands(depth, n, v_body, g, dt)
 
 
 @wp.func
 def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float):
     """Collider ``o``'s penalty force and matrix term on a point of mass ``m`` of body ``body`` (zero if none).
 
-    The collider (stiffness k per unit mass and friction mu in its ``response``) acts on a point below its
-    surface, or about to cross it within this step at its own speed or at its body's, which drags it along,
-    relative to the surface's own speed v_c (speculative contact): the penalty k m (depth + dt n.v_c) n and
+    The collider (stiffness k per unit mass and friction mu in its ``response``) acts on a point that ends the
+    step below its surface at its own speed or at its body's, which drags it along, relative to the surface's
+    own speed v_c (speculative contact, :func:`lands`): the penalty k m (depth + dt n.v_c) n and
     dt^2 k m n n^T in the matrix, which hold the depth the step ends at (above the surface only the velocity
     terms act: they damp the approach and never attract), and implicit friction dt c (I - n n^T) towards the
     surface's tangential speed, c = mu k m depth / |v_t|. The depth counts from the collider's offset above its
@@ -206,7 +220,7 @@ def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec
     force = wp.vec3()
     block = wp.mat33()
     vc = collider_velocity(c, o, p, dt)
-    if within_step(depth, n, vp - vc, v_body - vc, dt):
+    if within_step(depth, n, vp - vc, v_body - vc, c.gravity[0], dt):
         response = c.response[o]
         k = response[0] * m
         pen = wp.max(depth, 0.0)
@@ -423,7 +437,8 @@ def late_contact(
     force = wp.vec3()
     block = wp.mat33()
     vc = collider_velocity(c, o, p, dt)
-    if not within_step(depth, n, vp - vc, v_body - vc, dt) and depth - dt * wp.dot(n, vp_new - vc) > 0.0:
+    crosses = depth - dt * wp.dot(n, vp_new - vc) > 0.0
+    if crosses and not within_step(depth, n, vp - vc, v_body - vc, c.gravity[0], dt):
         k = c.response[o][0] * m
         force = k * (depth + dt * wp.dot(n, vc)) * n
         block = dt * dt * k * wp.outer(n, n)

@@ -154,10 +154,13 @@ class StaticColliders:
 
     ``arrays`` is the :class:`warpfem.kernels.integrate.Colliders` the kernels take; ``moving`` lists the
     moving colliders as ``(index, motion, rest rotation, rest translation)`` for :class:`~warpfem.sim.drive.Drive`.
-    ``body_size``: each body's size (m), which the colliders' offsets are shares of.
+    ``body_size``: each body's size (m), which the colliders' offsets are shares of. ``gravity``: the solver's
+    one-element gravity array (m/s^2), read by the speculative contact test (None: no gravity).
     """
 
-    def __init__(self, colliders: Sequence[Collider], device, body_size: Sequence[float]) -> None:
+    def __init__(
+        self, colliders: Sequence[Collider], device, body_size: Sequence[float], gravity: wp.array | None = None
+    ) -> None:
         self.colliders = list(colliders)
         kind, center, rotation, size, response, meshes, self.moving = [], [], [], [], [], [], []
         face_start, open_edges = [], [np.zeros(0, np.int32)]
@@ -209,6 +212,7 @@ class StaticColliders:
         a.mesh = arr(meshes, wp.uint64, 0)
         a.face_start = arr(face_start, wp.int32, 0)
         a.open_edges = wp.array(np.concatenate(open_edges).astype(np.int32), dtype=wp.int32, device=device)
+        a.gravity = gravity if gravity is not None else wp.zeros(1, dtype=wp.vec3, device=device)
         self.arrays = a
         self.kind = a.kind
 

@@ -103,7 +103,7 @@ class Solver:
         self.momentum = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
         self.colliders = StaticColliders(
-            [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies]
+            [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies], self.gravity
         )
         self.obstacles = list(obstacles)
         self.handles = list(handles)
