@@ -96,6 +96,29 @@ def test_collision_samples_cover_the_dense_surface(prep_cache):
     assert apart.min() >= 0.5 * spacing
 
 
+def test_large_triangles_carry_collision_points_of_their_own():
+    """Where a mesh's triangles are larger than the collision spacing, points on them fill the gaps its vertices
+    leave: every point of a low-poly box's surface (sampled by trimesh, measured by SciPy) lies within 1.2
+    times the spacing of a collision point (a dense vertex picked, or a point on a triangle; the corners alone
+    leave 29 times), each point once; a mesh finer than the spacing gets none."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from warpfem.prep.samples import surface_samples
+
+    spacing = 0.02
+    box = trimesh.creation.box(extents=(0.4, 0.2, 0.4))
+    samples = surface_samples(box.vertices, box.faces, spacing, 1e-4)
+    bary = samples.face_bary
+    assert np.allclose(bary.sum(axis=1), 1.0) and (bary >= 0).all()
+    points = np.einsum("kj,kjd->kd", bary, box.vertices[box.faces[samples.face]])
+    gap, _ = cKDTree(np.vstack([points, box.vertices[samples.collision]])).query(box.sample(20000, seed=1))
+    assert gap.max() <= 1.2 * spacing, gap.max() / spacing
+    assert len(np.unique(np.round(points, 9), axis=0)) == len(points)
+    fine = trimesh.creation.icosphere(subdivisions=4, radius=0.1)  # edges of about 1 cm
+    assert len(surface_samples(fine.vertices, fine.faces, spacing, 1e-4).face) == 0
+
+
 def _head_on(
     device: str,
     speed: float,
@@ -361,3 +384,38 @@ def test_a_resting_body_floats_by_the_offset_and_never_below(device, collider):
     assert 0.0 <= base <= 0.001 * size, (base, size)
     assert 0.0 <= raised <= 0.003 * size, (raised, size)
     assert raised - base == pytest.approx(0.002 * size, rel=0.1), (base, raised, size)
+
+
+def test_low_poly_boxes_crossing_edge_first_do_not_pass_through(device, tmp_path, prep_cache):
+    """Two boxes of twelve triangles each (0.4 x 0.2 x 0.4 m, scene defaults otherwise), the upper turned 45
+    degrees about the vertical and dropped at 3 m/s onto the pinned lower one: no corner of either lies inside
+    the other, so a collision point at every dense vertex alone let it fall straight through. It lands and
+    stays on top: its lowest point never gets deeper than 1 % of its size below the lower box's top face, at
+    0.2 m (the meshes' own geometry), and ends on it."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.4, 0.2, 0.4))
+    mesh = _dense_obj(tmp_path / "box.obj", box.vertices + [0.0, 0.1, 0.0], box.faces)
+    doc = {
+        "scene": {"frames": 40},
+        "ground": {"enabled": False},
+        "object": [
+            {"name": "lower", "mesh": mesh, "young": 1e7, "pin_min": [-1, -1, -1], "pin_max": [1, 1, 1]},
+            {
+                "name": "upper",
+                "mesh": mesh,
+                "young": 1e7,
+                "rotate": [0, 45, 0],
+                "translate": [0, 0.25, 0],
+                "velocity": [0, -3.0, 0],
+            },
+        ],
+    }
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="boxes"), device=device, cache_dir=prep_cache)
+    size = float(np.linalg.norm([0.4, 0.2, 0.4]))
+    lowest = []
+    for _ in range(40):
+        sim.step_frame()
+        lowest.append(float(sim.dense_points("upper")[:, 1].min()))
+    assert min(lowest) > 0.2 - 0.01 * size, min(lowest)
+    assert all(0.2 - 0.002 < y < 0.2 + 0.002 for y in lowest[-10:]), lowest[-10:]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -89,7 +90,7 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
         if key not in done:
             done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)
             if scene.solver.elements == "quadratic":
-                done[key] = SurfaceSamples(done[key].collision, np.arange(len(body.dense_vertices)))
+                done[key] = replace(done[key], skin=np.arange(len(body.dense_vertices)))
         samples.append(done[key])
     return samples
 
@@ -111,6 +112,7 @@ def placed_geometry(
         dense=(obj.scale * prepared.dense_vertices @ rot.T + move, prepared.embed_tet, prepared.embed_bary),
         face_depth=obj.scale * prepared.face_depth,
         samples=samples,
+        dense_faces=prepared.dense_faces,
     )
     return tet_x, geometry
 

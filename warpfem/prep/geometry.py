@@ -107,7 +107,8 @@ def body_geometry(
         dense: The dense surface as ``(positions (n, 3) m, embedding tets (n,), weights (n, 4))``, or None.
         samples: With ``dense``: which dense vertices collide (default: :func:`surface_samples` at
             ``collision_spacing``, which then needs ``dense_faces``).
-        dense_faces: With ``dense`` and no ``samples``: its (m, 3) triangles.
+        dense_faces: With ``dense``: its (m, 3) triangles, needed where there are no ``samples`` or they hold
+            points on its triangles (:attr:`SurfaceSamples.face`).
         face_depth: Depth of the visible surface below each surface face's lattice points (m); zeros
             (the faces are the visible surface) when not given.
     """
@@ -125,6 +126,10 @@ def body_geometry(
             spacing, skin_spacing = spacings(collision_spacing, size)
             samples = surface_samples(dense[0], dense_faces, spacing, SKIN_TOLERANCE * size, skin_spacing)
         points = dense_samples(samples.collision, dense[1], dense[2], tets)
+        if len(samples.face):
+            if dense_faces is None:
+                raise ValueError("samples on the dense triangles need dense_faces")
+            points = _joined(points, face_samples(samples, dense[0], dense_faces, vertices, tets, faces))
         skin = dense_samples(samples.skin, dense[1], dense[2], tets)
     start, flat = tet_surface_faces(tets, faces, len(vertices))
     return BodyGeometry(
@@ -249,6 +254,30 @@ def dense_samples(
     """
     tet = np.asarray(embed_tet, np.int32)[picks]
     return CollisionPoints(tet=tet, bary=np.asarray(embed_bary, np.float64)[picks], anchor=tets[tet][:, :3].copy())
+
+
+def face_samples(
+    samples: SurfaceSamples,
+    dense_x: np.ndarray,
+    dense_faces: np.ndarray,
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    surface_faces: np.ndarray,
+) -> CollisionPoints:
+    """The points ``samples`` holds on the dense triangles, embedded in the tets as the dense vertices are."""
+    from warpfem.prep.embedding import embed
+
+    corners = np.asarray(dense_x, np.float64)[np.asarray(dense_faces, np.int64)[samples.face]]
+    tet, bary = embed(np.einsum("kj,kjd->kd", samples.face_bary, corners), vertices, tets, surface_faces)
+    return CollisionPoints(tet=tet, bary=bary, anchor=tets[tet][:, :3].copy())
+
+
+def _joined(a: CollisionPoints, b: CollisionPoints) -> CollisionPoints:
+    return CollisionPoints(
+        tet=np.concatenate([a.tet, b.tet]).astype(np.int32),
+        bary=np.concatenate([a.bary, b.bary]),
+        anchor=np.concatenate([a.anchor, b.anchor]),
+    )
 
 
 def tet_surface_faces(tets: np.ndarray, surface_faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:

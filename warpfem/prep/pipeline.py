@@ -286,7 +286,7 @@ def _read_indexed(index: Path | None) -> tuple[Path, PreparedBody] | None:
     return None if body is None else (path, body)
 
 
-SAMPLES_FORMAT = 1
+SAMPLES_FORMAT = 2
 """Version of the cached collision samples' layout; they are also keyed by the source of
 :mod:`warpfem.prep.samples`, so a change to how samples are chosen never reads old ones."""
 
@@ -307,17 +307,31 @@ def cached_surface_samples(
     digest.update(np.ascontiguousarray(body.dense_vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(body.dense_faces, dtype="<i4").tobytes())
     path = Path(cache_dir) / f"samples-{digest.hexdigest()}.npz"
-    n = len(body.dense_vertices)
     try:
         with np.load(path, allow_pickle=False) as data:
-            found = SurfaceSamples(np.array(data["collision"]), np.array(data["skin"]))
-        if all(len(a) and a.dtype.kind == "i" and 0 <= a.min() and a.max() < n for a in (found.collision, found.skin)):
+            found = SurfaceSamples(*(np.array(data[k]) for k in ("collision", "skin", "face", "face_bary")))
+        if _samples_fit(found, len(body.dense_vertices), len(body.dense_faces)):
             return found
     except Exception:  # absent, or damaged anywhere from zipfile to the OS layer: compute it again
         pass
     made = surface_samples(body.dense_vertices, body.dense_faces, spacing, tolerance, skin_spacing)
-    _save_atomically(path, lambda stream: np.savez(stream, collision=made.collision, skin=made.skin))
+    arrays = {"collision": made.collision, "skin": made.skin, "face": made.face, "face_bary": made.face_bary}
+    _save_atomically(path, lambda stream: np.savez(stream, **arrays))
     return made
+
+
+def _samples_fit(found: SurfaceSamples, vertices: int, faces: int) -> bool:
+    """Whether cached samples index a dense mesh of ``vertices`` vertices and ``faces`` triangles."""
+    picks = all(
+        len(a) and a.dtype.kind == "i" and 0 <= a.min() and a.max() < vertices for a in (found.collision, found.skin)
+    )
+    face, bary = found.face, found.face_bary
+    on_faces = (
+        face.dtype.kind == "i"
+        and bary.shape == (len(face), 3)
+        and (len(face) == 0 or 0 <= face.min() <= face.max() < faces)
+    )
+    return picks and on_faces
 
 
 @dataclass

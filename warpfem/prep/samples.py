@@ -6,7 +6,7 @@ module's source among it), so a change here never prepares a body again.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,12 @@ SKIN_ROUNDS = 8
 """Refinement rounds of the skin and collision samples (each adds the vertices that stick out most, a few per
 cell)."""
 
+FACE_STEP = 0.8
+"""Step of the lattice of candidate points on a dense triangle longer than it along an edge, as a share of the
+collision spacing (:func:`face_cover`). A low-poly surface (a box of twelve triangles) otherwise collides at
+its corners only, and two such bodies pass through each other edge first; a coarse scan's large triangles
+leave gaps between its vertices too."""
+
 COLLISION_TOLERANCE = 0.001
 """The collision samples are refined until no dense vertex sticks out past its nearest ones, along its own
 normal, by more than this fraction of the body's size (docs/decisions.md)."""
@@ -52,10 +58,14 @@ class SurfaceSamples:
     Attributes:
         collision: (c,) the points tested against other bodies: a cover of the surface, refined at tips.
         skin: (s,) the points the static colliders act on (the grid's, refined where the surface curves).
+        face: (k,) dense triangles that carry collision points of their own (those larger than the spacing).
+        face_bary: (k, 3) each such point's weights on its triangle's corners.
     """
 
     collision: np.ndarray
     skin: np.ndarray
+    face: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    face_bary: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def grid_picks(positions: np.ndarray, spacing: float) -> np.ndarray:
@@ -90,10 +100,10 @@ def surface_samples(
     The collision samples cover the surface (every dense vertex within half of ``spacing`` of one,
     :func:`covering_picks`), then are refined (:func:`refined`) to :data:`COLLISION_TOLERANCE` of the size: a
     tip or an edge between them (an ear, a finger, a thin bar's corner) would otherwise sink into another
-    body unseen. The skin, for the static colliders, takes a grid every ``skin_spacing`` (default:
-    ``spacing``) refined to the collision tolerance and a grid every half of it, refined to ``tolerance``
-    (m); its denser grid bounds how far a dense vertex lies from a skin point, so a tilted patch between them
-    dips less.
+    body unseen. Where triangles are larger than that, points on them fill the gaps (:func:`face_cover`). The
+    skin, for the static colliders, takes a grid every ``skin_spacing`` (default: ``spacing``) refined to the
+    collision tolerance and a grid every half of it, refined to ``tolerance`` (m); its denser grid bounds how
+    far a dense vertex lies from a skin point, so a tilted patch between them dips less.
     """
     x = np.asarray(positions, np.float64)
     normal = vertex_normals(x, faces)
@@ -102,7 +112,62 @@ def surface_samples(
     collision = refined(x, normal, covering_picks(x, spacing / 2.0), spacing, COLLISION_TOLERANCE * size)
     coarse = refined(x, normal, grid_picks(x, grid), grid, COLLISION_TOLERANCE * size)
     skin = refined(x, normal, np.union1d(coarse, grid_picks(x, grid / 2.0)), grid, tolerance)
-    return SurfaceSamples(collision, skin)
+    face, face_bary = face_cover(x, faces, collision, spacing)
+    return SurfaceSamples(collision, skin, face, face_bary)
+
+
+def face_cover(x: np.ndarray, faces: np.ndarray, picks: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the dense triangles where the vertex ``picks`` leave holes in the surface's cover.
+
+    Of :func:`face_lattice`'s points every ``FACE_STEP`` of ``spacing``, those farther than ``spacing`` from
+    every pick, thinned to a cover of their own at that radius: no point of the surface then lies much farther
+    than the spacing from a collision point. (Half the spacing, the dense vertices' cover, tripled the points of
+    coarse scans such as spot's and left a soft body resting on a stiff one converging less well.)
+    """
+    from scipy.spatial import cKDTree
+
+    face, bary = face_lattice(x, faces, FACE_STEP * spacing)
+    if len(face) == 0:
+        return face, bary
+    points = np.einsum("kj,kjd->kd", bary, x[np.asarray(faces, np.int64)[face]])
+    gap, _ = cKDTree(x[picks]).query(points)
+    far = np.flatnonzero(gap > spacing)
+    keep = far[covering_picks(points[far], spacing)] if len(far) else far
+    return face[keep], bary[keep]
+
+
+def face_lattice(positions: np.ndarray, faces: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the triangles with an edge longer than ``step``: a lattice about ``step`` apart on each.
+
+    A triangle whose longest edge is L gets the nodes of its split into ceil(L / step)^2 similar triangles,
+    its own corners (dense vertices) left out; a point on an edge two such triangles share is kept once.
+
+    Returns:
+        ``(face, bary)``: (k,) int32 triangle of each point and (k, 3) weights on its corners.
+    """
+    x = np.asarray(positions, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    empty = np.zeros(0, np.int32), np.zeros((0, 3))
+    if len(f) == 0 or step <= 0:
+        return empty
+    corners = x[f]
+    longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+    splits = np.ceil(longest / step).astype(np.int64)
+    chosen_face, chosen_bary = [], []
+    for n in np.unique(splits[splits > 1]):
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = (i + j <= n) & ~(((i == 0) | (j == 0)) & ((i + j == 0) | (i + j == n)))
+        bary = np.stack([n - i[keep] - j[keep], i[keep], j[keep]], axis=1) / n
+        these = np.flatnonzero(splits == n)
+        chosen_face.append(np.repeat(these, len(bary)))
+        chosen_bary.append(np.tile(bary, (len(these), 1)))
+    if not chosen_face:
+        return empty
+    face, bary = np.concatenate(chosen_face), np.concatenate(chosen_bary)
+    points = np.einsum("kj,kjd->kd", bary, x[f[face]])
+    _, first = np.unique(np.round(points / (1e-3 * step)).astype(np.int64), axis=0, return_index=True)
+    first.sort()
+    return face[first].astype(np.int32), bary[first]
 
 
 def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: float, tolerance: float) -> np.ndarray:
