@@ -320,10 +320,6 @@ def test_a_stiff_body_comes_to_rest_on_the_ground(device, young, substeps):
     in a cycle of a few steps that it never left, 0.07-0.4 % below the ground: docs/decisions.md, "Resting
     contacts under gravity".)"""
     size, lowest, moved, _ = stiff_drop(device, young=young, substeps=substeps)
-    if str(device).startswith("cuda") and not (-0.001 * size < min(lowest) and moved < 0.001 * size):
-        # on CUDA a run is not deterministic, and the held CG's float32 answer can leave the non-rigid stiff
-        # modes noisy (docs/decisions.md, "Stiff bodies on a collider")
-        pytest.xfail("on CUDA CG's noise in the stiff non-rigid modes exceeds the bound")
     assert min(lowest) > -0.001 * size, min(lowest) / size
     assert max(lowest) < 0.001 * size, max(lowest) / size
     assert moved < 0.001 * size  # at rest
