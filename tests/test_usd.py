@@ -559,10 +559,14 @@ def test_a_clips_folder_is_replaced_only_if_ours(tmp_path):
         for f, points in enumerate(frames):
             writer.add_frame(f, points)
     assert len(list((tmp_path / "x.clips").glob("x.*.usdc"))) == 4
+    killed = tmp_path / ".x.clips.old-1-2"  # what a run killed while deleting old clips leaves
+    killed.mkdir()
+    (killed / "x.000000.usdc").write_bytes(b"old")
     with UsdWriter(path, bodies, fps=60.0, chunk_bytes=2 * 12 * 14) as writer:  # ours: replaced
         for f, points in enumerate(frames[:3]):
             writer.add_frame(f, points)
     assert len(list((tmp_path / "x.clips").glob("x.*.usdc"))) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.clips", "x.usdc"]  # the old clips deleted beside
     with UsdWriter(path, bodies, fps=60.0) as writer:  # one file now: our old clips go
         writer.add_frame(0, frames[0])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.usdc"]

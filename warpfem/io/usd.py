@@ -150,6 +150,7 @@ class UsdWriter:
         self._cuts = 0  # chunks cut so far: the open chunk's number
         self._chunk_first: int | None = None  # the open chunk's first frame; None: no chunk open
         self._chunk_bytes = 0
+        self._discards: list[threading.Thread] = []  # old clip folders being deleted beside the run
         for name, faces in bodies:
             self._check_body(name, faces)
         self._props = _checked_props(props, {name for name, _ in self._bodies})
@@ -356,10 +357,12 @@ class UsdWriter:
     def _start_clips(self) -> None:
         """Make the clips folder with the topology and the manifest (replacing a folder of ours with ``overwrite``)."""
         folder = self.clips_dir
+        if folder.exists() and not (self._overwrite and _is_ours(folder)):
+            raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
+        for leftover in folder.parent.glob(f".{folder.name}.old-*"):  # of a run killed while deleting
+            self._discards.append(_discard(leftover))
         if folder.exists():
-            if not (self._overwrite and _is_ours(folder)):
-                raise FileExistsError(f"{folder}: the folder exists and is not warpfem clips of this output")
-            shutil.rmtree(folder)
+            self._discards.append(_discard(folder))
         folder.mkdir()
         self._pool.clip_files(folder)
 
@@ -455,7 +458,14 @@ class UsdWriter:
             self.abort()
             raise
         self._closed = True
+        self._join_discards()
         return self.path
+
+    def _join_discards(self) -> None:
+        """Wait until the old clip folders this run moved aside are deleted (mostly long since, beside the run)."""
+        for thread in self._discards:
+            thread.join()
+        self._discards.clear()
 
     def _write_single(self) -> None:
         """Write the one chunk there is as a self-contained file, and drop a clips folder of ours left there."""
@@ -475,6 +485,7 @@ class UsdWriter:
         if self.clips_dir.is_dir():
             for leftover in self.clips_dir.glob(f".*.tmp-{os.getpid()}.*"):
                 leftover.unlink(missing_ok=True)
+        self._join_discards()
 
     def __enter__(self) -> UsdWriter:
         return self
@@ -566,6 +577,21 @@ def clips_folder(path: str | Path) -> Path:
     """The folder beside ``path`` where a long run's chunks go: ``<stem>.clips``."""
     path = Path(path)
     return path.with_name(f"{path.stem}.clips")
+
+
+def _discard(folder: Path) -> threading.Thread:
+    """Move ``folder`` aside under a hidden name beside it and delete it on a thread of its own.
+
+    Deleting an old clip set of gigabytes takes the file system up to a second or more, on the writer's thread
+    a stall the run would wait for; moved aside, the new folder is in place at once.
+    """
+    trash = folder.with_name(f".{folder.name.lstrip('.').split('.old-')[0]}.old-{os.getpid()}-{time.monotonic_ns()}")
+    os.rename(folder, trash)
+    thread = threading.Thread(
+        target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True}, name="warpfem-discard"
+    )
+    thread.start()
+    return thread
 
 
 def _is_ours(folder: Path) -> bool:
