@@ -185,9 +185,10 @@ def lands(depth: float, n: wp.vec3, v: wp.vec3, g: wp.vec3, dt: float) -> bool:
     """Whether a point ``depth`` below a collider's surface (normal ``n``), moving at ``v``, ends the step below it.
 
     The speculative contact test. A point on or below the surface also falls under gravity ``g`` meanwhile: it
-    stays in contact unless it leaves faster than gravity brings it back within the step. (Released earlier,
-    a resting point pushed out of its depth at that depth's speed flew off, fell back a step later and
-    bounced again, a cycle a stiff body at long steps never left.)
+    stays in contact unless it leaves faster than gravity brings it back within the step. A point released
+    as soon as it leaves flies on at the speed the penalty pushed it out with, falls back a step later and is
+    pushed out again: a bounce a stiff body at long steps never leaves (docs/decisions.md, "Resting contacts
+    under gravity").
     """
     fall = wp.where(depth >= 0.0, dt * g, wp.vec3(0.0))
     return depth - dt * wp.dot(n, v + fall) > 0.0

@@ -121,8 +121,8 @@ def face_cover(x: np.ndarray, faces: np.ndarray, picks: np.ndarray, spacing: flo
 
     Of :func:`face_lattice`'s points every ``FACE_STEP`` of ``spacing``, those farther than ``spacing`` from
     every pick, thinned to a cover of their own at that radius: no point of the surface then lies much farther
-    than the spacing from a collision point. (Half the spacing, the dense vertices' cover, tripled the points of
-    coarse scans such as spot's and left a soft body resting on a stiff one converging less well.)
+    than the spacing from a collision point, and a scan whose vertices already cover it gets few or none
+    (docs/decisions.md, "Collision points on large triangles").
     """
     from scipy.spatial import cKDTree
 
