@@ -18,8 +18,11 @@ import argparse
 import numpy as np
 
 
-def drop(device: str, young: float, substeps: int, offset: float | None) -> str:
-    """One 2 s drop; its line of figures."""
+def stiff_drop(
+    device: str, young: float = 1e9, substeps: int = 1, offset: float | None = None
+) -> tuple[float, list[float], float]:
+    """One 2 s drop: the body's size, its lowest dense point each frame from 1 s on, and how far it moved in its
+    last frame (m). `tests/test_stability.py`'s stiff-body test runs this drop."""
     import warpfem
 
     body = {
@@ -49,7 +52,12 @@ def drop(device: str, young: float, substeps: int, offset: float | None) -> str:
             lowest.append(float(points[:, 1].min()))
         if frame == 46:
             previous = points
-    moved = float(np.abs(points - previous).max())
+    return size, lowest, float(np.abs(points - previous).max())
+
+
+def drop(device: str, young: float, substeps: int, offset: float | None) -> str:
+    """One 2 s drop; its line of figures."""
+    size, lowest, moved = stiff_drop(device, young, substeps, offset)
     rests = -0.001 * size < min(lowest) and max(lowest) < 0.001 * size and moved < 0.001 * size
     return (
         f"{young:.0e} Pa, {24 * substeps} steps/s: lowest {100 * min(lowest) / size:+.3f} .. "

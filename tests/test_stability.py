@@ -7,7 +7,9 @@ force. The ground penalty's spring energy is left out: the body's own energy mus
 started with, since nothing in these scenes does work on it (pins hold still, the ground does not move).
 """
 
+import importlib.util
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from warpfem.presets import STATIC_OFFSET
 from warpfem.sim.model import ModelBuilder, lame
 from warpfem.sim.solver import DEFAULT_ROTATION_TOLERANCE, Ground, Solver
 
+ROOT = Path(__file__).resolve().parents[1]
 G = 9.81
 RHO = 1000.0
 SIZE = 0.2
@@ -265,45 +268,14 @@ def test_stiff_body_falls_as_gravity_says(device, quadratic):
     assert _rigid_residual(s0.x.numpy().astype(float)[: len(V)], V) < 1e-3 * SIZE
 
 
-def stiff_drop(
-    device: str, offset: float | None = None, young: float = 1e9, substeps: int = 1
-) -> tuple[float, list[float], float, object]:
-    """The default scene's bunny made ``young`` Pa, nu 0.49, dropped for 2 s at 24 frames a second of ``substeps``
-    steps onto a ground whose penalty starts ``offset`` (share of the size; None: the scene default) above it:
-    its size, its lowest dense point each frame from 1 s on, how far it moved in its last frame (m), and the
-    simulation (`scripts/stiff_rest.py` runs it too)."""
-    import warpfem
-
-    doc = {
-        "scene": {"frames": 48, "fps": 24.0, "substeps": substeps},
-        "ground": {} if offset is None else {"offset": offset},
-        "object": [
-            {
-                "name": "bunny",
-                "mesh": "builtin:bunny",
-                "subdivide": 0,
-                "faces": 400,
-                "scale": 0.5,
-                "rotate": [15.0, 30.0, 0.0],
-                "translate": [0.0, 1.0, 0.0],
-                "young": young,
-                "poisson": 0.49,
-                "damping_stiffness": 0.005,
-            }
-        ],
-    }
-    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="stiff"), device=device)
-    size = float(np.linalg.norm(np.ptp(sim.dense_points("bunny"), axis=0)))
-    lowest, previous = [], None
-    for frame in range(48):
-        sim.step_frame()
-        points = sim.dense_points("bunny")
-        if frame >= 24:
-            lowest.append(float(points[:, 1].min()))
-        if frame == 46:
-            previous = points
-    moved = float(np.abs(points - previous).max())
-    return size, lowest, moved, sim
+def stiff_drop(device: str, young: float, substeps: int) -> tuple[float, list[float], float]:
+    """`scripts/stiff_rest.py`'s drop of the default scene's bunny made ``young`` Pa, nu 0.49, for 2 s at 24
+    frames a second of ``substeps`` steps onto the ground, scene defaults otherwise: its size, its lowest dense
+    point each frame from 1 s on, and how far it moved in its last frame (m)."""
+    spec = importlib.util.spec_from_file_location("stiff_rest", ROOT / "scripts" / "stiff_rest.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script.stiff_drop(device, young, substeps)
 
 
 @pytest.mark.parametrize(
@@ -319,7 +291,7 @@ def test_a_stiff_body_comes_to_rest_on_the_ground(device, young, substeps):
     it no longer moves. (A ground contact released as soon as the point left at any speed bounced such a body
     in a cycle of a few steps that it never left, 0.07-0.4 % below the ground: docs/decisions.md, "Resting
     contacts under gravity".)"""
-    size, lowest, moved, _ = stiff_drop(device, young=young, substeps=substeps)
+    size, lowest, moved = stiff_drop(device, young, substeps)
     assert min(lowest) > -0.001 * size, min(lowest) / size
     assert max(lowest) < 0.001 * size, max(lowest) / size
     assert moved < 0.001 * size  # at rest
