@@ -474,7 +474,7 @@ class UsdWriter:
             pass
         self._place()
         if self._overwrite and self.clips_dir.is_dir() and _is_ours(self.clips_dir):
-            shutil.rmtree(self.clips_dir)
+            self._discards.append(_discard(self.clips_dir))
 
     def abort(self) -> None:
         """Drop what is in memory and remove temporary files; the target keeps the chunks placed before."""
