@@ -203,9 +203,15 @@ def test_collision_samples_are_cached_beside_the_body(ellipsoid_file, tmp_path, 
             cached_surface_samples(body, 0.05, 1e-3, cache)
     entry.write_bytes(entry.read_bytes()[:200])  # damaged: computed again
     third = cached_surface_samples(body, 0.1, 1e-3, cache)
-    for got in (first, second, third):
+    stale = dict(collision=expected.collision, skin=expected.skin, face=[len(body.dense_faces)], face_bary=[[1, 0, 0]])
+    with entry.open("wb") as stream:  # a point on a triangle the mesh does not have: computed again
+        np.savez(stream, **stale)
+    fourth = cached_surface_samples(body, 0.1, 1e-3, cache)
+    for got in (first, second, third, fourth):
         np.testing.assert_array_equal(got.collision, expected.collision)
         np.testing.assert_array_equal(got.skin, expected.skin)
+        np.testing.assert_array_equal(got.face, expected.face)
+        np.testing.assert_array_equal(got.face_bary, expected.face_bary)
 
 
 def test_prepare_reports_bad_input(tmp_path):
