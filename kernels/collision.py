@@ -3,10 +3,10 @@
 Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below
 the body's dense surface at rest and the way out to that surface's nearest point, carried to the tet's
 current shape (:func:`kernels.surface.visible_depth`); where no dense surface is in reach, the distance
-below the plane of the surface face the point came in through (the one it was outside of a step ago,
-relative to the tet; else the nearest), corrected by how far that face lies outside the visible surface,
-along its current outward normal. Deep inside, the paper's interpolated distance field and rotated
-gradients. Both are depths below the visible surface: contacts start where the visible surfaces meet.
+below the plane of the surface face the point is moving out through (whose plane it would cross within a
+step at its speed relative to the tet; else the nearest), corrected by how far that face lies outside the
+visible surface, along its current outward normal. Deep inside, the paper's interpolated distance field
+and rotated gradients. Both are depths below the visible surface: contacts start where the visible surfaces meet.
 
 Collision points are samples of each body's dense surface, embedded like every dense vertex (in a cell: a
 tet, or a quadratic tet's sub-tet), or for a bare tet mesh its surface vertices plus optional samples on its
@@ -293,8 +293,8 @@ def depth_in_tet(
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
-        # near the surface: below the nearest surface face the point came in through this step (it crossed
-        # the face's plane), else below the nearest face; along that face's outward normal
+        # near the surface: below the nearest face the point would leave through within a step, else the
+        # nearest face; along its outward normal (docs/decisions.md, "The face a point came in through")
         step = dt * (point_velocity[p] - interpolate(v, t, w))
         entered = float(1.0e30)
         nearest = float(1.0e30)
