@@ -318,7 +318,13 @@ def main(argv: list[str] | None = None) -> int:
 
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
-    results = {"environment": environment(device), "mode": "end-to-end", "frames": args.frames, "runs": []}
+    results = {
+        "environment": environment(device),
+        "mode": "end-to-end",
+        "frames": args.frames,
+        "raw_sample_bytes": RAW_SAMPLE_BYTES,
+        "runs": [],
+    }
     results["switch_interval_ms"] = args.switch_interval or 1e3 * sys.getswitchinterval()
     with tempfile.TemporaryDirectory(dir=args.workdir) as folder:
         for case in args.cases.split(","):

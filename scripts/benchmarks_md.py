@@ -7,6 +7,8 @@ import sys
 from datetime import datetime
 from pathlib import Path
 
+from bench_end_to_end import RAW_SAMPLE_BYTES  # the sample size of results that predate its record
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "scripts" / "results"
 PEER_HOURS = 12
@@ -290,9 +292,10 @@ def end_to_end_lines(found: tuple[Path, dict] | None, where: str = "") -> list[s
     machine = f"driver {env['driver']}" if env.get("driver") else f"Python {env.get('python', '?')}"
     sampled = ""
     if any("raw_sampled_frames" in r for r in data["runs"]):
+        mb = f"{data.get('raw_sample_bytes', RAW_SAMPLE_BYTES) / 2**20:g} MB"
         sampled = (
-            ", per frame of the frames it was written beside: every frame up to 8 MB of points, one in"
-            " ceil(size / 8 MB) above, so that measuring it does not hold the writer up"
+            f", per frame of the frames it was written beside: every frame up to {mb} of points, one in"
+            f" ceil(size / {mb}) above, so that measuring it does not hold the writer up"
         )
     lines = [
         "",
