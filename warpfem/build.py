@@ -88,11 +88,34 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
         spacing, skin_spacing = spacings(obj.collision_spacing / obj.scale, size)  # in the mesh's units
         key = (id(body), spacing)
         if key not in done:
+            _check_spacing(scene, obj, body, spacing)
             done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)
             if scene.solver.elements == "quadratic":
                 done[key] = replace(done[key], skin=np.arange(len(body.dense_vertices)))
         samples.append(done[key])
     return samples
+
+
+MAX_COLLISION_POINTS = 1_000_000
+"""The most collision points a scene's ``collision_spacing`` may ask of one body (its surface's area over the
+spacing squared): a spacing in metres far below a large body's size would otherwise fill the memory while the
+points are chosen. The default spacing asks a few thousand."""
+
+
+def _check_spacing(scene: Scene, obj: ObjectConfig, body: PreparedBody, spacing: float) -> None:
+    """InputError where ``spacing`` (mesh units) asks more than :data:`MAX_COLLISION_POINTS` of ``body``."""
+    corners = body.dense_vertices[body.dense_faces]
+    area = 0.5 * float(
+        np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    )
+    wanted = area / spacing**2
+    if wanted > MAX_COLLISION_POINTS:
+        least = obj.scale * np.sqrt(area / MAX_COLLISION_POINTS)
+        raise InputError(
+            f"{scene.path}: object '{obj.name}': collision_spacing = {obj.collision_spacing:g} m asks for about "
+            f"{wanted:,.0f} collision points on its surface (at most {MAX_COLLISION_POINTS:,}): use {least:.2g} m "
+            "or more, or 0 for the default"
+        )
 
 
 def placed_geometry(
