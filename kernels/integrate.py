@@ -238,10 +238,8 @@ def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec
 def clear_step(
     force: wp.array(dtype=wp.vec3),
     grad: wp.array(dtype=wp.vec3),
-    elastic_force: wp.array(dtype=wp.vec3),
     momentum: wp.array(dtype=wp.vec3),
     matrix: wp.array(dtype=wp.mat33),
-    elastic_matrix: wp.array(dtype=wp.mat33),
     point_contact: wp.array(dtype=wp.int32),
     late_vertex: wp.array(dtype=wp.int32),
     late_skin: wp.array(dtype=wp.int32),
@@ -254,14 +252,10 @@ def clear_step(
         force[i] = wp.vec3(0.0)
     if i < grad.shape[0]:
         grad[i] = wp.vec3(0.0)
-    if i < elastic_force.shape[0]:
-        elastic_force[i] = wp.vec3(0.0)
     if i < momentum.shape[0]:
         momentum[i] = wp.vec3(0.0)
     if i < matrix.shape[0]:
         matrix[i] = wp.mat33(0.0)
-    if i < elastic_matrix.shape[0]:
-        elastic_matrix[i] = wp.mat33(0.0)
     if i < point_contact.shape[0]:
         point_contact[i] = 0
     if i < late_vertex.shape[0]:
@@ -552,23 +546,29 @@ def late_skin_contacts(
 
 
 @wp.kernel
-def add_blocks(base: wp.array(dtype=wp.mat33), extra: wp.array(dtype=wp.mat33), matrix_out: wp.array(dtype=wp.mat33)):
-    """``matrix_out = base + extra``, block by block."""
-    s = wp.tid()
-    matrix_out[s] = base[s] + extra[s]
-
-
-@wp.kernel
-def add_elastic_rhs(
+def add_elastic(
     free: wp.array(dtype=wp.int32),
+    matrix_base: wp.array(dtype=wp.mat33),
     rhs_base: wp.array(dtype=wp.vec3),
-    elastic_force: wp.array(dtype=wp.vec3),
     dt: float,
+    elastic_matrix: wp.array(dtype=wp.mat33),
+    elastic_force: wp.array(dtype=wp.vec3),
+    matrix_out: wp.array(dtype=wp.mat33),
     rhs_out: wp.array(dtype=wp.vec3),
 ):
-    """The right-hand side with another elastic force: ``rhs_base + dt elastic_force`` (zero on held vertices)."""
-    i = wp.tid()
-    rhs_out[i] = wp.where(free[i] == 0, wp.vec3(), rhs_base[i] + dt * elastic_force[i])
+    """The system from its base and its elastic part, each elastic entry zeroed once read.
+
+    ``matrix_out = matrix_base + elastic_matrix`` block by block and ``rhs_out = rhs_base + dt elastic_force``
+    (zero on held vertices); the next assembly adds into the zeros. One thread per block, its first threads
+    also a vertex each.
+    """
+    s = wp.tid()
+    if s < matrix_out.shape[0]:
+        matrix_out[s] = matrix_base[s] + elastic_matrix[s]
+        elastic_matrix[s] = wp.mat33()
+    if s < rhs_out.shape[0]:
+        rhs_out[s] = wp.where(free[s] == 0, wp.vec3(), rhs_base[s] + dt * elastic_force[s])
+        elastic_force[s] = wp.vec3()
 
 
 @wp.kernel

@@ -389,22 +389,19 @@ def add_elastic(
     rhs_out: wp.array,
     diag_inv_out: wp.array,
 ) -> None:
-    """The system with an elastic part kept apart: matrix, right-hand side and preconditioner from their bases."""
+    """The system with an elastic part kept apart: matrix, right-hand side and preconditioner from their bases.
+
+    The elastic arrays are zeroed as they are read (the next assembly, of this step or the next, adds into
+    them).
+    """
+    count = max(matrix_out.shape[0], model.vertex_count)
     wp.launch(
-        K.add_blocks,
-        dim=matrix_out.shape[0],
-        inputs=[matrix_base, elastic_matrix],
-        outputs=[matrix_out],
+        K.add_elastic,
+        dim=count,
+        inputs=[model.free, matrix_base, rhs_base, dt],
+        outputs=[elastic_matrix, elastic_force, matrix_out, rhs_out],
         device=model.device,
-        block_dim=spread_block_dim(matrix_out.shape[0], model.device),
-    )
-    wp.launch(
-        K.add_elastic_rhs,
-        dim=model.vertex_count,
-        inputs=[model.free, rhs_base, elastic_force, dt],
-        outputs=[rhs_out],
-        device=model.device,
-        block_dim=spread_block_dim(model.vertex_count, model.device),
+        block_dim=spread_block_dim(count, model.device),
     )
     refresh_preconditioner(model, matrix_out, diag_inv_out)
 

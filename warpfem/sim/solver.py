@@ -160,16 +160,15 @@ class Solver:
     def _list_cleared(self) -> None:
         """List what a step zeroes before it accumulates and counts, in one launch.
 
-        In ``kernels.integrate.clear_step``'s order; the matrix itself is the base when nothing is apart.
+        In ``kernels.integrate.clear_step``'s order; the matrix itself is the base when nothing is apart. The
+        elastic arrays kept apart are zeroed as the system reads them (``integrate.add_elastic``).
         """
-        collider, apart = self.collider, self.apart
+        collider = self.collider
         self._cleared = [
             self.force,
             self.grad,
-            self.elastic_force if apart else self._no_vec3,
             self.momentum,
             self.matrix_base,
-            self.elastic_matrix if apart else self._no_mat33,
             collider.point_contact if collider is not None else self._no_int,
             *self.late,
             collider.counts if collider is not None else self._no_int,
@@ -285,8 +284,6 @@ class Solver:
 
     def _relinearise(self, state_in: State, state_out: State, dt: float, k: int) -> None:
         """The system again about the rotations ``rotation`` holds, solved from the last answer."""
-        self.elastic_force.zero_()
-        self.elastic_matrix.zero_()
         fem.elastic_forces_and_stiffness(
             self.model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self._no_vec3,
             given_rotation=True,
