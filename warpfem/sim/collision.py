@@ -82,6 +82,7 @@ class Collider:
         """How many contacts the step found, and where those being answered start in the buffers (0, or a late
         pass's first): ``count`` and ``first``, views of it."""
         self.count, self.first = self.counts[0:1], self.counts[1:2]
+        self._late_again = wp.zeros(1, dtype=wp.int32, device=dev)  # the count of a late pass answered twice
         self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_cell = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_bary = wp.zeros(self.capacity, dtype=wp.vec4, device=dev)
@@ -178,13 +179,21 @@ class Collider:
         self._answer(v, dt, force_out, matrix_out)
 
     def respond_late(
-        self, x: wp.array, v: wp.array, dt: float, rhs_out: wp.array, matrix_out: wp.array, count_out: wp.array
+        self,
+        x: wp.array,
+        v: wp.array,
+        dt: float,
+        rhs_out: wp.array,
+        matrix_out: wp.array,
+        count_out: wp.array,
+        base_out: tuple[wp.array, wp.array] | None = None,
     ) -> None:
         """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
 
         Points already in contact this step are left be; each new contact enters the built system with the
         depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
-        force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added.
+        force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added. With ``base_out`` (the
+        right-hand side and matrix without elasticity, which the rigid correction reads), there too.
         """
         self.prepare(x, v)
         wp.launch(
@@ -192,6 +201,8 @@ class Collider:
         )
         self._detect(x, v, dt, late=True)
         self._answer(v, dt, rhs_out, matrix_out, count_out)
+        if base_out is not None:
+            self._answer(v, dt, *base_out, self._late_again)
 
     def _answer(
         self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None

@@ -17,8 +17,9 @@ from warpfem.sim import fem, integrate
 from warpfem.sim.cg import CGSolver, CGStats
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
 from warpfem.sim.drive import Drive, Handle
-from warpfem.sim.integrate import Box, Ground, MeshCollider, RigidCorrection, Sphere, StaticColliders
+from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
 from warpfem.sim.model import Model, State
+from warpfem.sim.rigid import RigidCorrection
 
 DEFAULT_GROUND = Ground()
 
@@ -264,7 +265,7 @@ class Solver:
     def _finish(self, state_in: State, state_out: State, dt: float) -> None:
         """After a solve: the rigid correction where needed, then the positions.
 
-        (:class:`~warpfem.sim.integrate.RigidCorrection`.)
+        (:class:`~warpfem.sim.rigid.RigidCorrection`.)
         """
         if self.rigid is not None and self.rigid.needed(dt):
             coupling = self.collider.coupling if self.collider is not None else None
@@ -308,7 +309,8 @@ class Solver:
                     self.rhs_base if base else self._no_vec3,
                 )  # fmt: skip
             if self.collider is not None and k < LATE_BODY_PASSES:
-                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count)
+                bases = (self.rhs_base, self.matrix_base) if base else None
+                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases)
             wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt))
 
     def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
