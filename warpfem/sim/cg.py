@@ -14,7 +14,9 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
+from warpfem.kernels import coarse as KC
 from warpfem.kernels.product import OWN_CHUNK_ENTRIES, PAIR_LANES, BlockMatrix, Pairs
+from warpfem.sim.coarse import RigidDeflation
 from warpfem.sim.contacts import Coupling
 
 BLOCK = 256
@@ -304,17 +306,65 @@ class CGSolver:
         )
 
     def _plan(
-        self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
+        self,
+        values: wp.array,
+        diag_inv: wp.array,
+        b: wp.array,
+        x: wp.array,
+        direction: wp.array,
+        mass: wp.array,
+        deflation: RigidDeflation | None,
     ) -> tuple[list, list, list]:
         """The recorded launches of a solve: before the loop, one loop body (none: no loop), after it.
+
+        A solve with a deflation space is launched (``kernels.coarse`` has no persistent form).
 
         Replaying recorded launches skips the argument packing of ``wp.launch``, which counts on the CPU,
         where every iteration is launched from Python.
         """
-        if self.mode == "grid":
+        if deflation is None and self.mode == "grid":
             return self._plan_grid(values, diag_inv, b, x, direction, mass), [], []
-        before = self._plan_start(values, diag_inv, b, x, direction, mass)
-        return before, self._plan_body(values, diag_inv, x), self._plan_finish()
+        before = self._plan_start(values, diag_inv, b, x, direction, mass, deflation)
+        return before, self._plan_body(values, diag_inv, x, deflation), self._plan_finish()
+
+    def _deflation_start(self, diag_inv: wp.array, deflation: RigidDeflation) -> list:
+        """The start's u and r.u with the deflated bodies' rigid motions taken out (``kernels.coarse``)."""
+        n, dev = self.free.shape[0], self.device
+        d = deflation.arg()
+        scalars = [self.iteration, -1, self.gamma, self.bz, self.tolerance, self.max_iterations, self.alpha]
+        options = dict(dim=self.padded, block_dim=BLOCK, device=dev, record_cmd=True)
+        return [
+            wp.launch(KC.deflation_start_sums, inputs=[n, self.free, self.r, d], **options),
+            wp.launch(
+                KC.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
+            ),
+            wp.launch(
+                KC.deflation_project,
+                inputs=[n, self.free, diag_inv, self.r, d, *scalars],
+                outputs=[self.u, self.gamma],
+                **options,
+            ),
+        ]
+
+    def _deflation_update(self, update: list, vectors: list, step: int, deflation: RigidDeflation) -> list:
+        """An iteration's update with the sums of its new r, then u and r.u without the rigid motions."""
+        n, dev = self.free.shape[0], self.device
+        d = deflation.arg()
+        diag_inv = update[1]
+        scalars = [self.iteration, step, self.gamma, self.bz, self.tolerance, self.max_iterations, self.alpha]
+        options = dict(dim=self.padded, block_dim=BLOCK, device=dev, record_cmd=True)
+        return [
+            wp.launch(KC.deflation_update, inputs=[*update, d], outputs=[self.alpha, self.done, *vectors], **options),
+            wp.launch(
+                KC.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
+            ),
+            wp.launch(
+                KC.deflation_project,
+                inputs=[n, self.free, diag_inv, self.r, d, *scalars],
+                outputs=[self.u, self.gamma],
+                **options,
+            ),
+        ]
 
     def _plan_grid(
         self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
@@ -352,13 +402,24 @@ class CGSolver:
         return [reset, solve]
 
     def _plan_start(
-        self, values: wp.array, diag_inv: wp.array, b: wp.array, x: wp.array, direction: wp.array, mass: wp.array
+        self,
+        values: wp.array,
+        diag_inv: wp.array,
+        b: wp.array,
+        x: wp.array,
+        direction: wp.array,
+        mass: wp.array,
+        deflation: RigidDeflation | None = None,
     ) -> list:
-        """The launched solve's start: reset, the start's projection along ``direction``, r, u, p and the check."""
+        """The launched solve's start: reset, the start's projection along ``direction``, r, u, p and the check.
+
+        With ``deflation``, first its factors, and u and r.u without the rigid motions (:meth:`_deflation_start`).
+        """
         n, dev = self.free.shape[0], self.device
         limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
         scalars = [self.w, self.s, self.gamma, self.delta, self.bz, self.scratch, self.project, self.iteration]
         return [
+            *(deflation.factor_launches() if deflation is not None else []),
             wp.launch(
                 K.cg_reset,
                 dim=max(self.padded, self.gamma.shape[0]),
@@ -387,28 +448,39 @@ class CGSolver:
                 device=dev,
                 record_cmd=True,
             ),
+            *(self._deflation_start(diag_inv, deflation) if deflation is not None else []),
             self._apply(values, self.u, 1, 0, self.delta),
             wp.launch(K.cg_start, dim=1, inputs=limits, outputs=[self.cond], device=dev, record_cmd=True),
         ]
 
-    def _plan_body(self, values: wp.array, diag_inv: wp.array, x: wp.array) -> list:
-        """One pass of the launched solve's loop: ``unroll`` iterations (an update and a product each), a check."""
+    def _plan_body(
+        self, values: wp.array, diag_inv: wp.array, x: wp.array, deflation: RigidDeflation | None = None
+    ) -> list:
+        """One pass of the launched solve's loop: ``unroll`` iterations and a check.
+
+        An iteration is an update and a product, and with ``deflation`` u made without the rigid motions
+        between them.
+        """
         n, dev = self.free.shape[0], self.device
         limits = [self.gamma, self.bz, self.tolerance, self.max_iterations]
         vectors = [x, self.r, self.u, self.p, self.s, self.w]
         body = []
         for step in range(self.unroll):
-            body.append(
-                wp.launch(
-                    K.cg_update,
-                    dim=self.padded,
-                    block_dim=BLOCK,
-                    inputs=[n, diag_inv, self.iteration, step, self.gamma, self.delta, *limits[1:], self.free],
-                    outputs=[self.alpha, self.done, *vectors, self.gamma],
-                    device=dev,
-                    record_cmd=True,
+            update = [n, diag_inv, self.iteration, step, self.gamma, self.delta, *limits[1:], self.free]
+            if deflation is None:
+                body.append(
+                    wp.launch(
+                        K.cg_update,
+                        dim=self.padded,
+                        block_dim=BLOCK,
+                        inputs=update,
+                        outputs=[self.alpha, self.done, *vectors, self.gamma],
+                        device=dev,
+                        record_cmd=True,
+                    )
                 )
-            )
+            else:
+                body.extend(self._deflation_update(update, vectors, step, deflation))
             body.append(self._apply(values, self.u, 1, step + 1, self.delta))
         body.append(
             wp.launch(
@@ -443,6 +515,7 @@ class CGSolver:
         x: wp.array,
         direction: wp.array | None = None,
         mass: wp.array | None = None,
+        deflation: RigidDeflation | None = None,
     ) -> None:
         """Solve ``A x = b``; ``diag_inv`` holds the inverse diagonal blocks.
 
@@ -450,18 +523,27 @@ class CGSolver:
         from the ``x`` given, moved along ``direction`` (zero on pinned rows; None: not moved) by the step
         that minimises the A-norm error along it, clamped to [0, 1], if the direction is smooth: d.A d at
         most ``kernels.cg.SMOOTH`` times d.M d with M the diagonal of ``mass`` (per row, kg; needed with a
-        direction).
+        direction). With ``deflation`` (bound to the step), the deflated bodies' rigid motions are left as the
+        start has them (:mod:`warpfem.kernels.coarse`): the rigid correction after the solve sets them.
         """
         if direction is not None and mass is None:
             raise ValueError("a start direction needs the rows' masses")
         direction = self.no_direction if direction is None else direction
         mass = self.no_mass if mass is None else mass
-        key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr, direction.ptr, mass.ptr)
+        self._run(self._plan_for(values, diag_inv, b, x, direction, mass, deflation))
+
+    def _plan_for(self, values, diag_inv, b, x, direction, mass, deflation: RigidDeflation | None) -> tuple:
+        """The recorded plan of a solve with these arguments, recorded on first use."""
+        key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr, direction.ptr, mass.ptr, deflation.key if deflation else None)
         if key not in self._plans:
             if len(self._plans) >= 8:
                 self._plans.clear()
-            self._plans[key] = self._plan(values, diag_inv, b, x, direction, mass)
-        before, body, after = self._plans[key]
+            self._plans[key] = self._plan(values, diag_inv, b, x, direction, mass, deflation)
+        return self._plans[key]
+
+    def _run(self, plan: tuple) -> None:
+        """Launch a recorded plan: before, the loop under ``wp.capture_while``, after."""
+        before, body, after = plan
         for launch in before:
             launch.launch()
         if body:

@@ -22,6 +22,7 @@ from warpfem.sim.launch import SPREAD_BLOCKS, WIDE_BLOCK
 
 STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.cg": (WIDE_BLOCK,),
+    "warpfem.kernels.coarse": (WIDE_BLOCK,),
     "warpfem.kernels.collision": SPREAD_BLOCKS,
     "warpfem.kernels.drive": (WIDE_BLOCK,),
     "warpfem.kernels.embedding": (WIDE_BLOCK,),

@@ -15,6 +15,7 @@ import warp as wp
 
 from warpfem.sim import fem, integrate
 from warpfem.sim.cg import CGSolver, CGStats
+from warpfem.sim.coarse import RigidDeflation
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
 from warpfem.sim.drive import Drive, Handle
 from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
@@ -142,6 +143,8 @@ class Solver:
         self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
         self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
         """Momentum of bodies no other body touches, kept exact where float32 loses it (with ``apart`` only)."""
+        self.deflation = RigidDeflation(model, self.rigid.rate) if apart else None
+        """Bodies whose rigid motions CG leaves to the rigid correction (with ``apart`` only)."""
 
     def _allocate_flags(self, rotation_updates: int, static: bool) -> None:
         """The step's conditions (rotation updates, late-contact passes) and the late static contacts' marks."""
@@ -217,7 +220,8 @@ class Solver:
             if self.drive is not None:
                 self.drive.pose(state_in.x, dt)
             self._assemble(state_in, state_out, dt)
-            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass)
+            deflation = self._deflated(state_in, dt)
+            self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, self.direction, model.mass, deflation)
             self._finish(state_in, state_out, dt)
             if self.rotation_updates:
                 self._update_rotations(state_in, state_out, dt, 1)
@@ -262,6 +266,13 @@ class Solver:
             self.rhs, self.diag_inv,
         )  # fmt: skip
 
+    def _deflated(self, state_in: State, dt: float) -> RigidDeflation | None:
+        """The deflation bound to this step where some body is stiffer than float32 resolves, else None."""
+        if self.deflation is None or not self.deflation.needed(dt):
+            return None
+        self.deflation.bind(state_in.x, self.matrix_base, dt)
+        return self.deflation
+
     def _finish(self, state_in: State, state_out: State, dt: float) -> None:
         """After a solve: the rigid correction where needed, then the positions.
 
@@ -290,7 +301,7 @@ class Solver:
             given_rotation=True,
         )  # fmt: skip
         self._add_elastic(dt)
-        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, deflation=self._deflated(state_in, dt))
         self._finish(state_in, state_out, dt)
         if k < self.rotation_updates:
             self._update_rotations(state_in, state_out, dt, k + 1)
@@ -315,7 +326,7 @@ class Solver:
 
     def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv)
-        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, deflation=self._deflated(state_in, dt))
         self._finish(state_in, state_out, dt)
 
     @property
