@@ -14,9 +14,9 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels import coarse as KC
+from warpfem.kernels import deflation as KC
 from warpfem.kernels.product import OWN_CHUNK_ENTRIES, PAIR_LANES, BlockMatrix, Pairs
-from warpfem.sim.coarse import RigidDeflation
+from warpfem.sim.deflation import RigidDeflation
 from warpfem.sim.contacts import Coupling
 
 BLOCK = 256
@@ -317,7 +317,7 @@ class CGSolver:
     ) -> tuple[list, list, list]:
         """The recorded launches of a solve: before the loop, one loop body (none: no loop), after it.
 
-        A solve with a deflation space is launched (``kernels.coarse`` has no persistent form).
+        A solve with a deflation space is launched (``kernels.deflation`` has no persistent form).
 
         Replaying recorded launches skips the argument packing of ``wp.launch``, which counts on the CPU,
         where every iteration is launched from Python.
@@ -328,7 +328,7 @@ class CGSolver:
         return before, self._plan_body(values, diag_inv, x, deflation), self._plan_finish()
 
     def _deflation_start(self, diag_inv: wp.array, deflation: RigidDeflation) -> list:
-        """The start's u and r.u with the deflated bodies' rigid motions taken out (``kernels.coarse``)."""
+        """The start's u and r.u with the deflated bodies' rigid motions taken out (``kernels.deflation``)."""
         n, dev = self.free.shape[0], self.device
         d = deflation.arg()
         scalars = [self.iteration, -1, self.gamma, self.bz, self.tolerance, self.max_iterations, self.alpha]
@@ -524,7 +524,7 @@ class CGSolver:
         that minimises the A-norm error along it, clamped to [0, 1], if the direction is smooth: d.A d at
         most ``kernels.cg.SMOOTH`` times d.M d with M the diagonal of ``mass`` (per row, kg; needed with a
         direction). With ``deflation`` (bound to the step), the deflated bodies' rigid motions are left as the
-        start has them (:mod:`warpfem.kernels.coarse`): the rigid correction after the solve sets them.
+        start has them (:mod:`warpfem.kernels.deflation`): the rigid correction after the solve sets them.
         """
         if direction is not None and mass is None:
             raise ValueError("a start direction needs the rows' masses")

@@ -22,8 +22,8 @@ from warpfem.sim.launch import SPREAD_BLOCKS, WIDE_BLOCK
 
 STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.cg": (WIDE_BLOCK,),
-    "warpfem.kernels.coarse": (WIDE_BLOCK,),
     "warpfem.kernels.collision": SPREAD_BLOCKS,
+    "warpfem.kernels.deflation": (WIDE_BLOCK,),
     "warpfem.kernels.drive": (WIDE_BLOCK,),
     "warpfem.kernels.embedding": (WIDE_BLOCK,),
     "warpfem.kernels.fem": SPREAD_BLOCKS,

@@ -1,6 +1,6 @@
 """Rigid motions taken out of CG for bodies stiffer than float32 resolves at their step.
 
-See :mod:`warpfem.kernels.coarse` for the method. :class:`RigidDeflation` holds the per-body arrays; the solver
+See :mod:`warpfem.kernels.deflation` for the method. :class:`RigidDeflation` holds the per-body arrays; the solver
 binds a step's positions to it (:meth:`RigidDeflation.bind`), and :class:`~warpfem.sim.cg.CGSolver` runs a solve
 given one with its launches.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warpfem.kernels import coarse as K
+from warpfem.kernels import deflation as K
 from warpfem.sim.launch import WIDE_BLOCK
 from warpfem.sim.model import Model
 from warpfem.sim.rigid import FLOAT32_EPS
