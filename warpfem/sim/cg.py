@@ -14,10 +14,10 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import cg as K
-from warpfem.kernels import deflation as KC
+from warpfem.kernels import deflation as KD
 from warpfem.kernels.product import OWN_CHUNK_ENTRIES, PAIR_LANES, BlockMatrix, Pairs
-from warpfem.sim.deflation import RigidDeflation
 from warpfem.sim.contacts import Coupling
+from warpfem.sim.deflation import RigidDeflation
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
@@ -334,12 +334,12 @@ class CGSolver:
         scalars = [self.iteration, -1, self.gamma, self.bz, self.tolerance, self.max_iterations, self.alpha]
         options = dict(dim=self.padded, block_dim=BLOCK, device=dev, record_cmd=True)
         return [
-            wp.launch(KC.deflation_start_sums, inputs=[n, self.free, self.r, d], **options),
+            wp.launch(KD.deflation_start_sums, inputs=[n, self.free, self.r, d], **options),
             wp.launch(
-                KC.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
+                KD.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
             ),
             wp.launch(
-                KC.deflation_project,
+                KD.deflation_project,
                 inputs=[n, self.free, diag_inv, self.r, d, *scalars],
                 outputs=[self.u, self.gamma],
                 **options,
@@ -354,12 +354,12 @@ class CGSolver:
         scalars = [self.iteration, step, self.gamma, self.bz, self.tolerance, self.max_iterations, self.alpha]
         options = dict(dim=self.padded, block_dim=BLOCK, device=dev, record_cmd=True)
         return [
-            wp.launch(KC.deflation_update, inputs=[*update, d], outputs=[self.alpha, self.done, *vectors], **options),
+            wp.launch(KD.deflation_update, inputs=[*update, d], outputs=[self.alpha, self.done, *vectors], **options),
             wp.launch(
-                KC.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
+                KD.deflation_jacobi, inputs=[n, self.free, diag_inv, self.r, d, *scalars], outputs=[self.u], **options
             ),
             wp.launch(
-                KC.deflation_project,
+                KD.deflation_project,
                 inputs=[n, self.free, diag_inv, self.r, d, *scalars],
                 outputs=[self.u, self.gamma],
                 **options,

@@ -15,8 +15,8 @@ import warp as wp
 
 from warpfem.sim import fem, integrate
 from warpfem.sim.cg import CGSolver, CGStats
-from warpfem.sim.deflation import RigidDeflation
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
+from warpfem.sim.deflation import RigidDeflation
 from warpfem.sim.drive import Drive, Handle
 from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
 from warpfem.sim.model import Model, State
