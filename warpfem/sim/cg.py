@@ -317,7 +317,7 @@ class CGSolver:
     ) -> tuple[list, list, list]:
         """The recorded launches of a solve: before the loop, one loop body (none: no loop), after it.
 
-        A solve with a deflation space is launched (``kernels.deflation`` has no persistent form).
+        A deflated solve is launched (``kernels.deflation`` has no persistent form).
 
         Replaying recorded launches skips the argument packing of ``wp.launch``, which counts on the CPU,
         where every iteration is launched from Python.
@@ -532,7 +532,16 @@ class CGSolver:
         mass = self.no_mass if mass is None else mass
         self._run(self._plan_for(values, diag_inv, b, x, direction, mass, deflation))
 
-    def _plan_for(self, values, diag_inv, b, x, direction, mass, deflation: RigidDeflation | None) -> tuple:
+    def _plan_for(
+        self,
+        values: wp.array,
+        diag_inv: wp.array,
+        b: wp.array,
+        x: wp.array,
+        direction: wp.array,
+        mass: wp.array,
+        deflation: RigidDeflation | None,
+    ) -> tuple[list, list, list]:
         """The recorded plan of a solve with these arguments, recorded on first use."""
         key = (values.ptr, diag_inv.ptr, b.ptr, x.ptr, direction.ptr, mass.ptr, deflation.key if deflation else None)
         if key not in self._plans:
@@ -541,7 +550,7 @@ class CGSolver:
             self._plans[key] = self._plan(values, diag_inv, b, x, direction, mass, deflation)
         return self._plans[key]
 
-    def _run(self, plan: tuple) -> None:
+    def _run(self, plan: tuple[list, list, list]) -> None:
         """Launch a recorded plan: before, the loop under ``wp.capture_while``, after."""
         before, body, after = plan
         for launch in before:
