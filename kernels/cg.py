@@ -325,6 +325,34 @@ def step_sizes(k: int, gamma: float, gamma_prev: float, delta: float, alpha_prev
     return a, beta
 
 
+@wp.func
+def iteration_step(
+    i: int,
+    k: int,
+    gamma: wp.array(dtype=float),
+    delta: wp.array(dtype=float),
+    bz: wp.array(dtype=float),
+    tolerance: wp.array(dtype=float),
+    max_iterations: wp.array(dtype=wp.int32),
+    alpha_out: wp.array(dtype=float),
+    done_out: wp.array(dtype=wp.int32),
+):
+    """Iteration k's (alpha, beta) of a launched solve, (0, 0) where it does not run; thread 0 records them."""
+    a = float(0.0)
+    beta = float(0.0)
+    if is_active(k, gamma, bz, tolerance[0], max_iterations[0]):
+        gamma_prev = float(0.0)
+        alpha_prev = float(0.0)
+        if k > 0:
+            gamma_prev = gamma[k - 1]
+            alpha_prev = alpha_out[k - 1]
+        a, beta = step_sizes(k, gamma[k], gamma_prev, delta[k], alpha_prev)
+        if i == 0:
+            alpha_out[k] = a
+            done_out[0] = wp.where(a > 0.0, k + 1, k)
+    return a, beta
+
+
 @wp.kernel
 def cg_update(
     # inputs
@@ -358,18 +386,9 @@ def cg_update(
     i = wp.tid()
     k = iteration[0] + step
     ru = float(0.0)
-    if is_active(k, gamma, bz, tolerance[0], max_iterations[0]):
-        gamma_prev = float(0.0)
-        alpha_prev = float(0.0)
-        if k > 0:
-            gamma_prev = gamma[k - 1]
-            alpha_prev = alpha_out[k - 1]
-        a, beta = step_sizes(k, gamma[k], gamma_prev, delta[k], alpha_prev)
-        if i == 0:
-            alpha_out[k] = a
-            done_out[0] = wp.where(a > 0.0, k + 1, k)
-        if i < n and a > 0.0:
-            ru = update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
+    a, beta = iteration_step(i, k, gamma, delta, bz, tolerance, max_iterations, alpha_out, done_out)
+    if i < n and a > 0.0:
+        ru = update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
     block_sum(ru, gamma_out, k + 1)
 
 

@@ -13,7 +13,7 @@ in flight: a contact ties its rigid motion to its deformation, which the split w
 
 import warp as wp
 
-from .cg import block_sum, is_active, step_sizes, update_row
+from .cg import block_sum, is_active, iteration_step, update_row
 
 
 @wp.func
@@ -318,17 +318,8 @@ def deflation_update(
     """
     i = wp.tid()
     k = iteration[0] + step
-    if is_active(k, gamma, bz, tolerance[0], max_iterations[0]):
-        gamma_prev = float(0.0)
-        alpha_prev = float(0.0)
-        if k > 0:
-            gamma_prev = gamma[k - 1]
-            alpha_prev = alpha_out[k - 1]
-        a, beta = step_sizes(k, gamma[k], gamma_prev, delta[k], alpha_prev)
-        if i == 0:
-            alpha_out[k] = a
-            done_out[0] = wp.where(a > 0.0, k + 1, k)
-        if i < n and a > 0.0:
-            update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
-            if free[i] != 0:
-                sum_residual(i, r_out[i], d, (k + 1) % 2)
+    a, beta = iteration_step(i, k, gamma, delta, bz, tolerance, max_iterations, alpha_out, done_out)
+    if i < n and a > 0.0:
+        update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
+        if free[i] != 0:
+            sum_residual(i, r_out[i], d, (k + 1) % 2)
