@@ -9,6 +9,8 @@ theirs together, coupled by the contacts between them, by a block-Jacobi PCG on 
 
 import warp as wp
 
+from .product import mat43, pair_terms
+
 
 @wp.kernel
 def mark_touched_pairs(
@@ -274,35 +276,31 @@ def coupled_pairs(
 ):
     """``sign`` times each live pair's term of A on the velocities, into the coupled bodies' force and torque.
 
-    The term is ``J^T C J`` less its diagonal blocks, which the system without elasticity holds; the
+    The term is ``J^T C J`` less its diagonal blocks (:func:`kernels.product.pair_terms`, as CG applies it),
+    which the system without elasticity holds; the
     velocities are ``v``, or with ``rigid`` the bodies' motions ``pu``, ``pw``. Only the bodies that are
     unknowns of the coupled solve take a share.
     """
     k = wp.tid()
     if k >= count[0]:
         return
-    C = matrix[k]
     ia = verts_a[k]
     ib = verts_b[k]
-    wa = weights_a[k]
-    wb = weights_b[k]
-    s = wp.vec3()
+    Ua = mat43()
+    Ub = mat43()
     for c in range(4):
-        s += wa[c] * corner_velocity(ia[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
-        s -= wb[c] * corner_velocity(ib[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
+        Ua[c] = corner_velocity(ia[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
+        Ub[c] = corner_velocity(ib[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
+    Da, Db, unused = pair_terms(Ua, Ub, weights_a[k], weights_b[k], matrix[k])
     body_a = vertex_body[ia[0]]
     body_b = vertex_body[ib[0]]
     for c in range(4):
         if coupled_body(held, paired, body_a):
-            ua = corner_velocity(ia[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
-            da = sign * wa[c] * (C * (s - wa[c] * ua))
-            wp.atomic_add(force_out, body_a, da)
-            wp.atomic_add(torque_out, body_a, wp.cross(x[ia[c]] - x[body_first[body_a]], da))
+            wp.atomic_add(force_out, body_a, sign * Da[c])
+            wp.atomic_add(torque_out, body_a, sign * wp.cross(x[ia[c]] - x[body_first[body_a]], Da[c]))
         if coupled_body(held, paired, body_b):
-            ub = corner_velocity(ib[c], v, x, vertex_body, body_first, held, paired, rigid, pu, pw)
-            db = -sign * wb[c] * (C * (s + wb[c] * ub))
-            wp.atomic_add(force_out, body_b, db)
-            wp.atomic_add(torque_out, body_b, wp.cross(x[ib[c]] - x[body_first[body_b]], db))
+            wp.atomic_add(force_out, body_b, sign * Db[c])
+            wp.atomic_add(torque_out, body_b, sign * wp.cross(x[ib[c]] - x[body_first[body_b]], Db[c]))
 
 
 @wp.struct
