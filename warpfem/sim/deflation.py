@@ -13,7 +13,7 @@ import warp as wp
 from warpfem.kernels import deflation as K
 from warpfem.sim.launch import WIDE_BLOCK
 from warpfem.sim.model import Model
-from warpfem.sim.rigid import FLOAT32_EPS
+from warpfem.sim.rigid import FLOAT32_EPS, RigidCorrection
 
 DEFLATION_GATE = 0.05
 """Where the float32 rounding of a body's stiffness blocks, as a share of its vertices' mass, exceeds this, CG
@@ -29,16 +29,15 @@ class RigidDeflation:
     its rigid motion to its deformation, which a solve of the deformation alone would then get wrong).
     """
 
-    def __init__(self, model: Model, rate: np.ndarray):
-        """``rate``: per body, its largest stiffness block over its corner's mass (1/s^2)."""
+    def __init__(self, model: Model, rigid: RigidCorrection):
+        """``rigid``: the rigid correction that supplies the deflated motions (its bodies and stiffness rates)."""
         dev, nb = model.device, len(model.bodies)
-        self.model, self.rate = model, np.asarray(rate, dtype=np.float64)
-        held = np.zeros(nb, dtype=bool)
-        held[model.vertex_body.numpy()[model.free.numpy() == 0]] = True
-        self.held = held
-        self.held_device = wp.array(held.astype(np.int32), dtype=wp.int32, device=dev)
-        self.rate_device = wp.array(self.rate, dtype=float, device=dev)
-        self.body_first = wp.array([b.vertex_start for b in model.bodies], dtype=wp.int32, device=dev)
+        self.model, self.rigid = model, rigid
+        self.held = rigid.held
+        self.movable = rigid.held.numpy() == 0
+        self.body_first = rigid.body_first
+        self.rate_device = wp.array(rigid.rate, dtype=float, device=dev)
+        self._needed: dict[float, bool] = {}
         self.blocks = [wp.zeros(nb, dtype=wp.mat33, device=dev) for _ in range(3)]  # uu, uw, ww
         self.uu_inv = wp.zeros(nb, dtype=wp.mat33, device=dev)
         self.schur_inv = wp.zeros(nb, dtype=wp.mat33, device=dev)
@@ -50,13 +49,11 @@ class RigidDeflation:
         self.matrix_base: wp.array | None = None
         self.dt = 0.0
 
-    def deflated(self, dt: float) -> np.ndarray:
-        """Per body, whether it may be deflated at step ``dt`` (s): in flight, it is."""
-        return (FLOAT32_EPS * dt * dt * self.rate > DEFLATION_GATE) & ~self.held
-
     def needed(self, dt: float) -> bool:
-        """Whether some body is deflated at step ``dt`` (s)."""
-        return bool(self.deflated(dt).any())
+        """Whether some body may be deflated at step ``dt`` (s): in flight, it is."""
+        if dt not in self._needed:
+            self._needed[dt] = bool(np.any((self.rigid.rounding(dt) > DEFLATION_GATE) & self.movable))
+        return self._needed[dt]
 
     def bind(self, x: wp.array, matrix_base: wp.array, dt: float) -> None:
         """Binds the solves to come to a step.
@@ -97,7 +94,7 @@ class RigidDeflation:
             wp.launch(
                 K.deflation_active,
                 dim=nb,
-                inputs=[self.held_device, self.touching, self.rate_device, rounding, DEFLATION_GATE],
+                inputs=[self.held, self.touching, self.rate_device, rounding, DEFLATION_GATE],
                 outputs=[self.active],
                 **options,
             ),

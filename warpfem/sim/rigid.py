@@ -72,10 +72,14 @@ class RigidCorrection:
         self.rate = _stiffness_rate(model)
         self._needed: dict[float, bool] = {}
 
+    def rounding(self, dt: float) -> np.ndarray:
+        """Per body, float32's rounding of its stiffness blocks at step ``dt`` (s), as a share of its mass."""
+        return FLOAT32_EPS * dt * dt * self.rate
+
     def needed(self, dt: float) -> bool:
         """Whether some body's stiffness rounding at step ``dt`` (s) exceeds :data:`RIGID_GATE` of its mass."""
         if dt not in self._needed:
-            self._needed[dt] = bool(np.any(FLOAT32_EPS * dt * dt * self.rate > RIGID_GATE))
+            self._needed[dt] = bool(np.any(self.rounding(dt) > RIGID_GATE))
         return self._needed[dt]
 
     def apply(self, x: wp.array, v_start: wp.array, v: wp.array, dt: float, coupling: Coupling | None) -> None:

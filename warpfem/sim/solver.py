@@ -143,7 +143,7 @@ class Solver:
         self.rhs_base = wp.zeros(n, dtype=wp.vec3, device=dev) if apart else self._no_vec3
         self.rigid = RigidCorrection(model, self.rhs_base, self.matrix_base) if apart else None
         """Momentum of bodies no other body touches, kept exact where float32 loses it (with ``apart`` only)."""
-        self.deflation = RigidDeflation(model, self.rigid.rate) if apart else None
+        self.deflation = RigidDeflation(model, self.rigid) if apart else None
         """Bodies whose rigid motions CG leaves to the rigid correction (with ``apart`` only)."""
 
     def _allocate_flags(self, rotation_updates: int, static: bool) -> None:
