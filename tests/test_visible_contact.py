@@ -426,9 +426,9 @@ def test_stiff_low_poly_boxes_landing_on_each_other_come_to_rest(device, tmp_pat
     """Two boxes of twelve triangles (12 tets each), 1 GPa, nu 0.49, 24 steps a second, scene defaults
     otherwise: the lower resting on the ground, the upper turned 45 degrees and dropped from ``height`` (its
     bottom 0.55 or 0.75 m above the lower's top; 3.3 or 3.8 m/s at contact, 0.14 or 0.16 m a step). Float32
-    loses such bodies' rigid motions in CG, and where they meet only their solve together holds them (they
-    blew up before it). The upper lands on the lower box's top face (0.2 m) and rests there: its lowest point
-    within 1 % of its size of the face over the last second, moving less than 0.1 % of its size a frame."""
+    loses such bodies' rigid motions in CG, and where they meet only their solve together holds them. The
+    upper lands on the lower box's top face (0.2 m) and rests there: its lowest point within 1 % of its size
+    of the face over the last second, moving less than 0.1 % of its size a frame."""
     import trimesh
 
     box = trimesh.creation.box(extents=(0.4, 0.2, 0.4))
