@@ -380,8 +380,7 @@ def cg_update(
     """One iteration, k = iteration + step (nothing if k does not run).
 
     p = u + beta p, s = w + beta s (= A p), x += alpha p, r -= alpha s, u = M^-1 r, w = 0 on free rows
-    (pinned rows keep x and zero r, u, p, s); r.u into gamma[k+1]. Thread 0 records alpha[k] and the
-    iterations done.
+    (pinned rows keep x and zero r, u, p, s); r.u into gamma[k+1]; the step sizes: :func:`iteration_step`.
     """
     i = wp.tid()
     k = iteration[0] + step
