@@ -588,11 +588,20 @@ def test_a_clips_folder_is_replaced_only_if_ours(tmp_path):
 def test_prop_transforms_are_checked_per_frame(tmp_path):
     prop = Prop("obstacles/r", np.eye(3), np.array([[0, 1, 2]]))
     writer = UsdWriter(tmp_path / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0, props=[prop])
-    with pytest.raises(ValueError, match="a transform for each of 1 props, got 0"):
+    with pytest.raises(ValueError, match="a transform for each of 1 moving props, got 0"):
         writer.add_frame(0, [np.eye(3)])
     with pytest.raises(ValueError, match="finite 4x4"):
         writer.add_frame(0, [np.eye(3)], [np.full((4, 4), np.nan)])
     writer.abort()
+    assert list(tmp_path.iterdir()) == []
+    still = Prop("obstacles/s", np.eye(3), np.array([[0, 1, 2]]), matrix=np.eye(4))
+    writer = UsdWriter(tmp_path / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0, props=[prop, still])
+    with pytest.raises(ValueError, match="a transform for each of 1 moving props, got 2"):
+        writer.add_frame(0, [np.eye(3)], [np.eye(4), np.eye(4)])  # none for the still prop
+    writer.abort()
+    bad = Prop("obstacles/s", np.eye(3), np.array([[0, 1, 2]]), matrix=np.full((4, 4), np.inf))
+    with pytest.raises(ValueError, match="finite 4x4"):
+        UsdWriter(tmp_path / "x.usdc", [("a", np.array([[0, 1, 2]]))], fps=60.0, props=[bad])
     assert list(tmp_path.iterdir()) == []
 
 
@@ -662,29 +671,39 @@ def test_a_runs_prop_transforms_are_the_simulations_matrices(tmp_path):
     sim = warpfem.Simulation(scene, device="cpu", cache_dir=os.environ.get("WARPFEM_CACHE") or tmp_path)
     props, poses = _props(sim)
     assert [p.path for p in props] == ["obstacles/obstacle0", "obstacles/obstacle1", "handles/top"]
+    assert [p.matrix is None for p in props] == [True, False, True]  # the still sphere's transform is fixed
     for time in (0.0, 0.02, 0.07, 0.5):
-        expected = [p.matrix for p in (*sim.obstacles_at(time), *sim.handles_at(time))]
-        np.testing.assert_array_equal(np.array(poses(time)), np.array(expected))
-    assert not np.allclose(poses(0.03)[2][:3, :3], np.eye(3))  # the handle turns
+        posed = [*sim.obstacles_at(time), *sim.handles_at(time)]
+        np.testing.assert_array_equal(np.array(poses(time)), np.array([posed[0].matrix, posed[2].matrix]))
+        np.testing.assert_array_equal(props[1].matrix, posed[1].matrix)
+    assert not np.allclose(poses(0.03)[1][:3, :3], np.eye(3))  # the handle turns
     by_frame = _by_frame(poses, 60.0, 3)  # what the writer's thread takes: frames 0, 3, ... and the last
     for frame in (0, 3, 6, 190, 192, 200, 201):
         np.testing.assert_array_equal(np.array(by_frame(frame)), np.array(poses(frame / 60.0)))
 
 
 def test_a_one_chunk_file_streamed_holds_what_a_writer_process_exports(tmp_path):
-    """A run of one chunk, streamed and completed in place (its samples not written again), holds exactly the
-    layer a writer process authors and exports from the same frames, props included (usd-core's text of both)."""
-    from pxr import Sdf
+    """A run of one chunk, streamed and closed with its topology and metadata (its samples not written again),
+    holds exactly the layer a writer process authors with usd-core and exports from the same frames, moving and
+    still props and a guide included (usd-core's text of both), and is a valid stage."""
+    from pxr import Sdf, Usd
 
     bodies, frames = bodies_and_frames(6)
+    rng = np.random.default_rng(1)
+    big = rng.integers(0, 40, size=(30, 3))  # faces past the 16 values where crate arrays may be compressed
+    bodies.append(("big", big))
+    frames = [[*points, rng.normal(size=(40, 3))] for points in frames]
     box = Prop("obstacles/box", np.eye(3), np.array([[0, 1, 2]]))
+    grip = Prop("handles/left/grip", rng.normal(size=(20, 3)), rng.integers(0, 20, size=(25, 3)), guide=True)
+    still = Prop("still/wall", np.eye(3), np.array([[0, 2, 1]]), matrix=np.arange(16.0).reshape(4, 4))
     texts = []
     for workers in (0, 1):
         path = tmp_path / f"w{workers}.usdc"
-        with UsdWriter(path, bodies, fps=24.0, props=[box], workers=workers) as writer:
+        with UsdWriter(path, bodies, fps=24.0, up_axis="Z", props=[box, still, grip], workers=workers) as writer:
             for f, points in enumerate(frames):
-                writer.add_frame(f, points, [np.diag([1.0, 2.0, 3.0, 1.0]) + f])
+                writer.add_frame(f, points, [np.diag([1.0, 2.0, 3.0, 1.0]) + f, np.eye(4) * (f + 1)])
         texts.append(Sdf.Layer.OpenAsAnonymous(str(path)).ExportToString())
+        assert validation_errors(Usd.Stage.Open(str(path))) == []
     assert texts[0] == texts[1]
 
 

@@ -219,7 +219,8 @@ def record(
     except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
 
-    transforms = _by_frame(poses, scene.fps, every) if props else lambda frame: []
+    moving = any(p.matrix is None for p in props)
+    transforms = _by_frame(poses, scene.fps, every) if moving else lambda frame: []
 
     def write(frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
         writer.add_frame(frame, points, transforms(frame), extents=boxes)
@@ -250,20 +251,29 @@ def record(
 
 
 def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarray]]]:
-    """The obstacles and handles to write beside the bodies, and their transforms at a time (s).
+    """The obstacles and handles to write beside the bodies, and the moving ones' transforms at a time (s).
 
-    The transforms are the matrices of ``sim.obstacles_at`` and ``sim.handles_at``, worked out without the
-    meshes those build: the writer's thread asks for them every frame, holding the interpreter lock.
+    An obstacle without keys is written with its fixed transform. The transforms are the matrices of
+    ``sim.obstacles_at`` and ``sim.handles_at``, worked out without the meshes those build: the writer's thread
+    asks for them every frame, holding the interpreter lock.
     """
     from warpfem.io.usd import Prop
     from warpfem.sim.integrate import collider_pose
 
-    props = [Prop(f"obstacles/{o.name}", o.vertices, o.faces) for o in sim.obstacles_at(0.0)]
+    obstacles = list(sim.solver.obstacles)
+    still = [getattr(c, "motion", None) is None for c in obstacles]
+    props = [
+        Prop(f"obstacles/{o.name}", o.vertices, o.faces, matrix=o.matrix if fixed else None)
+        for o, fixed in zip(sim.obstacles_at(0.0), still, strict=True)
+    ]
     props += [Prop(f"handles/{h.name}", h.vertices, h.faces, guide=True) for h in sim.handles_at(0.0)]
-    obstacles, handles = list(sim.solver.obstacles), [h.motion for h in sim.solver.handles]
+    moving, handles = (
+        [c for c, fixed in zip(obstacles, still, strict=True) if not fixed],
+        [h.motion for h in sim.solver.handles],
+    )
 
     def poses(time: float) -> list[np.ndarray]:
-        return [*(collider_pose(c, time) for c in obstacles), *(motion.matrix(time) for motion in handles)]
+        return [*(collider_pose(c, time) for c in moving), *(motion.matrix(time) for motion in handles)]
 
     return props, poses
 

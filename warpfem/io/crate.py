@@ -27,20 +27,24 @@ VERSION = (0, 8, 0)
 _BOOTSTRAP_BYTES = 88  # "PXR-USDC", 8 version bytes, the table of contents' offset, 8 reserved int64
 
 # TypeEnum values and ValueRep bits (crateDataTypes.h, crateFile.h)
-_BOOL, _TOKEN, _MATRIX4D, _VEC3F = 1, 11, 15, 24
+_BOOL, _INT, _DOUBLE, _TOKEN, _MATRIX4D, _VEC3F = 1, 3, 9, 11, 15, 24
 _TOKEN_VECTOR, _SPECIFIER, _VARIABILITY, _TIME_SAMPLES, _DOUBLE_VECTOR = 41, 42, 44, 46, 48
 _ARRAY_BIT, _INLINED_BIT = 1 << 63, 1 << 62
 
 _SPEC_ATTRIBUTE, _SPEC_PRIM, _SPEC_PSEUDO_ROOT = 1, 6, 7  # SdfSpecType
-_SPECIFIER_OVER, _VARIABILITY_VARYING = 1, 0
+_SPECIFIER_DEF, _SPECIFIER_OVER, _VARIABILITY_VARYING, _VARIABILITY_UNIFORM = 0, 1, 0, 1
 
 _IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
 _PADS = [bytes(n) for n in range(8)]
 _FLOAT32 = np.dtype("<f4")
 
 TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
-"""The attribute types a stream holds, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
+"""The attribute types a stream samples, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
 float64 in USD's row-vector convention."""
+
+DEFAULT_TYPES = ("point3f[]", "float3[]", "int[]", "token[]", "token", "matrix4d")
+"""The attribute types a stream can give a default value (:meth:`CrateStream.set_default`): float3 arrays as
+(n, 3) float32, int arrays as int32, token arrays as a list of str, a token as a str, a matrix as :data:`TYPES`."""
 
 
 def _rep(kind: int, payload: int, inlined: bool = False, array: bool = False) -> int:
@@ -85,14 +89,24 @@ class _Node:
     attribute: str | None = None  # the type name of an attribute; None for a prim
     children: list[_Node] = field(default_factory=list)
     samples: int = -1  # an attribute's time-sample record offset
+    default: object = None  # an attribute's default value, if it has one
+    uniform: bool = False  # an attribute's variability
+    type_name: str = ""  # a defined prim's type ("": an ``over``)
 
-    def child(self, name: str) -> _Node:
-        """The prim child ``name``, made if new."""
+    def child(self, name: str, attribute: str | None = None) -> _Node:
+        """The prim (or, with its type name ``attribute``, attribute) child ``name``, made if new."""
         for c in self.children:
-            if c.name == name and c.attribute is None:
+            if c.name == name and (c.attribute is None) == (attribute is None):
                 return c
-        node = _Node(name)
+        node = _Node(name, attribute)
         self.children.append(node)
+        return node
+
+    def find(self, path: str) -> _Node:
+        """The prim at absolute ``path`` under this (pseudo-root) node, made with its parents where new."""
+        node = self
+        for part in path.strip("/").split("/"):
+            node = node.child(part)
         return node
 
 
@@ -104,7 +118,9 @@ class CrateStream:
         attributes: ``(path, type name)`` per attribute, e.g. ``("/World/bunny.points", "point3f[]")``: an
             absolute prim path and a property name; type names from :data:`TYPES`.
 
-    Every :meth:`add` samples every attribute at one time code, in increasing order.
+    Every :meth:`add` samples every attribute at one time code, in increasing order. Before :meth:`close`, prims
+    can be defined (:meth:`define`), attributes given default values (:meth:`set_default`) and the layer given
+    metadata (:meth:`set_metadata`), so that the file is self-contained.
     """
 
     def __init__(self, path: str | Path, attributes: Sequence[tuple[str, str]]) -> None:
@@ -115,12 +131,10 @@ class CrateStream:
             if type_name not in TYPES:
                 raise ValueError(f"attribute {attribute}: type {type_name!r} is not one of {sorted(TYPES)}")
             prim, _, name = attribute.rpartition(".")
-            node = self._root
-            for part in prim.strip("/").split("/"):
-                node = node.child(part)
             leaf = _Node(name, type_name)
-            node.children.append(leaf)
+            self._root.find(prim).children.append(leaf)
             self._attributes.append(leaf)
+        self._metadata: dict[str, str | float] = {}
         self._kinds = [TYPES[node.attribute] for node in self._attributes]
         self._reps: list[list[int]] = [[] for _ in self._attributes]
         self._times: list[float] = []
@@ -164,6 +178,28 @@ class CrateStream:
         for column, rep in zip(self._reps, reps, strict=True):
             column.append(rep)
         self._times.append(float(time))
+
+    def define(self, prim: str, type_name: str) -> None:
+        """Make the prim at absolute path ``prim`` (made where new) a ``def`` of type ``type_name``."""
+        self._root.find(prim).type_name = type_name
+
+    def set_default(self, attribute: str, type_name: str, value: object, uniform: bool = False) -> None:
+        """Give ``attribute`` (an absolute prim path and a property name) the default ``value``.
+
+        ``uniform``: its variability (else varying). Not for a sampled attribute; type names from
+        :data:`DEFAULT_TYPES`.
+        """
+        if type_name not in DEFAULT_TYPES:
+            raise ValueError(f"attribute {attribute}: type {type_name!r} is not one of {list(DEFAULT_TYPES)}")
+        prim, _, name = attribute.rpartition(".")
+        node = self._root.find(prim).child(name, type_name)
+        if any(node is sampled for sampled in self._attributes):
+            raise ValueError(f"attribute {attribute} is sampled: it takes no default value")
+        node.attribute, node.default, node.uniform = type_name, value, uniform
+
+    def set_metadata(self, name: str, value: str | float) -> None:
+        """Set the layer's metadata field ``name`` (e.g. ``upAxis``) to a token (str) or a double (float)."""
+        self._metadata[name] = value
 
     def _write(self, data: bytes) -> None:
         """Append ``data`` to what closing writes (at :attr:`_offset`, which it advances)."""
@@ -276,24 +312,64 @@ class _SpecTables:
         self.stream._write(struct.pack("<Q", len(indices)) + struct.pack(f"<{len(indices)}I", *indices))
         return _rep(_TOKEN_VECTOR, offset)
 
+    def value(self, type_name: str, value: object) -> int:
+        """Write ``value`` of USD type ``type_name`` (one of :data:`DEFAULT_TYPES` or ``double``); its ValueRep.
+
+        A token is inlined; anything else goes to the stream, 8-byte aligned: a double as itself, an array as
+        its element count and its elements (uncompressed, which every crate reader takes).
+        """
+        if type_name == "token":
+            return _rep(_TOKEN, self.token(value), inlined=True)
+        stream = self.stream
+        stream._write(_PADS[-stream._offset % 8])
+        offset = stream._offset
+        if type_name == "double":
+            stream._write(struct.pack("<d", value))
+            return _rep(_DOUBLE, offset)
+        if type_name == "matrix4d":
+            stream._write(np.ascontiguousarray(value, "<f8").reshape(16).tobytes())
+            return _rep(_MATRIX4D, offset)
+        if type_name == "token[]":
+            kind, data = _TOKEN, np.asarray([self.token(t) for t in value], "<u4")
+        elif type_name == "int[]":
+            kind, data = _INT, np.ascontiguousarray(value, "<i4").reshape(-1)
+        else:
+            kind, data = _VEC3F, np.ascontiguousarray(value, _FLOAT32).reshape(-1, 3)
+        if not len(data):
+            return _rep(kind, 0, array=True)
+        stream._write(len(data).to_bytes(8, "little") + data.tobytes())
+        return _rep(kind, offset, array=True)
+
     def visit(self, node: _Node, kind: int, last: bool) -> None:
         """Add ``node``'s path and spec, then its children's, depth first (``last``: no sibling follows)."""
         index = len(self.paths)
         self.paths.append((-self.token(node.name) if node.attribute else self.token(node.name), 0))
         if node.attribute:
+            variability = _VARIABILITY_UNIFORM if node.uniform else _VARIABILITY_VARYING
+            value = (
+                ("timeSamples", _rep(_TIME_SAMPLES, node.samples))
+                if node.samples >= 0
+                else ("default", self.value(node.attribute, node.default))
+            )
             self.add_spec(
                 _SPEC_ATTRIBUTE,
                 [
                     ("typeName", _rep(_TOKEN, self.token(node.attribute), inlined=True)),
                     ("custom", _rep(_BOOL, 0, inlined=True)),
-                    ("variability", _rep(_VARIABILITY, _VARIABILITY_VARYING, inlined=True)),
-                    ("timeSamples", _rep(_TIME_SAMPLES, node.samples)),
+                    ("variability", _rep(_VARIABILITY, variability, inlined=True)),
+                    value,
                 ],
             )
         else:
             prims = [c.name for c in node.children if c.attribute is None]
             props = [c.name for c in node.children if c.attribute is not None]
-            entries = [] if kind == _SPEC_PSEUDO_ROOT else [("specifier", _rep(_SPECIFIER, _SPECIFIER_OVER, True))]
+            if kind == _SPEC_PSEUDO_ROOT:
+                metadata = self.stream._metadata.items()
+                entries = [(k, self.value("token" if isinstance(v, str) else "double", v)) for k, v in metadata]
+            else:
+                specifier = _SPECIFIER_DEF if node.type_name else _SPECIFIER_OVER
+                entries = [("specifier", _rep(_SPECIFIER, specifier, True))]
+                entries += [("typeName", self.value("token", node.type_name))] if node.type_name else []
             entries += [("primChildren", self.token_vector(prims))] if prims else []
             entries += [("properties", self.token_vector(props))] if props else []
             self.add_spec(kind, entries)

@@ -102,8 +102,9 @@ class UsdWriter:
             save_every: Longest time between chunks on disk in seconds (0: a chunk per frame); None: chunks
                 are cut by size only.
             chunk_bytes: Bytes of point samples per chunk (>= 1).
-            props: Rigid shapes moving with the bodies (obstacles, handles): each a :class:`Prop`, written at
-                ``/World/<path>`` with its mesh authored once and its transform sampled every frame.
+            props: Rigid shapes beside the bodies (obstacles, handles): each a :class:`Prop`, written at
+                ``/World/<path>`` with its mesh authored once, and its transform too where it is fixed, else
+                sampled every frame.
             workers: Writer processes that author and export chunks, several at once (0: on the calling
                 thread); None: :func:`~warpfem.io.usd_workers.default_workers` for the bodies' frame size.
             final_frame: The last frame the caller will add, where it knows it: once a run is in clips, the
@@ -158,7 +159,8 @@ class UsdWriter:
             workers = default_workers(12 * sum(self._min_vertices))
         self.workers = workers
         """Writer processes (0: chunks written on the calling thread)."""
-        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props]
+        self._moving = sum(p.matrix is None for p in self._props)
+        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props if p.matrix is None]
         folder = self.path.parent  # where an inline chunk streams before it is placed
         self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths, folder)
         staging = self.path.with_name(f".{self.clips_dir.name}.tmp-{os.getpid()}")
@@ -219,8 +221,8 @@ class UsdWriter:
             points: One (n_i, 3) array of finite positions (m) per body, in the order given to the
                 constructor; n_i is fixed by the first frame and covers every face index. The arrays are
                 copied: the caller may reuse them once this returns.
-            transforms: One 4x4 matrix per prop taking its own frame to the world, for column vectors
-                (``world = matrix @ [x, 1]``).
+            transforms: One 4x4 matrix per moving prop (one without a fixed ``matrix``), in the order given to
+                the constructor, taking its own frame to the world, for column vectors (``world = matrix @ [x, 1]``).
             extents: Each body's lower and upper corners, (bodies, 2, 3), where the caller has them (the
                 simulation reduces them on the device): the points are then not read for them, and a
                 non-finite corner stands for non-finite points. None: read off the points.
@@ -237,7 +239,7 @@ class UsdWriter:
         if inline:  # a point's NaN or infinity reaches its body's extent: checking that checks the points
             extents = [extent(p) for p in arrays]
         boxes = None if extents is None else self._checked_extents(frame, extents)
-        matrices = _checked_transforms(transforms, len(self._props))
+        matrices = _checked_transforms(transforms, self._moving)
         if threading.current_thread() is threading.main_thread():
             with _held_signals():
                 self._add(int(frame), arrays, matrices, boxes)
@@ -621,15 +623,16 @@ def _checked_props(props: Sequence[Prop], body_names: set[str]) -> list[Prop]:
             raise ValueError(f"prop {prop.path!r}: vertices must be a finite (n, 3) array")
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
             raise ValueError(f"prop {prop.path!r}: faces must be a non-empty (m, 3) array of vertex indices")
+        matrix = None if prop.matrix is None else _checked_transforms([prop.matrix], 1)[0]
         seen.add(prop.path)
-        checked.append(Prop(prop.path, vertices, faces.astype(np.int32), bool(prop.guide)))
+        checked.append(Prop(prop.path, vertices, faces.astype(np.int32), bool(prop.guide), matrix))
     return checked
 
 
 def _checked_transforms(transforms: Sequence[np.ndarray], count: int) -> list[np.ndarray]:
-    """``transforms`` as finite 4x4 float64 matrices, one per prop."""
+    """``transforms`` as finite 4x4 float64 matrices, one per moving prop."""
     if len(transforms) != count:
-        raise ValueError(f"expected a transform for each of {count} props, got {len(transforms)}")
+        raise ValueError(f"expected a transform for each of {count} moving props, got {len(transforms)}")
     matrices = [np.asarray(m, np.float64) for m in transforms]
     if any(m.shape != (4, 4) or not np.isfinite(m).all() for m in matrices):
         raise ValueError("prop transforms must be finite 4x4 matrices")

@@ -12,27 +12,34 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from warpfem.io.penetration import bounds
 
+if TYPE_CHECKING:
+    from warpfem.io.crate import CrateStream
+
 
 @dataclass(frozen=True)
 class Prop:
-    """A rigid shape written beside the bodies: ``/World/<path>``, a mesh whose transform is sampled per frame.
+    """A rigid shape written beside the bodies: ``/World/<path>``, a mesh in its own frame and a transform.
 
     Attributes:
         path: Its prim path under ``/World`` (names joined by ``/``, e.g. ``"obstacles/ramp"``).
         vertices: (n, 3) vertices in its own frame (m).
         faces: (m, 3) triangles, wound outward.
         guide: Whether it is a guide (``purpose = "guide"``: shown in viewers, not rendered), as handles are.
+        matrix: Its fixed transform (4x4, taking its frame to the world for column vectors) where it does not
+            move: written once; None: it moves, and its transform is sampled every frame.
     """
 
     path: str
     vertices: np.ndarray
     faces: np.ndarray
     guide: bool = False
+    matrix: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -42,15 +49,25 @@ class StageInfo:
     up_axis: str
     fps: float
 
+    def metadata(self, end: int) -> dict[str, str | float]:
+        """The layer's metadata fields, tokens as str and doubles as float.
+
+        ``/World`` the default prim, ``upAxis``, ``metersPerUnit = 1``, time codes from 0 to ``end`` at ``fps``.
+        """
+        return {
+            "defaultPrim": "World",
+            "upAxis": self.up_axis,
+            "metersPerUnit": 1.0,
+            "timeCodesPerSecond": float(self.fps),
+            "framesPerSecond": float(self.fps),
+            "startTimeCode": 0.0,
+            "endTimeCode": float(end),
+        }
+
     def author(self, target: object, end: int) -> None:
-        """Author it on ``target``: ``upAxis``, ``metersPerUnit = 1``, time codes from 0 to ``end`` at ``fps``."""
-        target.defaultPrim = "World"  # the metadata keys by name, so that pxr.UsdGeom is not imported for them
-        target.pseudoRoot.SetInfo("upAxis", self.up_axis)
-        target.pseudoRoot.SetInfo("metersPerUnit", 1.0)
-        target.timeCodesPerSecond = self.fps
-        target.framesPerSecond = self.fps
-        target.startTimeCode = 0.0
-        target.endTimeCode = float(end)
+        """Author :meth:`metadata` on the Sdf layer ``target`` (by key, so that pxr.UsdGeom is not imported)."""
+        for name, value in self.metadata(end).items():
+            target.pseudoRoot.SetInfo(name, value)
 
 
 class Chunk:
@@ -142,7 +159,7 @@ def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndar
     ``tag`` names the temporary files (``.topology.tmp-<tag>.usdc``) so that whoever started the write can
     remove them after a failure.
     """
-    names, prop_paths = [name for name, _ in bodies], [p.path for p in props]
+    names, prop_paths = [name for name, _ in bodies], [p.path for p in props if p.matrix is None]
     topology = layer(names, prop_paths)
     add_topology(topology, bodies, props)
     topology.comment = MARKER
@@ -170,31 +187,17 @@ def export(layer: object, path: Path) -> None:
     raise OSError(f"{path}: USD export failed: {reason}")
 
 
-def complete_single(
-    path: Path, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo, end: int
+def complete_stream(
+    stream: CrateStream, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo, end: int
 ) -> None:
-    """Make the crate of samples at ``path`` self-contained in place: :func:`export_single`'s layer, same file.
-
-    usd-core saves a crate to the file it was read from by appending what changed (the topology, the metadata
-    and new tables) and keeping the samples where they are, where an export would copy every sample again.
-
-    Raises:
-        OSError: The save failed, with usd-core's last reason in one line.
-    """
-    from pxr import Sdf, Tf
-
-    try:
-        target = Sdf.Layer.FindOrOpen(str(path))
-        if target is None:
-            raise OSError(f"{path}: usd-core could not read the chunk written")
-        add_topology(target, bodies, props)
-        info.author(target, end)
-        if target.Save():
-            return
-        reason = "nothing written"
-    except Tf.ErrorException as err:
-        reason = str(err).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
-    raise OSError(f"{path}: USD export failed: {reason}")
+    """Give a chunk's crate ``stream``, before it closes, what :func:`export_single` adds: topology and metadata."""
+    prims, attributes = topology(bodies, props)
+    for path, type_name in prims:
+        stream.define(path, type_name)
+    for path, type_name, value, uniform in attributes:
+        stream.set_default(path, type_name, value, uniform)
+    for name, value in info.metadata(end).items():
+        stream.set_metadata(name, value)
 
 
 def vec3f_array(points: np.ndarray) -> object:
@@ -235,7 +238,7 @@ def extent(points: np.ndarray) -> np.ndarray:
 def animated_attributes(names: Sequence[str], prop_paths: Sequence[str]) -> list[tuple[str, str]]:
     """``(attribute path, USD type name)`` of what a run samples every frame, in the order a frame gives it.
 
-    A body's ``points`` and ``extent`` per name, then a prop's transform per prop path, all under ``/World``.
+    A body's ``points`` and ``extent`` per name, then a moving prop's transform per prop path, all under ``/World``.
     """
     result = [(f"/World/{n}.{a}", t) for n in names for a, t in (("points", "point3f[]"), ("extent", "float3[]"))]
     return result + [(f"/World/{p}.xformOp:transform", "matrix4d") for p in prop_paths]
@@ -260,42 +263,58 @@ def layer(names: Sequence[str], prop_paths: Sequence[str]) -> object:
     return result
 
 
+def topology(
+    bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]
+) -> tuple[list[tuple[str, str]], list[tuple[str, str, object, bool]]]:
+    """What turns the ``over`` specs of the samples into defined meshes with their topology.
+
+    Returns ``(prim path, type)`` per prim to define, and ``(attribute path, USD type name, default value,
+    uniform)`` per attribute to add: a mesh's faces, a prop's mesh in its own frame and its transform's order.
+    """
+    prims, attributes = [("/World", "Xform")], []
+    for name, faces in bodies:
+        prims.append((f"/World/{name}", "Mesh"))
+        attributes += _mesh(f"/World/{name}", faces)
+    for prop in props:
+        parts = prop.path.split("/")
+        prims += [("/World/" + "/".join(parts[:depth]), "Scope") for depth in range(1, len(parts))]
+        path, vertices = f"/World/{prop.path}", prop.vertices.astype(np.float32)
+        prims.append((path, "Mesh"))
+        attributes += _mesh(path, prop.faces)
+        attributes += [(f"{path}.points", "point3f[]", vertices, False)]
+        attributes += [(f"{path}.extent", "float3[]", extent(vertices), False)]
+        attributes += [(f"{path}.xformOpOrder", "token[]", ["xformOp:transform"], True)]
+        if prop.matrix is not None:  # USD: row vectors
+            attributes += [(f"{path}.xformOp:transform", "matrix4d", np.ascontiguousarray(prop.matrix.T), False)]
+        attributes += [(f"{path}.purpose", "token", "guide", True)] if prop.guide else []
+    return prims, attributes
+
+
+def _mesh(path: str, faces: np.ndarray) -> list[tuple[str, str, object, bool]]:
+    """The attributes of a triangle mesh's topology at prim ``path``."""
+    indices = np.ascontiguousarray(faces, dtype=np.int32).ravel()
+    return [
+        (f"{path}.faceVertexCounts", "int[]", np.full(len(faces), 3, dtype=np.int32), False),
+        (f"{path}.faceVertexIndices", "int[]", indices, False),
+        (f"{path}.subdivisionScheme", "token", "none", True),
+        (f"{path}.orientation", "token", "rightHanded", True),
+    ]
+
+
 def add_topology(target: object, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-    """Turn ``target``'s ``over`` specs into defined meshes with their topology (a prop's mesh in its own frame)."""
-    from pxr import Sdf, Vt
+    """Author :func:`topology` on the Sdf layer ``target``, whose ``over`` specs hold the samples."""
+    from pxr import Gf, Sdf, Vt
 
+    values = {"int[]": Vt.IntArray.FromNumpy, "point3f[]": Vt.Vec3fArray.FromNumpy, "token[]": Vt.TokenArray}
+    values["float3[]"] = values["point3f[]"]
+    values["matrix4d"] = lambda m: Gf.Matrix4d(m.tolist())
+    prims, attributes = topology(bodies, props)
     with Sdf.ChangeBlock():
-        world = target.GetPrimAtPath("/World")
-        world.specifier, world.typeName = Sdf.SpecifierDef, "Xform"
-        for name, faces in bodies:
-            _define_mesh(target.GetPrimAtPath(f"/World/{name}"), faces)
-        for prop in props:
-            parts = prop.path.split("/")
-            for depth in range(1, len(parts)):
-                scope = target.GetPrimAtPath("/World/" + "/".join(parts[:depth]))
-                scope.specifier, scope.typeName = Sdf.SpecifierDef, "Scope"
-            mesh = target.GetPrimAtPath(f"/World/{prop.path}")
-            _define_mesh(mesh, prop.faces)
-            points = Sdf.AttributeSpec(mesh, "points", Sdf.ValueTypeNames.Point3fArray)
-            points.default = Vt.Vec3fArray.FromNumpy(prop.vertices.astype(np.float32))
-            box = Sdf.AttributeSpec(mesh, "extent", Sdf.ValueTypeNames.Float3Array)
-            box.default = Vt.Vec3fArray.FromNumpy(extent(prop.vertices.astype(np.float32)))
-            order = Sdf.AttributeSpec(mesh, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
-            order.default = Vt.TokenArray(["xformOp:transform"])
-            if prop.guide:
-                purpose = Sdf.AttributeSpec(mesh, "purpose", Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
-                purpose.default = "guide"
-
-
-def _define_mesh(mesh: object, faces: np.ndarray) -> None:
-    """Make the ``over`` spec ``mesh`` a defined ``Mesh`` with the topology of ``faces``."""
-    from pxr import Sdf, Vt
-
-    mesh.specifier, mesh.typeName = Sdf.SpecifierDef, "Mesh"
-    counts = Sdf.AttributeSpec(mesh, "faceVertexCounts", Sdf.ValueTypeNames.IntArray)
-    counts.default = Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32))
-    indices = Sdf.AttributeSpec(mesh, "faceVertexIndices", Sdf.ValueTypeNames.IntArray)
-    indices.default = Vt.IntArray.FromNumpy(np.ascontiguousarray(faces, dtype=np.int32).ravel())
-    for attr, value in (("subdivisionScheme", "none"), ("orientation", "rightHanded")):
-        spec = Sdf.AttributeSpec(mesh, attr, Sdf.ValueTypeNames.Token, Sdf.VariabilityUniform)
-        spec.default = value
+        for path, type_name in prims:
+            spec = Sdf.CreatePrimInLayer(target, path)  # a still prop's prim: no sample made it
+            spec.specifier, spec.typeName = Sdf.SpecifierDef, type_name
+        for path, type_name, value, uniform in attributes:
+            prim, _, name = path.rpartition(".")
+            variability = Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying
+            spec = Sdf.AttributeSpec(target.GetPrimAtPath(prim), name, Sdf.ValueTypeNames.Find(type_name), variability)
+            spec.default = values[type_name](value) if type_name in values else value

@@ -37,7 +37,7 @@ from warpfem.io.usd_layers import (
     Prop,
     StageInfo,
     animated_attributes,
-    complete_single,
+    complete_stream,
     export,
     export_single,
     write_clip_files,
@@ -169,26 +169,29 @@ class InlinePool(_StagedClipFiles):
     ) -> None:
         """Write chunk ``chunk`` to ``tmp`` as a self-contained file.
 
-        The chunk's file is completed and opened by usd-core, which adds the topology and the metadata: in place
-        for a crate ``tmp`` (its samples are not written again), exported in ``tmp``'s format otherwise.
+        A crate ``tmp`` is the chunk's own file, closed with the topology and the metadata (its samples are
+        not written again); any other format is exported by usd-core from the chunk's file, completed there.
         """
         from pxr import Sdf
 
         clock = time.perf_counter()
         stream = self._streams.pop(chunk)
-        stream.close()
         last = int(stream.last_time)
         try:
             if tmp.suffix.lower() != ".usda":
-                complete_single(stream.path, bodies, props, info, last)
+                complete_stream(stream, bodies, props, info, last)
+                stream.close()
                 os.replace(stream.path, tmp)
             else:
+                stream.close()
                 layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
                 if layer is None:
                     raise OSError(f"{stream.path}: usd-core could not read the chunk written")
                 export_single(layer, tmp, bodies, props, info, last)
+        except OSError as err:
+            raise OSError(f"{tmp}: USD export failed: {err.strerror or err}") from None
         finally:
-            stream.path.unlink(missing_ok=True)
+            stream.discard()
             self._drop_staged()
         self._done.append((chunk, last))
         self.seconds += time.perf_counter() - clock
