@@ -734,3 +734,27 @@ def test_a_top_level_layer_written_ahead_is_the_one_closing_exports(tmp_path, mo
         tops = [name for name in exported if "-final" not in name]
         assert len(tops) == (3 if hint in (None, 9) else 2)  # one moved into place where the hint came true
     assert files[0] == files[1]
+
+
+@pytest.mark.parametrize("ext", [".usdc", ".usda"])
+def test_a_chunk_streamed_into_a_crate_grows_past_the_exported_size(tmp_path, ext):
+    """Streamed on the calling thread into a crate, 36 MB of frames stay one file (nothing is held in memory or
+    exported again at the end); a text target is exported by usd-core, so it is cut at the exported size.
+    Either way every frame reads back."""
+    from pxr import Usd, UsdGeom
+
+    from warpfem.io.usd import CHUNK_BYTES, STREAMED_CHUNK_BYTES
+
+    n, frames = 300_000, 10
+    assert frames * 12 * n > CHUNK_BYTES and frames * 12 * n < STREAMED_CHUNK_BYTES
+    faces = np.arange(3 * (n // 3)).reshape(-1, 3)
+    path = tmp_path / f"big{ext}"
+    with UsdWriter(path, [("m", faces)], fps=60.0, save_every=None, workers=0) as writer:
+        base = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
+        for f in range(frames):
+            writer.add_frame(f, [base + f])
+    assert writer.clips_dir.exists() == (ext == ".usda")
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/m"))
+    for f in (0, 3, frames - 1):
+        np.testing.assert_array_equal(np.asarray(mesh.GetPointsAttr().Get(f)), base + f)

@@ -140,7 +140,7 @@ class CrateStream:
         self._times: list[float] = []
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self._offset = _BOOTSTRAP_BYTES  # the header's room, written on closing (zeros until then)
-        self._tail = bytearray()  # what closing adds, written with one call
+        self._tail: list[bytes | np.ndarray] = []  # what closing adds, written with one call
 
     @property
     def last_time(self) -> float:
@@ -201,16 +201,20 @@ class CrateStream:
         """Set the layer's metadata field ``name`` (e.g. ``upAxis``) to a token (str) or a double (float)."""
         self._metadata[name] = value
 
-    def _write(self, data: bytes) -> None:
-        """Append ``data`` to what closing writes (at :attr:`_offset`, which it advances)."""
-        self._tail += data
-        self._offset += len(data)
+    def _write(self, data: bytes | np.ndarray) -> None:
+        """Append ``data`` (bytes, or a C-contiguous array as it is in memory) to what closing writes.
+
+        It goes at :attr:`_offset`, which it advances.
+        """
+        self._tail.append(data)
+        self._offset += data.nbytes if isinstance(data, np.ndarray) else len(data)
 
     def close(self) -> None:
         """Write the time-sample records and the structural sections, then the header: the file is complete.
 
-        They are gathered in memory and written with two system calls: each one lets the other threads take
-        the interpreter lock, and waiting to take it back costs the writer far more than the call.
+        They are gathered in memory (large arrays as they are, not copied) and written with as few system calls
+        as can take them: each one lets the other threads take the interpreter lock, and waiting to take it back
+        costs the writer far more than the call.
         """
         start = times = self._offset
         self._write(struct.pack("<Q", len(self._times)) + np.asarray(self._times, "<f8").tobytes())
@@ -222,10 +226,10 @@ class CrateStream:
         toc = self._offset
         entries = b"".join(struct.pack("<16sqq", name, start, size) for name, start, size in sections)
         self._write(struct.pack("<Q", len(sections)) + entries)
-        _pwrite_all(self._fd, [self._tail], start, len(self._tail))
+        _pwrite_all(self._fd, self._tail, start, self._offset - start)
         header = b"PXR-USDC" + bytes(VERSION) + bytes(5) + struct.pack("<q", toc)
         _pwrite_all(self._fd, [header], 0, len(header))
-        self._tail = bytearray()
+        self._tail = []
         self._release()
 
     def discard(self) -> None:
@@ -327,7 +331,7 @@ class _SpecTables:
             stream._write(struct.pack("<d", value))
             return _rep(_DOUBLE, offset)
         if type_name == "matrix4d":
-            stream._write(np.ascontiguousarray(value, "<f8").reshape(16).tobytes())
+            stream._write(np.ascontiguousarray(value, "<f8").reshape(16))
             return _rep(_MATRIX4D, offset)
         if type_name == "token[]":
             kind, data = _TOKEN, np.asarray([self.token(t) for t in value], "<u4")
@@ -337,7 +341,8 @@ class _SpecTables:
             kind, data = _VEC3F, np.ascontiguousarray(value, _FLOAT32).reshape(-1, 3)
         if not len(data):
             return _rep(kind, 0, array=True)
-        stream._write(len(data).to_bytes(8, "little") + data.tobytes())
+        stream._write(len(data).to_bytes(8, "little"))
+        stream._write(data)
         return _rep(kind, offset, array=True)
 
     def visit(self, node: _Node, kind: int, last: bool) -> None:

@@ -1,7 +1,8 @@
 """Animated USD output: one time-sampled ``UsdGeom.Mesh`` per body under ``/World``, streamed in chunks.
 
-A chunk is cut when it holds :data:`CHUNK_BYTES` of samples or ``save_every`` seconds after the last cut,
-whichever comes first, and is never rewritten:
+A chunk is cut when it holds :data:`CHUNK_BYTES` of samples (:data:`STREAMED_CHUNK_BYTES` where it streams
+into a crate on the calling thread) or ``save_every`` seconds after the last cut, whichever comes first, and is
+never rewritten:
 
 - a run whose frames all fit in its first chunk writes one self-contained file at the target;
 - a longer run streams USD value clips: ``<stem>.clips/`` beside the target holds the topology (written
@@ -47,11 +48,17 @@ SAVE_EVERY_S = 10.0
 """Default longest time between two chunks on disk (s of wall time)."""
 
 CHUNK_BYTES = 32 << 20
-"""Bytes of point samples after which a chunk is cut (one export of about this size).
+"""Bytes of point samples after which a chunk is cut where writer processes export it (one export of about
+this size, held in a process's memory) or where the target is text.
 
 A single file is exported only once its last frame is in, so a run of one chunk waits for its whole export at
 the end, which a small chunk keeps short; a longer run's clips are exported while it goes on (the switch point's
 measurement: docs/decisions.md)."""
+
+STREAMED_CHUNK_BYTES = 256 << 20
+"""Bytes of point samples after which a chunk streamed on the calling thread into a crate is cut: such a chunk
+is on disk as it grows and completed in place, so its size costs neither memory nor time at the end, while each
+cut costs an export of the top-level layer by usd-core (docs/decisions.md)."""
 
 
 class UsdWriter:
@@ -83,7 +90,7 @@ class UsdWriter:
         up_axis: str = "Y",
         overwrite: bool = True,
         save_every: float | None = SAVE_EVERY_S,
-        chunk_bytes: int = CHUNK_BYTES,
+        chunk_bytes: int | None = None,
         props: Sequence[Prop] = (),
         workers: int | None = None,
         final_frame: int | None = None,
@@ -101,7 +108,8 @@ class UsdWriter:
                 first write links the file into place, failing if one appeared meanwhile.
             save_every: Longest time between chunks on disk in seconds (0: a chunk per frame); None: chunks
                 are cut by size only.
-            chunk_bytes: Bytes of point samples per chunk (>= 1).
+            chunk_bytes: Bytes of point samples per chunk (>= 1); None: :data:`STREAMED_CHUNK_BYTES` for a crate
+                target written on the calling thread, else :data:`CHUNK_BYTES`.
             props: Rigid shapes beside the bodies (obstacles, handles): each a :class:`Prop`, written at
                 ``/World/<path>`` with its mesh authored once, and its transform too where it is fixed, else
                 sampled every frame.
@@ -141,7 +149,7 @@ class UsdWriter:
         self._closing = threading.Lock()  # one close at a time: a run's writer thread closes, its caller may too
         self._overwrite = overwrite
         self._save_every = save_every
-        self._chunk_limit = chunk_bytes
+        self._chunk_limit = chunk_bytes  # None: set once the writer processes are known
         self._saved_at = time.monotonic()
         self._placed = False
         self._clips: list[tuple[int, str]] = []  # placed: (first frame, path relative to the target's folder)
@@ -159,6 +167,9 @@ class UsdWriter:
             workers = default_workers(12 * sum(self._min_vertices))
         self.workers = workers
         """Writer processes (0: chunks written on the calling thread)."""
+        if chunk_bytes is None:
+            streamed = not workers and _FORMATS[self.path.suffix.lower()] == "usdc"
+            self._chunk_limit = STREAMED_CHUNK_BYTES if streamed else CHUNK_BYTES
         self._moving = sum(p.matrix is None for p in self._props)
         names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props if p.matrix is None]
         folder = self.path.parent  # where an inline chunk streams before it is placed
@@ -239,7 +250,7 @@ class UsdWriter:
         if inline:  # a point's NaN or infinity reaches its body's extent: checking that checks the points
             extents = [extent(p) for p in arrays]
         boxes = None if extents is None else self._checked_extents(frame, extents)
-        matrices = _checked_transforms(transforms, self._moving)
+        matrices = _checked_transforms(transforms, self._moving) if self._moving or len(transforms) else []
         if threading.current_thread() is threading.main_thread():
             with _held_signals():
                 self._add(int(frame), arrays, matrices, boxes)
@@ -263,7 +274,8 @@ class UsdWriter:
                 self.save()
             elif self._chunk_bytes >= self._chunk_limit:
                 self._cut_chunk()
-            self._place_exported(block=False)
+            if self._cut or self.workers:  # chunks on their way, or messages from the writer processes
+                self._place_exported(block=False)
         except OSError:
             self.abort()
             raise
@@ -305,7 +317,7 @@ class UsdWriter:
         boxes = np.asarray(extents, dtype=np.float32)
         if boxes.shape != (len(self._bodies), 2, 3):
             raise ValueError(f"extents must be a ({len(self._bodies)}, 2, 3) array, got shape {boxes.shape}")
-        if not math.isfinite(boxes.sum(dtype=np.float64)):  # one reduction: float32 values cannot overflow it
+        if not math.isfinite(sum(boxes.ravel().tolist())):  # float32 values summed in float64 cannot overflow
             name = self._bodies[int(np.argmin(np.isfinite(boxes).all(axis=(1, 2))))][0]
             raise ValueError(f"body {name!r}: frame {frame} has non-finite points")
         return boxes
@@ -552,7 +564,7 @@ def _check_arguments(
     up_axis: str,
     bodies: Sequence[tuple[str, np.ndarray]],
     save_every: float | None,
-    chunk_bytes: int,
+    chunk_bytes: int | None,
     workers: int | None,
 ) -> None:
     """Raise on a bad :class:`UsdWriter` argument (the bodies' names and faces are checked one by one after)."""
@@ -569,7 +581,9 @@ def _check_arguments(
         raise ValueError("UsdWriter needs at least one body")
     if save_every is not None and not (np.isfinite(save_every) and save_every >= 0):
         raise ValueError(f"save_every must be None or a finite number >= 0, got {save_every!r}")
-    if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1:
+    if chunk_bytes is not None and (
+        isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, int) or chunk_bytes < 1
+    ):
         raise ValueError(f"chunk_bytes must be an integer >= 1, got {chunk_bytes!r}")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise ValueError(f"workers must be an integer >= 0, got {workers!r}")

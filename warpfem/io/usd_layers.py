@@ -187,11 +187,12 @@ def export(layer: object, path: Path) -> None:
     raise OSError(f"{path}: USD export failed: {reason}")
 
 
-def complete_stream(
-    stream: CrateStream, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop], info: StageInfo, end: int
-) -> None:
-    """Give a chunk's crate ``stream``, before it closes, what :func:`export_single` adds: topology and metadata."""
-    prims, attributes = topology(bodies, props)
+def complete_stream(stream: CrateStream, described: Topology, info: StageInfo, end: int) -> None:
+    """Give a chunk's crate ``stream``, before it closes, what :func:`export_single` adds.
+
+    That is the topology (``described``, as :func:`topology` gives it) and the metadata.
+    """
+    prims, attributes = described
     for path, type_name in prims:
         stream.define(path, type_name)
     for path, type_name, value, uniform in attributes:
@@ -263,9 +264,11 @@ def layer(names: Sequence[str], prop_paths: Sequence[str]) -> object:
     return result
 
 
-def topology(
-    bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]
-) -> tuple[list[tuple[str, str]], list[tuple[str, str, object, bool]]]:
+Topology = tuple[list[tuple[str, str]], list[tuple[str, str, object, bool]]]
+"""Prims to define, ``(path, type)``, and attributes to add, ``(path, USD type name, default value, uniform)``."""
+
+
+def topology(bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> Topology:
     """What turns the ``over`` specs of the samples into defined meshes with their topology.
 
     Returns ``(prim path, type)`` per prim to define, and ``(attribute path, USD type name, default value,

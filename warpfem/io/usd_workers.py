@@ -36,10 +36,12 @@ from warpfem.io.usd_layers import (
     Chunk,
     Prop,
     StageInfo,
+    Topology,
     animated_attributes,
     complete_stream,
     export,
     export_single,
+    topology,
     write_clip_files,
 )
 
@@ -111,6 +113,7 @@ class InlinePool(_StagedClipFiles):
         self._folder = folder
         self._streams: dict[int, CrateStream] = {}
         self._done: list[tuple[int, int]] = []
+        self._topology: Topology | None = None
         self.seconds = 0.0
         self.peak_bytes = 0
 
@@ -118,8 +121,9 @@ class InlinePool(_StagedClipFiles):
         """Write the clips folder's topology and manifest ahead, into the hidden folder ``staging``.
 
         Their export then happens before the run steps, not on the writer's thread beside it; starting the
-        clips only moves them. A run that stays one file drops them.
+        clips only moves them. A run that stays one file drops them, and takes the topology worked out here.
         """
+        self._topology = topology(bodies, props)
         self._stage(staging)
         try:
             write_clip_files(staging, str(os.getpid()), bodies, props)
@@ -179,7 +183,7 @@ class InlinePool(_StagedClipFiles):
         last = int(stream.last_time)
         try:
             if tmp.suffix.lower() != ".usda":
-                complete_stream(stream, bodies, props, info, last)
+                complete_stream(stream, self._topology or topology(bodies, props), info, last)
                 stream.close()
                 os.replace(stream.path, tmp)
             else:
