@@ -140,7 +140,7 @@ class CrateStream:
         self._times: list[float] = []
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self._offset = _BOOTSTRAP_BYTES  # the header's room, written on closing (zeros until then)
-        self._tail: list[bytes | np.ndarray] = []  # what closing adds, written with one call
+        self._tail: list[bytes | np.ndarray] = []  # what closing adds, written together
 
     @property
     def last_time(self) -> float:
