@@ -36,7 +36,7 @@ _SPECIFIER_DEF, _SPECIFIER_OVER, _VARIABILITY_VARYING, _VARIABILITY_UNIFORM = 0,
 
 _IOV_MAX = 1024  # buffers per pwritev call (POSIX requires at least 16; Linux has 1024)
 _PADS = [bytes(n) for n in range(8)]
-_FLOAT32 = np.dtype("<f4")
+_FLOAT32, _FLOAT64 = np.dtype("<f4"), np.dtype("<f8")
 
 TYPES = {"point3f[]": _VEC3F, "float3[]": _VEC3F, "matrix4d": _MATRIX4D}
 """The attribute types a stream samples, by USD type name: float3 arrays as (n, 3) float32, matrices as 4x4
@@ -136,7 +136,9 @@ class CrateStream:
             self._attributes.append(leaf)
         self._metadata: dict[str, str | float] = {}
         self._kinds = [TYPES[node.attribute] for node in self._attributes]
-        self._reps: list[list[int]] = [[] for _ in self._attributes]
+        self._sizes: list[int] | None = None  # the value lengths the frame layout is for (:meth:`_lay_out`)
+        self._starts: list[int] = []  # where each frame in the current layout starts
+        self._rep_blocks: list[np.ndarray] = []  # the ValueReps of the frames of earlier layouts, (frames, attributes)
         self._times: list[float] = []
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self._offset = _BOOTSTRAP_BYTES  # the header's room, written on closing (zeros until then)
@@ -157,27 +159,58 @@ class CrateStream:
             raise ValueError(f"expected {len(self._attributes)} values, got {len(values)}")
         if self._times and not time > self._times[-1]:
             raise ValueError(f"time {time} after {self._times[-1]}: times must increase")
-        reps, parts = [], []  # the frame counts only once all its values are written
-        end = self._offset  # where the next part goes
-        for kind, value in zip(self._kinds, values, strict=True):
+        sizes = [len(value) for value in values]
+        if sizes != self._sizes:
+            self._lay_out(sizes)
+        parts = self._parts.copy()
+        for slot, dtype, shape, i in self._values:
+            parts[slot] = np.ascontiguousarray(values[i], dtype).reshape(shape)  # no copy of one already so
+        _pwrite_all(self._fd, parts, self._offset, self._frame_bytes)  # one system call per frame
+        self._starts.append(self._offset)
+        self._offset += self._frame_bytes
+        self._times.append(float(time))
+
+    def _lay_out(self, sizes: list[int]) -> None:
+        """Where each value of a frame of these lengths goes, relative to the frame's start.
+
+        Arrays start 8-byte aligned, so that a reader may map them in place, and each frame's size is a multiple
+        of 8; an empty array has nothing in the file. The ValueReps of the frames so far are kept first.
+        """
+        self._fold_reps()
+        parts: list[bytes | None] = []
+        values: list[tuple[int, np.dtype, tuple[int, ...], int]] = []  # (part, dtype, shape, index) of each written
+        reps, shifts = [], []
+        end = 0
+        for i, (kind, size) in enumerate(zip(self._kinds, sizes, strict=True)):
             if kind == _MATRIX4D:
                 reps.append(_rep(_MATRIX4D, end))
-                parts.append(np.ascontiguousarray(value, dtype="<f8").reshape(16).tobytes())
+                values.append((len(parts), _FLOAT64, (16,), i))
+                parts.append(None)
                 end += 128
-                continue
-            array = np.ascontiguousarray(value, dtype=_FLOAT32)  # no copy of a C-contiguous float32 array
-            if len(array):
-                pad = -end % 8  # arrays start 8-byte aligned, so a reader may map them in place
+            elif size:
+                pad = -end % 8
                 reps.append(_VEC3F_ARRAY | (end + pad))
-                parts += (_PADS[pad] + len(array).to_bytes(8, "little"), array)
-                end += pad + 8 + array.nbytes
+                parts.append(_PADS[pad] + size.to_bytes(8, "little"))
+                values.append((len(parts), _FLOAT32, (size, 3), i))
+                parts.append(None)
+                end += pad + 8 + 12 * size
             else:
-                reps.append(_VEC3F_ARRAY)  # an empty array: payload 0, nothing in the file
-        _pwrite_all(self._fd, parts, self._offset, end - self._offset)  # one system call per frame
-        self._offset = end
-        for column, rep in zip(self._reps, reps, strict=True):
-            column.append(rep)
-        self._times.append(float(time))
+                reps.append(_VEC3F_ARRAY)  # payload 0
+            shifts.append(1 if kind == _MATRIX4D or size else 0)
+        if end % 8:
+            parts.append(_PADS[-end % 8])
+            end += -end % 8
+        self._sizes, self._parts, self._frame_bytes = sizes, parts, end
+        self._values = values
+        self._layout_reps = np.asarray(reps, np.uint64), np.asarray(shifts, np.uint64)
+
+    def _fold_reps(self) -> None:
+        """Turn the frames added in the current layout into ValueReps, one column per attribute."""
+        if self._starts:
+            reps, shifts = self._layout_reps
+            starts = np.asarray(self._starts, np.uint64)[:, None]
+            self._rep_blocks.append(reps[None, :] + shifts[None, :] * starts)
+            self._starts = []
 
     def define(self, prim: str, type_name: str) -> None:
         """Make the prim at absolute path ``prim`` (made where new) a ``def`` of type ``type_name``."""
@@ -218,7 +251,11 @@ class CrateStream:
         """
         start = times = self._offset
         self._write(struct.pack("<Q", len(self._times)) + np.asarray(self._times, "<f8").tobytes())
-        for node, reps in zip(self._attributes, self._reps, strict=True):
+        self._fold_reps()
+        columns = (
+            np.concatenate(self._rep_blocks) if self._rep_blocks else np.zeros((0, len(self._attributes)), np.uint64)
+        )
+        for node, reps in zip(self._attributes, columns.T, strict=True):
             node.samples = self._offset
             record = struct.pack("<qQq", 8, _rep(_DOUBLE_VECTOR, times), 8)  # no nested data: each jump is 8
             self._write(record + struct.pack("<Q", len(reps)) + np.asarray(reps, "<u8").tobytes())
