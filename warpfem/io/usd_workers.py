@@ -123,10 +123,9 @@ class InlinePool(_StagedClipFiles):
         Their export then happens before the run steps, not on the writer's thread beside it; starting the
         clips only moves them. A run that stays one file drops them, and takes the topology worked out here.
         """
-        self._topology = topology(bodies, props)
         self._stage(staging)
         try:
-            write_clip_files(staging, str(os.getpid()), bodies, props)
+            self._topology = write_clip_files(staging, str(os.getpid()), bodies, props)
         except BaseException:
             self._drop_staged()
             raise
@@ -159,12 +158,7 @@ class InlinePool(_StagedClipFiles):
         """Complete chunk ``chunk`` and move it to ``tmp``."""
         clock = time.perf_counter()
         stream = self._streams.pop(chunk)
-        try:
-            stream.close()
-            os.replace(stream.path, tmp)
-        except OSError as err:
-            stream.discard()
-            raise OSError(f"{tmp}: USD export failed: {err.strerror or err}") from None
+        _close_into(stream, tmp)
         self._done.append((chunk, int(stream.last_time)))
         self.seconds += time.perf_counter() - clock
 
@@ -184,16 +178,13 @@ class InlinePool(_StagedClipFiles):
         try:
             if tmp.suffix.lower() != ".usda":
                 complete_stream(stream, self._topology or topology(bodies, props), info, last)
-                stream.close()
-                os.replace(stream.path, tmp)
+                _close_into(stream, tmp)
             else:
                 stream.close()
                 layer = Sdf.Layer.OpenAsAnonymous(str(stream.path))
                 if layer is None:
                     raise OSError(f"{stream.path}: usd-core could not read the chunk written")
                 export_single(layer, tmp, bodies, props, info, last)
-        except OSError as err:
-            raise OSError(f"{tmp}: USD export failed: {err.strerror or err}") from None
         finally:
             stream.discard()
             self._drop_staged()
@@ -376,6 +367,16 @@ class ProcessPool(_StagedClipFiles):
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+
+
+def _close_into(stream: CrateStream, tmp: Path) -> None:
+    """Close ``stream`` and move its file to ``tmp``; on failure, remove it and raise a one-line OSError."""
+    try:
+        stream.close()
+        os.replace(stream.path, tmp)
+    except OSError as err:
+        stream.discard()
+        raise OSError(f"{tmp}: USD export failed: {err.strerror or err}") from None
 
 
 _PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
