@@ -200,6 +200,7 @@ def record(
     """
     from warpfem.io.stream import FrameStream
     from warpfem.io.usd import UsdWriter
+    from warpfem.io.usd_layers import moving_paths
 
     scene = sim.scene
     check = _Check(sim)
@@ -219,8 +220,7 @@ def record(
     except (ValueError, OSError) as err:
         raise InputError(str(err)) from None
 
-    moving = any(p.matrix is None for p in props)
-    transforms = _by_frame(poses, scene.fps, every) if moving else lambda frame: []
+    transforms = _by_frame(poses, scene.fps, every) if moving_paths(props) else lambda frame: []
 
     def write(frame: int, points: list[np.ndarray], boxes: np.ndarray) -> None:
         writer.add_frame(frame, points, transforms(frame), extents=boxes)
@@ -267,10 +267,8 @@ def _props(sim: Simulation) -> tuple[list[Prop], Callable[[float], list[np.ndarr
         for o, fixed in zip(sim.obstacles_at(0.0), still, strict=True)
     ]
     props += [Prop(f"handles/{h.name}", h.vertices, h.faces, guide=True) for h in sim.handles_at(0.0)]
-    moving, handles = (
-        [c for c, fixed in zip(obstacles, still, strict=True) if not fixed],
-        [h.motion for h in sim.solver.handles],
-    )
+    moving = [c for c, fixed in zip(obstacles, still, strict=True) if not fixed]
+    handles = [h.motion for h in sim.solver.handles]
 
     def poses(time: float) -> list[np.ndarray]:
         return [*(collider_pose(c, time) for c in moving), *(motion.matrix(time) for motion in handles)]

@@ -38,7 +38,7 @@ from types import TracebackType
 
 import numpy as np
 
-from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export, extent
+from warpfem.io.usd_layers import MARKER, Prop, StageInfo, export, extent, moving_paths
 from warpfem.io.usd_workers import InlinePool, ProcessPool, default_workers
 
 _FORMATS = {".usdc": "usdc", ".usd": "usdc", ".usda": "usda"}
@@ -170,8 +170,8 @@ class UsdWriter:
         if chunk_bytes is None:
             streamed = not workers and _FORMATS[self.path.suffix.lower()] == "usdc"
             self._chunk_limit = STREAMED_CHUNK_BYTES if streamed else CHUNK_BYTES
-        self._moving = sum(p.matrix is None for p in self._props)
-        names, prop_paths = [name for name, _ in self._bodies], [p.path for p in self._props if p.matrix is None]
+        names, prop_paths = [name for name, _ in self._bodies], moving_paths(self._props)
+        self._moving = len(prop_paths)
         folder = self.path.parent  # where an inline chunk streams before it is placed
         self._pool = ProcessPool(names, prop_paths, workers) if workers else InlinePool(names, prop_paths, folder)
         staging = self.path.with_name(f".{self.clips_dir.name}.tmp-{os.getpid()}")

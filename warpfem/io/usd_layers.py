@@ -140,7 +140,7 @@ def export_single(
 
     The topology and the stage metadata (time codes to frame ``end``) are added to it first.
     """
-    add_topology(target, bodies, props)
+    add_topology(target, topology(bodies, props))
     info.author(target, end)
     export(target, path)
 
@@ -153,21 +153,27 @@ CLIP_FILES = ("topology.usdc", "manifest.usda")
 """The files of a clips folder besides its chunks: the topology (a sublayer of the top-level file) and the manifest."""
 
 
-def write_clip_files(folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
+def write_clip_files(
+    folder: Path, tag: str, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]
+) -> Topology:
     """Write a clips folder's topology (``topology.usdc``, marked) and manifest, each moved into place complete.
+
+    Returns the :func:`topology` written, which a run that stays one file takes for its own.
 
     ``tag`` names the temporary files (``.topology.tmp-<tag>.usdc``) so that whoever started the write can
     remove them after a failure.
     """
-    names, prop_paths = [name for name, _ in bodies], [p.path for p in props if p.matrix is None]
-    topology = layer(names, prop_paths)
-    add_topology(topology, bodies, props)
-    topology.comment = MARKER
-    for content, name in zip((topology, layer(names, prop_paths)), CLIP_FILES, strict=True):
+    names, prop_paths = [name for name, _ in bodies], moving_paths(props)
+    described = topology(bodies, props)
+    layout = layer(names, prop_paths)
+    add_topology(layout, described)
+    layout.comment = MARKER
+    for content, name in zip((layout, layer(names, prop_paths)), CLIP_FILES, strict=True):
         path = folder / name
         tmp = path.with_name(f".{path.stem}.tmp-{tag}{path.suffix}")
         export(content, tmp)
         os.replace(tmp, path)
+    return described
 
 
 def export(layer: object, path: Path) -> None:
@@ -234,6 +240,11 @@ def _buffer_is_storage() -> bool:
 def extent(points: np.ndarray) -> np.ndarray:
     """The (2, 3) float32 bounding box of (n, 3) points (:func:`~warpfem.io.penetration.bounds`)."""
     return np.array(bounds(points), np.float32)
+
+
+def moving_paths(props: Sequence[Prop]) -> list[str]:
+    """The prim paths of the props whose transform is sampled every frame (no fixed ``matrix``), in order."""
+    return [p.path for p in props if p.matrix is None]
 
 
 def animated_attributes(names: Sequence[str], prop_paths: Sequence[str]) -> list[tuple[str, str]]:
@@ -304,17 +315,20 @@ def _mesh(path: str, faces: np.ndarray) -> list[tuple[str, str, object, bool]]:
     ]
 
 
-def add_topology(target: object, bodies: Sequence[tuple[str, np.ndarray]], props: Sequence[Prop]) -> None:
-    """Author :func:`topology` on the Sdf layer ``target``, whose ``over`` specs hold the samples."""
+def add_topology(target: object, described: Topology) -> None:
+    """Author ``described`` (as :func:`topology` gives it) on the Sdf layer ``target``.
+
+    ``target``'s ``over`` specs hold the samples; a still prop's prim, which no sample made, is made here.
+    """
     from pxr import Gf, Sdf, Vt
 
     values = {"int[]": Vt.IntArray.FromNumpy, "point3f[]": Vt.Vec3fArray.FromNumpy, "token[]": Vt.TokenArray}
     values["float3[]"] = values["point3f[]"]
     values["matrix4d"] = lambda m: Gf.Matrix4d(m.tolist())
-    prims, attributes = topology(bodies, props)
+    prims, attributes = described
     with Sdf.ChangeBlock():
         for path, type_name in prims:
-            spec = Sdf.CreatePrimInLayer(target, path)  # a still prop's prim: no sample made it
+            spec = Sdf.CreatePrimInLayer(target, path)
             spec.specifier, spec.typeName = Sdf.SpecifierDef, type_name
         for path, type_name, value, uniform in attributes:
             prim, _, name = path.rpartition(".")
