@@ -103,6 +103,12 @@ def test_a_stream_checks_its_attributes_and_times(tmp_path):
         stream.add(1.0, [np.zeros((2, 3), np.float32)])
     with pytest.raises(ValueError, match="expected 1 values, got 2"):
         stream.add(2.0, [np.zeros((2, 3), np.float32)] * 2)
+    with pytest.raises(ValueError, match="cannot reshape"):  # a float3 array of another width
+        stream.add(2.0, [np.zeros((2, 2), np.float32)])
+    with pytest.raises(ValueError, match="type 'float\\[\\]' is not one of"):
+        stream.set_default("/World/a.mass", "float[]", np.zeros(2))
+    with pytest.raises(ValueError, match="/World/a.points is sampled"):
+        stream.set_default("/World/a.points", "point3f[]", np.zeros((2, 3)))
     stream.discard()
     assert not (tmp_path / "y.usdc").exists()
 
