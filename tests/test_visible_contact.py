@@ -458,10 +458,9 @@ def test_stiff_low_poly_boxes_landing_on_each_other_come_to_rest(device, tmp_pat
 def test_a_horse_dropped_onto_another_lands_within_one_percent(request, device, asset, prep_cache):
     """A 1 m horse (3.9e6 Pa) dropped upright from 3.5, 4 and 4.5 m onto another's back (1.9e6 Pa, standing on the
     ground), legs first at 8.3-9.4 m/s, scene defaults: checked on the dense meshes alone every frame, no dense
-    vertex gets deeper than 1 % of the size inside the other body (the goal). Where the legs land decides the
-    depth (0.85-1.55 % on the CPU, with each point's penalty an equal share of its body's mass). An expected
-    failure until issue 25 holds it; strict on the CPU, where runs repeat exactly (on CUDA, float atomics add in
-    another order each run and one run in three on the H200 stayed under 1 %)."""
+    vertex gets deeper than 1 % of the size inside the other body (the goal). An expected failure until issue 25
+    holds it (docs/decisions.md, "A body landing on a hoof"); strict on the CPU, where runs repeat exactly, not on
+    CUDA, where float atomics add in another order each run and where the legs land changes."""
     reason = "issue 25: a landing on thin legs sinks past 1 % (docs/decisions.md)"
     request.applymarker(pytest.mark.xfail(strict=device == "cpu", reason=reason))
     horse = {"mesh": str(asset("horse.ply")), "faces": 500, "scale": 3.952, "poisson": 0.3, "damping_stiffness": 0.005}
