@@ -546,6 +546,67 @@ def late_skin_contacts(
 
 
 @wp.kernel
+def lift_skin(
+    x: wp.array(dtype=wp.vec3),
+    cells: wp.array(dtype=wp.vec4i),
+    free: wp.array(dtype=wp.int32),
+    skin_cell: wp.array(dtype=wp.int32),
+    skin_bary: wp.array(dtype=wp.vec4),
+    colliders: Colliders,
+    up_out: wp.array(dtype=wp.vec3),
+    down_out: wp.array(dtype=wp.vec3),
+):
+    """How far each free tet node must move so that no skin point ends a step below a still collider's surface.
+
+    A skin point at depth ``d`` below a collider that does not move (normal ``n``) asks each free node of its
+    cell with a positive weight to move by ``d n``: moved so, the nodes carry the point out by at least ``d``.
+    A node takes the largest such move per axis, the positive parts in ``up_out`` and the negative in
+    ``down_out`` (both zero where none asks; :func:`apply_lift` zeroes them again).
+    """
+    i = wp.tid()
+    e = skin_cell[i]
+    t = cells[e]
+    w = skin_bary[i]
+    p = interpolate(x, t, w)
+    for o in range(colliders.kind.shape[0]):
+        if colliders.moving[o] == 0:
+            dn = collider_distance(colliders, o, p)
+            if dn[0] < 0.0:
+                move = -dn[0] * wp.vec3(dn[1], dn[2], dn[3])
+                for c in range(4):
+                    if w[c] > 0.0 and free[t[c]] != 0:
+                        wp.atomic_max(up_out, t[c], move)
+                        wp.atomic_min(down_out, t[c], move)
+
+
+@wp.kernel
+def apply_lift(
+    up: wp.array(dtype=wp.vec3),
+    down: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """Move each node by what :func:`lift_skin` asked and stop its velocity along that move where it went against it.
+
+    The velocity change goes into ``dv_out`` too (the next step's CG start moves along it); the requests are
+    zeroed for the next step.
+    """
+    i = wp.tid()
+    move = up[i] + down[i]
+    if wp.length_sq(move) == 0.0:
+        return
+    x_out[i] = x_out[i] + move
+    n = wp.normalize(move)
+    vn = wp.dot(v_out[i], n)
+    if vn < 0.0:
+        v_out[i] = v_out[i] - vn * n
+        dv_out[i] = dv_out[i] - vn * n
+    up[i] = wp.vec3()
+    down[i] = wp.vec3()
+
+
+@wp.kernel
 def add_elastic(
     free: wp.array(dtype=wp.int32),
     matrix_base: wp.array(dtype=wp.mat33),

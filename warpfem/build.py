@@ -389,4 +389,5 @@ def solver_of(scene: Scene, model: Model, cg_path: str | None = None, held: list
         handles=handles,
         rotation_updates=scene.solver.rotation_updates,
         rotation_tolerance=scene.solver.rotation_tolerance,
+        static_lift=scene.solver.static_lift,
     )

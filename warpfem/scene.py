@@ -75,6 +75,8 @@ class SolverConfig:
         rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
         rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
         elements: ``"linear"`` (4-node) or ``"quadratic"`` (10-node) tets, which bend without locking.
+        static_lift: Whether each step ends with the visible surface lifted out of the ground and the still
+            obstacles (see :class:`~warpfem.sim.solver.Solver`); false: their penalties alone, as the paper.
         quality: A preset of :data:`PRESETS` whose values fill the keys the scene leaves unset, or None.
     """
 
@@ -84,6 +86,7 @@ class SolverConfig:
     rotation_updates: int = 2
     rotation_tolerance: float = 0.01
     elements: str = "linear"
+    static_lift: bool = True
     quality: str | None = None
 
     @property
@@ -100,6 +103,8 @@ class SolverConfig:
         _check_range(err, "cg_tolerance", self.cg_tolerance, gt=0.0, lt=1.0)
         _check_int(err, "rotation_updates", self.rotation_updates, 0)
         _check_range(err, "rotation_tolerance", self.rotation_tolerance, ge=0.0)
+        if not isinstance(self.static_lift, bool):
+            raise err("static_lift", f"must be true or false, got {_shown(self.static_lift)}")
 
 
 @dataclass

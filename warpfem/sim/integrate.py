@@ -377,6 +377,35 @@ def late_contacts(
         )  # fmt: skip
 
 
+def lift_skin(model: Model, state: State, colliders: StaticColliders, up: wp.array, down: wp.array) -> None:
+    """Move the tet nodes so that no skin point of ``state`` lies below a still collider's surface.
+
+    Two launches (the moves asked by the skin points, then the nodes moved); ``up`` and ``down`` are the
+    per-node requests, zero between steps. A node moved against its velocity stops along the move
+    (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
+    """
+    count = model.skin_cell.shape[0]
+    if count == 0 or up.shape[0] == 0:
+        return
+    dev = model.device
+    wp.launch(
+        K.lift_skin,
+        dim=count,
+        inputs=[state.x, model.cells, model.free, model.skin_cell, model.skin_bary, colliders.arrays],
+        outputs=[up, down],
+        device=dev,
+    )
+    n = model.vertex_count
+    wp.launch(
+        K.apply_lift,
+        dim=n,
+        inputs=[up, down],
+        outputs=[state.x, state.v, state.dv],
+        device=dev,
+        block_dim=spread_block_dim(n, dev),
+    )
+
+
 def add_elastic(
     model: Model,
     matrix_base: wp.array,

@@ -73,6 +73,11 @@ class Solver:
         handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
             or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
             to advance the clock); without, ``drive`` is None and a step launches nothing for them.
+        static_lift: Whether a step ends by moving the tet nodes so that no skin point (the visible surface)
+            lies below the surface of a still collider (the ground, obstacles without a motion), stopping
+            them along that move (two launches a step; :func:`warpfem.sim.integrate.lift_skin`). A penalty
+            yields by what it needs to hold a load or stop a landing; the lift keeps that give out of
+            sight. Off: the penalties alone. May be turned off after construction.
     """
 
     def __init__(
@@ -89,6 +94,7 @@ class Solver:
         handles: Sequence[Handle] = (),
         rotation_updates: int = DEFAULT_ROTATION_UPDATES,
         rotation_tolerance: float = DEFAULT_ROTATION_TOLERANCE,
+        static_lift: bool = True,
     ) -> None:
         _check_counts(contact_passes, rotation_updates, rotation_tolerance)
         self._rotation_updates, self.rotation_tolerance = rotation_updates, float(rotation_tolerance)
@@ -107,6 +113,11 @@ class Solver:
         self.colliders = StaticColliders(
             [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies], self.gravity
         )
+        still = static_lift and self.colliders.kind.shape[0] > len(self.colliders.moving)
+        self.static_lift = still and model.skin_cell.shape[0] > 0
+        """Whether a step ends with the skin lifted out of the still colliders (see ``static_lift`` above)."""
+        self._lift = tuple(wp.zeros(n if self.static_lift else 0, dtype=wp.vec3, device=dev) for _ in range(2))
+        """Per tet node, the moves the skin points ask of it (``integrate.lift_skin``)."""
         self.obstacles = list(obstacles)
         self.handles = list(handles)
         moving = self.colliders.moving
@@ -226,6 +237,8 @@ class Solver:
             if self.rotation_updates:
                 self._update_rotations(state_in, state_out, dt, 1)
             self._late_passes(state_in, state_out, dt)
+            if self.static_lift:
+                integrate.lift_skin(model, state_out, self.colliders, *self._lift)
             if self.drive is not None:
                 self.drive.tick()
 
