@@ -546,27 +546,28 @@ def late_skin_contacts(
 
 
 @wp.kernel
-def lift_skin(
+def lift_points(
     x: wp.array(dtype=wp.vec3),
     cells: wp.array(dtype=wp.vec4i),
     free: wp.array(dtype=wp.int32),
-    skin_cell: wp.array(dtype=wp.int32),
-    skin_bary: wp.array(dtype=wp.vec4),
+    point_cell: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
     colliders: Colliders,
     up_out: wp.array(dtype=wp.vec3),
     down_out: wp.array(dtype=wp.vec3),
 ):
-    """How far each free tet node must move so that no skin point ends a step below a still collider's surface.
+    """How far each free node must move so that no embedded point lies below a still collider's surface.
 
-    A skin point at depth ``d`` below a collider that does not move (normal ``n``) asks each free node of its
-    cell with a positive weight to move by ``d n``: moved so, the nodes carry the point out by at least ``d``.
-    A node takes the largest such move per axis, the positive parts in ``up_out`` and the negative in
-    ``down_out`` (both zero where none asks; :func:`apply_lift` zeroes them again).
+    A point (skin point or dense vertex, at weights ``point_bary`` in cell ``point_cell``) at depth ``d``
+    below a collider that does not move (normal ``n``) asks each free node of its cell with a positive weight
+    to move by ``d n``: moved so, the nodes carry the point out by at least ``d``. A node takes the largest
+    such move per axis, the positive parts in ``up_out`` and the negative in ``down_out`` (both zero where none
+    asks; :func:`apply_lift` zeroes them again).
     """
     i = wp.tid()
-    e = skin_cell[i]
+    e = point_cell[i]
     t = cells[e]
-    w = skin_bary[i]
+    w = point_bary[i]
     p = interpolate(x, t, w)
     for o in range(colliders.kind.shape[0]):
         if colliders.moving[o] == 0:
@@ -587,7 +588,7 @@ def apply_lift(
     v_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
 ):
-    """Move each node by what :func:`lift_skin` asked and stop its velocity along that move where it went against it.
+    """Move each node by what :func:`lift_points` asked and stop its velocity along that move where it went against it.
 
     The velocity change goes into ``dv_out`` too (the next step's CG start moves along it); the requests are
     zeroed for the next step.

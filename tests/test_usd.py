@@ -409,8 +409,10 @@ def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
 
 
 _INTERRUPTED_WRITER = """
+import signal
 import sys
 import numpy as np
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal, even where the runner ignores SIGINT
 from warpfem.io.usd import UsdWriter
 n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)
@@ -467,6 +469,7 @@ _INTERRUPTED_INSIDE = """
 import signal
 import sys
 import numpy as np
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal, even where the runner ignores SIGINT
 from warpfem.io.usd import UsdWriter
 n = 1000
 base = np.random.default_rng(2).normal(size=(n, 3)).astype(np.float32)

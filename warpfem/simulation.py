@@ -331,7 +331,8 @@ class Simulation:
         """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
 
         The states alternate between substeps; after an odd count the last one is copied back into
-        ``states[0]`` as part of the last "solve". ``overlap``: see ``Solver.phases``.
+        ``states[0]`` as part of the last "solve", which ends with the dense vertices lifted out of the still
+        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``.
         """
         a, b = self.states
         out = []
@@ -340,6 +341,8 @@ class Simulation:
             out += self.solver.phases(src, dst, self.dt, overlap)
         if self.substeps % 2 == 1:
             out.append(("solve", lambda: a.assign(b)))
+        if self.solver.static_lift:
+            out.append(("solve", lambda: self.solver.lift_dense(a)))
         return out
 
     def advance(self, timer: PhaseTimer | None = None) -> None:

@@ -377,21 +377,26 @@ def late_contacts(
         )  # fmt: skip
 
 
-def lift_skin(model: Model, state: State, colliders: StaticColliders, up: wp.array, down: wp.array) -> None:
-    """Move the tet nodes so that no skin point of ``state`` lies below a still collider's surface.
+def lift_points(
+    model: Model,
+    state: State,
+    colliders: StaticColliders,
+    cell: wp.array,
+    bary: wp.array,
+    up: wp.array,
+    down: wp.array,
+) -> None:
+    """Move the tet nodes so that no point embedded at ``bary`` in ``cell`` lies below a still collider's surface.
 
-    Two launches (the moves asked by the skin points, then the nodes moved); ``up`` and ``down`` are the
-    per-node requests, zero between steps. A node moved against its velocity stops along the move
+    Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the per-node
+    requests, zero between calls. A node moved against its velocity stops along the move
     (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
     """
-    count = model.skin_cell.shape[0]
-    if count == 0 or up.shape[0] == 0:
-        return
     dev = model.device
     wp.launch(
-        K.lift_skin,
-        dim=count,
-        inputs=[state.x, model.cells, model.free, model.skin_cell, model.skin_bary, colliders.arrays],
+        K.lift_points,
+        dim=cell.shape[0],
+        inputs=[state.x, model.cells, model.free, cell, bary, colliders.arrays],
         outputs=[up, down],
         device=dev,
     )
