@@ -586,11 +586,12 @@ def apply_lift(
     down: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
+    dv_out: wp.array(dtype=wp.vec3),
 ):
-    """Move each node by what :func:`lift_points` asked and stop its velocity against that move.
+    """Move each node by what :func:`lift_points` asked and stop its velocity along that move where it went against it.
 
-    The requests are zeroed for the next call. The last velocity change (the next step's CG start moves along
-    it) is left as the solve made it: a stop is no guide to the next step's change.
+    The velocity change goes into ``dv_out`` too (the next step's CG start moves along it); the requests are
+    zeroed for the next step.
     """
     i = wp.tid()
     move = up[i] + down[i]
@@ -601,6 +602,7 @@ def apply_lift(
     vn = wp.dot(v_out[i], n)
     if vn < 0.0:
         v_out[i] = v_out[i] - vn * n
+        dv_out[i] = dv_out[i] - vn * n
     up[i] = wp.vec3()
     down[i] = wp.vec3()
 

@@ -405,7 +405,7 @@ def lift_points(
         K.apply_lift,
         dim=n,
         inputs=[up, down],
-        outputs=[state.x, state.v],
+        outputs=[state.x, state.v, state.dv],
         device=dev,
         block_dim=spread_block_dim(n, dev),
     )

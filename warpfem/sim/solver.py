@@ -73,11 +73,12 @@ class Solver:
         handles: Pinned vertices that follow rigid motions (:class:`~warpfem.sim.drive.Handle`). With handles
             or moving obstacles, each step poses them from a device clock (``drive``: one launch to pose, one
             to advance the clock); without, ``drive`` is None and a step launches nothing for them.
-        static_lift: Whether :meth:`lift_dense` moves the tet nodes so that no dense vertex lies below the
-            surface of a still collider (the ground, obstacles without a motion), stopping them along that
-            move; a ``Simulation`` calls it at the end of each frame. A penalty yields by what it needs to hold
-            a load or stop a landing; the lift keeps that give out of what is written. Off: the penalties
-            alone. May be turned off after construction.
+        static_lift: Whether a step ends by moving the tet nodes so that no skin point (the visible surface's
+            samples) lies below the surface of a still collider (the ground, obstacles without a motion),
+            stopping them along that move (two launches a step; :func:`warpfem.sim.integrate.lift_points`);
+            :meth:`lift_dense` does the same for every dense vertex. A penalty yields by what it needs to
+            hold a load or stop a landing; the lift keeps that give out of sight. Off: the penalties alone.
+            May be turned off after construction.
     """
 
     def __init__(
@@ -114,10 +115,10 @@ class Solver:
             [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies], self.gravity
         )
         still = static_lift and self.colliders.kind.shape[0] > len(self.colliders.moving)
-        self.static_lift = still
-        """Whether :meth:`lift_dense` lifts the dense vertices out of the still colliders (``static_lift`` above)."""
+        self.static_lift = still and model.skin_cell.shape[0] > 0
+        """Whether a step ends with the skin lifted out of the still colliders (see ``static_lift`` above)."""
         self._lift = tuple(wp.zeros(n if self.static_lift else 0, dtype=wp.vec3, device=dev) for _ in range(2))
-        """Per tet node, the moves the dense vertices ask of it (``integrate.lift_points``)."""
+        """Per tet node, the moves the embedded points ask of it (``integrate.lift_points``)."""
         self.obstacles = list(obstacles)
         self.handles = list(handles)
         moving = self.colliders.moving
@@ -237,6 +238,8 @@ class Solver:
             if self.rotation_updates:
                 self._update_rotations(state_in, state_out, dt, 1)
             self._late_passes(state_in, state_out, dt)
+            if self.static_lift:
+                integrate.lift_points(model, state_out, self.colliders, model.skin_cell, model.skin_bary, *self._lift)
             if self.drive is not None:
                 self.drive.tick()
 
@@ -341,11 +344,11 @@ class Solver:
         self._finish(state_in, state_out, dt)
 
     def lift_dense(self, state: State) -> None:
-        """Move the tet nodes so that no dense vertex of ``state`` lies below a still collider's surface.
+        """Lift every dense vertex of ``state`` out of the still colliders as a step lifts the skin points.
 
-        Two launches (:func:`warpfem.sim.integrate.lift_points`); a node moved against its velocity stops along
-        the move. A frame's last state goes through this, so that what is written never shows below the
-        ground or inside a still obstacle. Nothing without ``static_lift``.
+        Between skin points a deformed tet can carry a dense vertex a little lower than its neighbours; a
+        frame's last state goes through this so that what is written never shows below the ground or inside
+        a still obstacle. Nothing without ``static_lift``.
         """
         if self.static_lift:
             m = self.model
