@@ -66,8 +66,8 @@ def test_late_contacts_catch_a_body_thrown_at_the_ground(device, speed):
 def test_a_thrown_body_never_sinks_into_the_ground(device, speed):
     """Scene defaults: a body thrown at the ground at up to 30 m/s (a step's travel 16 % of its size) never
     shows its dense surface below it by more than its skin points' tolerance (0.02 % of its size), landing
-    included, since each step ends with the skin lifted out of the ground (the penalty alone lets it through
-    by 0.05-0.12 % here)."""
+    included, since the visible surface is lifted out of the ground (``[solver] static_lift``; with the penalty
+    alone it goes deeper: docs/decisions.md)."""
     deepest = _deepest_over_run(device, _thrown(speed), _below_ground)
     assert deepest < 0.0002, deepest
 
