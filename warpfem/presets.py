@@ -51,6 +51,11 @@ FIXED_CG_ITERATIONS = 100
 """CG's iteration count in ``cg_mode = "fixed"`` where the scene gives none (``cg_iterations``' default, 400, is
 a cap meant for tolerance mode, which a converging solve never reaches)."""
 
+APPROACH_LIMIT = 0.02
+"""The most two bodies may close on each other in one step by default, as a share of the smaller one's size,
+before a frame runs twice the substeps (``[collision] approach_limit``). Chosen by measurement
+(docs/decisions.md, "Frames of fast approach at twice the substeps")."""
+
 STATIC_OFFSET = 8.0e-4
 """How far above a static collider's surface (the ground, an obstacle) its penalty starts by default, as a share of
 the touching body's size (its tet mesh's rest bounding-box diagonal): a penalty holds a load at some depth, and

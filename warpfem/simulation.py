@@ -29,6 +29,7 @@ from warpfem.errors import InputError, SimulationError
 from warpfem.memory import check_fits, scene_estimate
 from warpfem.prep.pipeline import default_cache_dir
 from warpfem.scene import Scene
+from warpfem.sim.approach import DEFAULT_APPROACH_LIMIT, ApproachWatch
 from warpfem.sim.cg import CAP_SLACK
 from warpfem.sim.embedding import map_dense
 from warpfem.sim.fem import RotationWatch
@@ -97,6 +98,7 @@ class RunTotals:
 
     Attributes:
         steps: Steps taken.
+        refined_frames: Frames run at twice the substeps, their bodies closing fast on each other.
         cg_solves: CG solves (one per step).
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
@@ -111,6 +113,7 @@ class RunTotals:
     """
 
     steps: int = 0
+    refined_frames: int = 0
     cg_solves: int = 0
     cg_iterations: int = 0
     cg_residual_max: float = 0.0
@@ -177,6 +180,10 @@ class Simulation:
             every kernel module the step can use, compiled where Warp's kernel cache lacks it: a first run)
             and ``build``.
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
+        approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a frame whose bodies close on each
+            other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's size in a
+            step runs twice the substeps; None where bodies cannot collide, the limit is 0, or handles or
+            moving obstacles keep the step's clock.
     """
 
     def __init__(
@@ -214,7 +221,8 @@ class Simulation:
             masks = [m for h, m in zip(scene.handles, held, strict=True) if h.object == obj.name]
             add_prepared_body(builder, obj, body, where, np.any(masks, axis=0) if masks else None, tet_edges)
         model = builder.finalize(dev)
-        self._attach(model, solver_of(scene, model, cg_path, held), scene.substeps, scene.fps)
+        solver = solver_of(scene, model, cg_path, held)
+        self._attach(model, solver, scene.substeps, scene.fps, scene.collision.approach_limit)
         self.seconds["build"] = time.perf_counter() - clock
 
     @classmethod
@@ -225,6 +233,7 @@ class Simulation:
         substeps: int = 1,
         fps: float = 60.0,
         warn: Callable[[str], None] | None = None,
+        approach_limit: float = DEFAULT_APPROACH_LIMIT,
     ) -> Simulation:
         """A simulation of a model built by hand (:class:`~warpfem.sim.model.ModelBuilder`, :func:`warpfem.add_body`).
 
@@ -234,6 +243,7 @@ class Simulation:
             substeps: Steps per output frame.
             fps: Output frames per second.
             warn: As for the constructor.
+            approach_limit: See :attr:`approach`.
 
         The step's kernel modules are loaded here (those the model's and solver's construction did not load
         already); ``seconds["compile"]`` says how long that took.
@@ -242,12 +252,14 @@ class Simulation:
         clock = time.perf_counter()
         load_modules([(model.device, STEP_MODULES)])
         sim.scene, sim.warn, sim.seconds = None, warn, {"compile": time.perf_counter() - clock}
-        sim._attach(model, solver, substeps, fps)
+        sim._attach(model, solver, substeps, fps, approach_limit)
         return sim
 
-    def _attach(self, model: Model, solver: Solver, substeps: int, fps: float) -> None:
+    def _attach(self, model: Model, solver: Solver, substeps: int, fps: float, approach_limit: float) -> None:
         """Allocate the states and buffers of ``model`` stepped by ``solver``."""
         self.model, self.solver = model, solver
+        watched = approach_limit > 0 and solver.collider is not None and solver.drive is None and len(model.bodies) > 1
+        self.approach = ApproachWatch(model, solver.collider, approach_limit) if watched else None
         self.substeps, self.fps = int(substeps), float(fps)
         self.dt = 1.0 / (self.fps * self.substeps)
         self.states = [model.state(), model.state()]
@@ -327,19 +339,21 @@ class Simulation:
         self.check_finite()
         return self.read_stats()
 
-    def frame_phases(self, overlap: bool = True) -> list[tuple[str, Callable[[], None]]]:
+    def frame_phases(self, overlap: bool = True, refined: bool = False) -> list[tuple[str, Callable[[], None]]]:
         """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
 
         The states alternate between substeps; after an odd count the last one is copied back into
         ``states[0]`` as part of the last "solve", which ends with the dense vertices lifted out of the still
-        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``.
+        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``. ``refined``: twice the substeps
+        of half the step (what :attr:`approach` asks for).
         """
         a, b = self.states
         out = []
-        for i in range(self.substeps):
+        substeps, dt = (2 * self.substeps, 0.5 * self.dt) if refined else (self.substeps, self.dt)
+        for i in range(substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            out += self.solver.phases(src, dst, self.dt, overlap)
-        if self.substeps % 2 == 1:
+            out += self.solver.phases(src, dst, dt, overlap)
+        if substeps % 2 == 1:
             out.append(("solve", lambda: a.assign(b)))
         if self.solver.static_lift:
             out.append(("solve", lambda: self.solver.lift_dense(a)))
@@ -354,13 +368,34 @@ class Simulation:
         if timer is not None or not self.device.is_cuda:
             if timer:
                 timer.start()
-            for name, phase in self.frame_phases(overlap=timer is None):
-                phase()
-                if timer:
-                    timer.lap(name)
+
+            def run(refined: bool) -> None:
+                for name, phase in self.frame_phases(overlap=timer is None, refined=refined):
+                    phase()
+                    if timer:
+                        timer.lap(name)
+
+            self._branch(run)
             return
         self.capture()
         wp.capture_launch(self._graph)
+
+    def _branch(self, run: Callable[[bool], None]) -> None:
+        """``run(refined)`` for the frame about to run: refined where :attr:`approach` raises its flag.
+
+        The flag is set on the device and branched on there (a conditional node in a captured graph).
+        """
+        watch = self.approach
+        if watch is None:
+            run(False)
+            return
+        watch.decide(self.states[0], 1.0 / self.fps, self.dt)
+
+        def refined() -> None:
+            watch.count()
+            run(True)
+
+        wp.capture_if(watch.flag, on_true=refined, on_false=lambda: run(False))
 
     def capture(self) -> None:
         """Capture the frame's CUDA graph now if it is not yet (nothing runs; nothing on the CPU).
@@ -371,8 +406,7 @@ class Simulation:
         if self.device.is_cuda and self._graph is None:
             # every module the step uses is loaded (see STEP_MODULES): the capture need not load all of Warp's
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                for _, phase in self.frame_phases():
-                    phase()
+                self._branch(lambda refined: [phase() for _, phase in self.frame_phases(refined=refined)])
             self._graph = capture.graph
 
     def map_dense(self) -> wp.array:
@@ -414,10 +448,12 @@ class Simulation:
         :meth:`step_frame` reads after every frame; a caller that advances several frames without it reads
         once after them. Updates :attr:`stats` and :attr:`totals` and gives the warnings due.
         """
-        substeps = self.substeps * frames
+        refined = self.approach.read_count() if self.approach is not None else 0
+        substeps = self.substeps * (frames + refined)
         cg = self.solver.read_cg_stats()
         t = self.totals
         t.steps += substeps
+        t.refined_frames += refined
         t.cg_solves += cg.solves
         t.cg_iterations += cg.iterations
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)

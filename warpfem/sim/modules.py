@@ -21,6 +21,7 @@ import warp as wp
 from warpfem.sim.launch import SPREAD_BLOCKS, WIDE_BLOCK
 
 STEP_MODULES: dict[str, tuple[int, ...]] = {
+    "warpfem.kernels.approach": (WIDE_BLOCK,),
     "warpfem.kernels.cg": (WIDE_BLOCK,),
     "warpfem.kernels.collision": SPREAD_BLOCKS,
     "warpfem.kernels.deflation": (WIDE_BLOCK,),
