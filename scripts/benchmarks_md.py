@@ -117,8 +117,15 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
         "alone (warpfem.io.penetration), the worst over a replay of the timed frames, a vertex inside another",
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
         "collider's own estimate at the end, in mm); lowest point: ours the lowest dense vertex at the end,",
-        "Newton's its lowest tet vertex (ground at 0).",
+        "Newton's its lowest tet vertex (ground at 0). Substeps: the scene's; \"4 (x2 in 12 of 120)\": 12 of the",
+        "timed frames ran twice that many (`[collision] approach_limit`: bodies closing fast on each other).",
     ]
+
+
+def substeps_text(run: dict) -> str:
+    """The run's substeps, and in how many timed frames twice that many (bodies closing fast on each other)."""
+    refined = run.get("refined_frames", 0)
+    return f"{run['substeps']} (x2 in {refined} of {run['frames_timed']})" if refined else str(run["substeps"])
 
 
 def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
@@ -147,7 +154,7 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
         )
         output = f"{p['output']:.1f}" if "output" in p else ""
         lines.append(
-            f"| {name} | {r['substeps']} | {r['bodies']} | {r['tets']:,} | {r['dense_triangles']:,} | "
+            f"| {name} | {substeps_text(r)} | {r['bodies']} | {r['tets']:,} | {r['dense_triangles']:,} | "
             f"{r['ms_per_frame']:.2f} | {r['fps']:.0f} | {p.get('elastic', 0):.2f} | {p.get('collision', 0):.2f} | "
             f"{p.get('solve', 0):.2f} | {p.get('map', 0):.2f} | {output} | {r['cg_iterations_per_step']:.0f} | "
             f"{r['contacts_max_per_step']:,} | {penetration_text(r)} | "
