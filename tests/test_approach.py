@@ -1,0 +1,78 @@
+"""Which frames run at twice the substeps: the approach watch against hand-worked cases."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import warpfem
+
+LIMIT = 0.02
+BALL = str(Path(__file__).resolve().parent / "data" / "golden" / "ball.obj")
+
+
+def _two_balls(device: str, cache, gap: float, left_v: tuple, right_v: tuple) -> warpfem.Simulation:
+    """Two balls side by side along x, their boxes ``gap`` m apart, at velocities ``left_v`` and ``right_v``
+    (m/s), no gravity or ground, at 60 frames of 4 steps a second."""
+
+    def ball(name: str, velocity: tuple) -> dict:
+        return {"name": name, "mesh": BALL, "faces": 120, "scale": 0.15, "translate": [0, 1, 0], "velocity": velocity}
+
+    doc = {
+        "scene": {"frames": 1, "substeps": 4, "gravity": [0.0, 0.0, 0.0]},
+        "ground": {"enabled": False},
+        "collision": {"approach_limit": LIMIT},
+        "object": [ball("left", left_v), ball("right", right_v)],
+    }
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="two_balls"), device=device, cache_dir=cache)
+    x = sim.states[0].x.numpy()
+    right = sim.body("right")
+    span = slice(right.vertex_start, right.vertex_start + right.vertex_count)
+    left_max = x[: right.vertex_start, 0].max()
+    x[span, 0] += left_max - x[span, 0].min() + gap  # the right ball's box starts gap m past the left one's
+    sim.states[0].x.assign(x)
+    return sim
+
+
+def _flag(sim: warpfem.Simulation) -> bool:
+    sim.approach.decide(sim.states[0], 1.0 / sim.fps, sim.dt)
+    return bool(sim.approach.flag.numpy()[0])
+
+
+@pytest.mark.parametrize(
+    ("gap", "left_v", "right_v", "expected"),
+    [
+        (0.01, (5, 0, 0), (-5, 0, 0), True),  # near, closing at 10 m/s: 42 mm a step
+        (0.01, (5, 0, 0), (5, 0, 0), False),  # near, moving together
+        (0.01, (0.5, 0, 0), (-0.5, 0, 0), False),  # near, closing at 1 m/s: 4 mm a step
+        (1.0, (5, 0, 0), (-5, 0, 0), False),  # closing at 10 m/s but 1 m apart: 0.17 m a frame
+        (0.1, (5, 0, 0), (-5, 0, 0), True),  # 0.1 m apart: within the frame's 0.17 m
+    ],
+)
+def test_a_frame_is_refined_where_two_near_bodies_close_fast(device, prep_cache, gap, left_v, right_v, expected):
+    """The flag against the criterion worked by hand: near (the boxes' gap within what the two bodies' speeds
+    cover in a frame) and fast (their closing speed times the step above ``LIMIT`` times the smaller size)."""
+    sim = _two_balls(device, prep_cache, gap, left_v, right_v)
+    size = min(b.size for b in sim.model.bodies)
+    closing = np.linalg.norm(np.subtract(left_v, right_v)) * sim.dt
+    reach = (np.linalg.norm(left_v) + np.linalg.norm(right_v)) / sim.fps
+    assert (gap <= reach and closing > LIMIT * size) == expected  # the case is what it says
+    assert _flag(sim) == expected
+
+
+def test_a_refined_frame_takes_twice_the_steps_and_the_same_time(device, prep_cache):
+    """A ball passing 0.1 m beside another at 10 m/s, across the gap between them: the frame runs 8 steps of
+    1/480 s, and the ball moves as far as the frame's 1/60 s at its speed carries it (they do not touch)."""
+    sim = _two_balls(device, prep_cache, 0.1, (0, 10, 0), (0, 0, 0))
+    mass = sim.model.mass.numpy().astype(np.float64)
+
+    def centre(name: str) -> np.ndarray:
+        b = sim.body(name)
+        span = slice(b.vertex_start, b.vertex_start + b.vertex_count)
+        x = sim.states[0].x.numpy()[span].astype(np.float64)
+        return (x * mass[span, None]).sum(0) / mass[span].sum()
+
+    start = centre("left")
+    sim.step_frame()
+    assert sim.totals.refined_frames == 1 and sim.totals.steps == 8
+    assert np.allclose(centre("left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
