@@ -118,7 +118,8 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
         "collider's own estimate at the end, in mm); lowest point: ours the lowest dense vertex at the end,",
         "Newton's its lowest tet vertex (ground at 0). Substeps: the scene's; \"4 (x2 in 12 of 120)\": 12 of the",
-        "timed frames ran twice that many (`[collision] approach_limit`: bodies closing fast on each other).",
+        "timed frames ran twice that many (`[collision] approach_limit`: bodies closing fast on each other); the",
+        "phase split runs every frame at the scene's substeps, so there its parts add up to less than the whole.",
     ]
 
 
