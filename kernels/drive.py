@@ -4,8 +4,8 @@ A track is a rigid motion given by keys (time in s, unit quaternion, translation
 interpolated linearly (rotations by slerp) and held before the first key and after the last, composed
 with a rest pose: ``x(t) = pivot + T(t) + R(t) (R0 x + T0 - pivot)``. Each step, :func:`drive` poses the
 moving colliders at the step's start and end and gives each held vertex the velocity that brings it to
-its handle's pose at the step's end; :func:`tick` then advances the clock (steps taken), so a captured
-frame needs no host work.
+its handle's pose at the step's end; :func:`tick` then advances the clock (ticks of a fixed share of a step,
+so a frame of steps half as long keeps the motions' time), so a captured frame needs no host work.
 """
 
 import warp as wp
@@ -52,6 +52,7 @@ def track_pose(tracks: Tracks, k: int, t: float) -> wp.transform:
 @wp.kernel
 def drive(
     clock: wp.array(dtype=wp.int32),
+    tick_dt: float,
     dt: float,
     tracks: Tracks,
     collider_index: wp.array(dtype=wp.int32),
@@ -68,11 +69,12 @@ def drive(
 ):
     """Pose the moving colliders at the step's start and end, then the held vertices' velocities.
 
-    The first threads pose one collider each; the rest give each held vertex the velocity (m/s) that takes it
-    from ``x`` to its handle's pose of its rest position at the step's end.
+    The step starts ``clock`` ticks of ``tick_dt`` s in and lasts ``dt`` s. The first threads pose one collider
+    each; the rest give each held vertex the velocity (m/s) that takes it from ``x`` to its handle's pose of its
+    rest position at the step's end.
     """
     i = wp.tid()
-    t = float(clock[0]) * dt
+    t = float(clock[0]) * tick_dt
     colliders = collider_index.shape[0]
     if i < colliders:
         o = collider_index[i]
@@ -90,6 +92,6 @@ def drive(
 
 
 @wp.kernel
-def tick(clock: wp.array(dtype=wp.int32)):
-    """One step taken: advance the clock."""
-    clock[0] = clock[0] + 1
+def tick(clock: wp.array(dtype=wp.int32), ticks: int):
+    """One step of ``ticks`` ticks taken: advance the clock."""
+    clock[0] = clock[0] + ticks

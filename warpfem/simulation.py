@@ -182,8 +182,7 @@ class Simulation:
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
         approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a frame whose bodies close on each
             other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's size in a
-            step runs twice the substeps; None where bodies cannot collide, the limit is 0, or handles or
-            moving obstacles keep the step's clock.
+            step runs twice the substeps; None where bodies cannot collide or the limit is 0.
     """
 
     def __init__(
@@ -258,7 +257,7 @@ class Simulation:
     def _attach(self, model: Model, solver: Solver, substeps: int, fps: float, approach_limit: float) -> None:
         """Allocate the states and buffers of ``model`` stepped by ``solver``."""
         self.model, self.solver = model, solver
-        watched = approach_limit > 0 and solver.collider is not None and solver.drive is None and len(model.bodies) > 1
+        watched = approach_limit > 0 and solver.collider is not None and len(model.bodies) > 1
         self.approach = ApproachWatch(model, solver.collider, approach_limit) if watched else None
         self.substeps, self.fps = int(substeps), float(fps)
         self.dt = 1.0 / (self.fps * self.substeps)

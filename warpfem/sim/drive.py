@@ -133,6 +133,11 @@ class Handle:
     name: str = "handle"
 
 
+TICKS_PER_STEP = 2
+"""The clock counts ticks of the first step's dt over this many, so that a step half as long (a frame that
+``warpfem.Simulation`` runs at twice the substeps) advances it by one tick and the motions keep their time."""
+
+
 class Drive:
     """The device side of the handles and moving colliders: their keys, the clock, one launch per step.
 
@@ -174,7 +179,9 @@ class Drive:
         self.held_v = wp.zeros(model.vertex_count if len(held) else 0, dtype=wp.vec3, device=dev)
         """Each held vertex's velocity this step (m/s); what a pinned vertex without a handle keeps: zero."""
         self.clock = wp.zeros(1, dtype=wp.int32, device=dev)
-        """Steps taken: the motions' time is ``clock * dt``."""
+        """Ticks taken: the motions' time is ``clock * tick_dt``."""
+        self.tick_dt: float | None = None
+        """A tick (s): the first step's dt over :data:`TICKS_PER_STEP`; every step is a whole number of ticks."""
         self.poses = poses
         self.model = model
         self.handles = list(handles)
@@ -184,18 +191,28 @@ class Drive:
         """Pose the moving colliders over the step about to be taken and the held vertices' velocities."""
         if self.dim == 0:
             return
+        self._ticks(dt)
         wp.launch(
             K.drive,
             dim=self.dim,
-            inputs=[self.clock, dt, self.tracks, self.collider_index, self.collider_track, self.held_vertex,
-                    self.held_track, self.model.rest_x, x],
+            inputs=[self.clock, self.tick_dt, dt, self.tracks, self.collider_index, self.collider_track,
+                    self.held_vertex, self.held_track, self.model.rest_x, x],
             outputs=[*self.poses, self.held_v],
             device=self.model.device,
         )  # fmt: skip
 
-    def tick(self) -> None:
-        """One step taken (after every launch of the step that reads the clock)."""
-        wp.launch(K.tick, dim=1, inputs=[self.clock], device=self.model.device)
+    def tick(self, dt: float) -> None:
+        """One step of ``dt`` s taken (after every launch of the step that reads the clock)."""
+        wp.launch(K.tick, dim=1, inputs=[self.clock, self._ticks(dt)], device=self.model.device)
+
+    def _ticks(self, dt: float) -> int:
+        """How many ticks a step of ``dt`` s is (the first step sets the tick); ValueError if not a whole number."""
+        if self.tick_dt is None:
+            self.tick_dt = dt / TICKS_PER_STEP
+        ticks = round(dt / self.tick_dt)
+        if ticks < 1 or abs(ticks * self.tick_dt - dt) > 1e-9 * dt:
+            raise ValueError(f"a driven step of {dt} s is not a whole number of the clock's {self.tick_dt} s ticks")
+        return ticks
 
 
 def _arr(data, dtype, device) -> wp.array:

@@ -241,7 +241,7 @@ class Solver:
             if self.static_lift:
                 integrate.lift_points(model, state_out, self.colliders, model.skin_cell, model.skin_bary, *self._lift)
             if self.drive is not None:
-                self.drive.tick()
+                self.drive.tick(dt)
 
         if self.collider is None:
             return [("elastic", elastic), ("solve", solve)]
