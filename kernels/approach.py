@@ -9,6 +9,7 @@ than ``limit`` times the smaller body's size in one step, raises the frame's fla
 import warp as wp
 
 from .embedding import interpolate
+from .grid import warp_sum_at
 
 
 @wp.kernel
@@ -37,10 +38,13 @@ def body_extent(
     lower_out: wp.array(dtype=wp.vec3),
     upper_out: wp.array(dtype=wp.vec3),
 ):
-    """Per vertex: its momentum (kg m/s) added to its body's, its position to its body's box."""
+    """Per vertex: its momentum (kg m/s) added to its body's, its position to its body's box.
+
+    The momentum one atomic per warp of one body, as ``kernels.integrate.body_momentum`` sums it.
+    """
     i = wp.tid()
     b = vertex_body[i]
-    wp.atomic_add(momentum_out, b, mass[i] * v[i])
+    warp_sum_at(mass[i] * v[i], b, momentum_out)
     wp.atomic_min(lower_out, b, x[i])
     wp.atomic_max(upper_out, b, x[i])
 
