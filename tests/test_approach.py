@@ -76,3 +76,17 @@ def test_a_refined_frame_takes_twice_the_steps_and_the_same_time(device, prep_ca
     sim.step_frame()
     assert sim.totals.refined_frames == 1 and sim.totals.steps == 8
     assert np.allclose(centre("left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
+
+
+@pytest.mark.parametrize("limit", [-0.01, 1.0, float("nan")])
+def test_a_bad_approach_limit_of_a_hand_built_model_is_refused(limit):
+    """``Simulation.from_model`` refuses a limit outside [0, 1) or NaN, naming it, before it builds anything."""
+    from warpfem.prep.shapes import box_tet_mesh
+
+    builder = warpfem.ModelBuilder()
+    for name, lo in (("a", 0.0), ("b", 0.3)):
+        v, t = box_tet_mesh((lo, 0.0, 0.0), (lo + 0.2, 0.2, 0.2), (2, 2, 2))
+        warpfem.add_body(builder, name, v, t, 1e6, 0.3, 1000.0)
+    model = builder.finalize("cpu")
+    with pytest.raises(ValueError, match=r"approach_limit must be >= 0 and < 1 .*got"):
+        warpfem.Simulation.from_model(model, warpfem.Solver(model), approach_limit=limit)

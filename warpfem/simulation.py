@@ -242,11 +242,16 @@ class Simulation:
             substeps: Steps per output frame.
             fps: Output frames per second.
             warn: As for the constructor.
-            approach_limit: See :attr:`approach`.
+            approach_limit: See :attr:`approach` (>= 0 and < 1; 0: never).
 
         The step's kernel modules are loaded here (those the model's and solver's construction did not load
         already); ``seconds["compile"]`` says how long that took.
+
+        Raises:
+            ValueError: ``approach_limit`` outside [0, 1) or not a number.
         """
+        if not 0.0 <= approach_limit < 1.0:
+            raise ValueError(f"approach_limit must be >= 0 and < 1 (a share of a body's size), got {approach_limit}")
         sim = cls.__new__(cls)
         clock = time.perf_counter()
         load_modules([(model.device, STEP_MODULES)])
