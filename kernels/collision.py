@@ -591,7 +591,7 @@ def detect_contacts(
     The body BVH gives the bodies the point may collide with (another body, or its own if that collides
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
-    each walking every ``lanes``-th of those bodies, since a point in a pile may lie in several bodies' boxes.
+    each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
     Each contact goes to ``found_out`` (:class:`Found`).
     """
     tid = wp.tid()
@@ -606,8 +606,8 @@ def detect_contacts(
     body = int(0)
     candidate = int(-1)
     while wp.bvh_query_next(bodies, body):
+        candidate += 1
         same = body == body_p
-        candidate += wp.where(self_ok or not same, 1, 0)
         if candidate % lanes != lane or (same and not self_ok):
             continue
         e, w, status, d, g, bound = walk_tree(
@@ -675,10 +675,10 @@ def detect_contacts_direct(
     self_ok = body_self[body_p] != 0
     candidate = int(-1)
     for body in range(body_lower.shape[0]):
-        same = body == body_p
-        if (self_ok or not same) and overlaps(q, body_lower[body], body_upper[body]):
+        if overlaps(q, body_lower[body], body_upper[body]):
             candidate += 1
-            if candidate % lanes == lane:
+            same = body == body_p
+            if candidate % lanes == lane and (self_ok or not same):
                 e, w, status, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
