@@ -13,6 +13,7 @@ over the tet, at four points.
 import warp as wp
 
 from .embedding import deformation_gradient
+from .grid import warp_sum_at
 from .surface import add_rotated_gradients
 
 wp.set_module_options({"max_unroll": 4})
@@ -343,24 +344,59 @@ def turn_rotations(
     x: wp.array(dtype=wp.vec3),
     tets: wp.array(dtype=wp.vec4i),
     dm_inv: wp.array(dtype=wp.mat33),
-    tolerance: float,
+    rest_volume: wp.array(dtype=float),
+    tet_body: wp.array(dtype=wp.int32),
+    rotation: wp.array(dtype=wp.mat33),
     cg_tolerance: wp.array(dtype=float),
     cg_residual: wp.array(dtype=float),
     cg_slack: float,
-    rotation: wp.array(dtype=wp.mat33),
-    changed_out: wp.array(dtype=wp.int32),
+    tolerance: float,
+    turned_out: wp.array(dtype=wp.mat33),
+    turn_out: wp.array(dtype=float),
+    body_turn_out: wp.array(dtype=wp.vec3),
 ):
-    """Replace a tet's rotation by its rotation at ``x`` where the two differ by more than ``tolerance`` (rad).
+    """Each tet's rotation at ``x`` and its turn (rad) from ``rotation``; per body, how much its tets turned.
 
-    Sets ``changed_out[0]`` to 1 where one was replaced. Does nothing once a solve stopped short of its
-    tolerance (``cg_residual[0]`` above ``cg_slack`` times ``cg_tolerance[0]``; 0: a fixed iteration count):
-    rotations read off an unconverged answer would steer the next solve wrong.
+    ``body_turn_out[body]`` (zeroed first; one atomic per warp) receives the sum of volume x turn^4 and the count
+    of tets that turned more than twice ``tolerance`` (rad), in its first two components. Nothing is measured, and
+    the turns read 0, once a solve stopped short of its tolerance (``cg_residual[0]`` above ``cg_slack`` times
+    ``cg_tolerance[0]``; 0: a fixed iteration count): rotations read off an unconverged answer would steer the
+    next solve wrong.
     """
     e = wp.tid()
     tol = cg_tolerance[0]
-    if tol > 0.0 and cg_residual[0] > cg_slack * tol:
-        return
-    R = rotation_of(deformation_gradient(x, tets[e], dm_inv[e]))
-    if turn_angle(R, rotation[e]) > tolerance:
-        rotation[e] = R
+    turn = float(0.0)
+    if not (tol > 0.0 and cg_residual[0] > cg_slack * tol):
+        R = rotation_of(deformation_gradient(x, tets[e], dm_inv[e]))
+        turn = turn_angle(R, rotation[e])
+        turned_out[e] = R
+    turn_out[e] = turn
+    turn2 = turn * turn
+    far = wp.where(turn > 2.0 * tolerance, 1.0, 0.0)
+    warp_sum_at(wp.vec3(rest_volume[e] * turn2 * turn2, far, 0.0), tet_body[e], body_turn_out)
+
+
+@wp.kernel
+def replace_turned(
+    turned: wp.array(dtype=wp.mat33),
+    turn: wp.array(dtype=float),
+    tet_body: wp.array(dtype=wp.int32),
+    body_turn: wp.array(dtype=wp.vec3),
+    body_volume: wp.array(dtype=float),
+    tolerance: float,
+    rotation: wp.array(dtype=wp.mat33),
+    changed_out: wp.array(dtype=wp.int32),
+):
+    """Re-linearise the tets past ``tolerance`` (rad) in the bodies that turned enough.
+
+    In each body whose volume average of turn^4 exceeds ``tolerance``^4, or one of whose tets turned more than
+    twice ``tolerance``, the tets that turned more than ``tolerance`` take their rotation at the step's end;
+    ``changed_out[0]`` becomes 1 where one did.
+    """
+    e = wp.tid()
+    b = tet_body[e]
+    tol2 = tolerance * tolerance
+    enough = body_turn[b][0] > tol2 * tol2 * body_volume[b] or body_turn[b][1] > 0.0
+    if turn[e] > tolerance and enough:
+        rotation[e] = turned[e]
         changed_out[0] = 1

@@ -206,11 +206,11 @@ def test_only_scenes_that_collide_launch_collision_kernels(device, monkeypatch):
         assert not collision_kernels & set(names)
         assert solver.grad.shape[0] == 0  # the elastic launch sums no rotated distance gradients either
         # the elastic part kept apart from the system (added in, with the preconditioner: 3 launches) and one
-        # look at the tets' rotations (they did not turn: no second solve, no second look)
-        assert names.count("turn_rotations") == 1
+        # look at the tets' rotations, two launches (they did not turn: no second solve, no second look)
+        assert names.count("turn_rotations") == 1 and names.count("replace_turned") == 1
         # one launch zeroes what the step accumulates into and counts in (instead of a memset each)
         assert names.count("clear_step") == 1
-        updates = 3 + 1 + 1
+        updates = 3 + 2 + 1
         if mode == "grid":  # the whole solve is one launch after one reset
             solve = "cg_solve_held" if solver.cg.held else "cg_solve"  # held: every chunk has a thread (CUDA)
             assert names.count(solve) == 1 and names.count("cg_solve_reset") == 1

@@ -133,3 +133,61 @@ def test_rotation_watch_measures_how_far_tets_turned(device):
     )
     assert watch.turned()[0] == pytest.approx(angle, abs=1e-3)
     assert watch.turned()[0] == pytest.approx(0.0, abs=1e-3)  # nothing turned since
+
+
+def _numpy_turns(x, V, T, rotations):
+    """Each tet's turn (rad) at ``x`` from ``rotations``: the polar factor by NumPy's SVD."""
+    d = V[T[:, 1:]] - V[T[:, :1]]
+    F = np.transpose(x[T[:, 1:]] - x[T[:, :1]], (0, 2, 1)) @ np.linalg.inv(np.transpose(d, (0, 2, 1)))
+    u, _, vt = np.linalg.svd(F)
+    R = u @ vt
+    turn = R @ np.transpose(rotations, (0, 2, 1))
+    return np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1) / 2, -1, 1)), R, np.abs(np.linalg.det(d)) / 6
+
+
+@pytest.mark.parametrize("twist, start", [(0.0, 0.8), (0.015, 0.8), (0.05, 0.8), (0.5, 0.8), (0.03, 0.95)])
+def test_rotation_updates_re_linearise_bodies_that_turned_enough(device, twist, start):
+    """Two bars, one twisted about its long axis by ``twist`` rad from ``start`` to its end only (a turn that
+    grows along it), the other turned rigidly by 0.9 or 1.2 times the tolerance. A body is re-linearised where
+    the volume average of its tets' turn^4 exceeds the tolerance^4 or one of its tets turned past twice the
+    tolerance, and then only its tets past the tolerance. NumPy's polar factors and volumes give the expected
+    tets: the twist of 0.015 turns some tets past the tolerance but too few, and the one of 0.03 at its end too
+    few on average but past twice it."""
+    from warpfem.sim.cg import CGSolver
+
+    tol = 0.01
+    V, T = box_tet_mesh((0, 0, 0), (1.0, 0.1, 0.1), (20, 2, 2))
+    b = ModelBuilder()
+    add_body(b, "twisted", V, T, E, NU, 1000.0)
+    add_body(b, "turned", V + [0, 1, 0], T, E, NU, 1000.0)
+    model = b.finalize(device)
+    angle = np.clip((V[:, 0] - start) / (1 - start), 0, 1) * twist  # about the bar's axis
+    c, s = np.cos(angle), np.sin(angle)
+    y, z = V[:, 1] - 0.05, V[:, 2] - 0.05
+    twisted = np.stack([V[:, 0], 0.05 + c * y - s * z, 0.05 + s * y + c * z], 1)
+    rigid = (0.9 if twist < 0.05 else 1.2) * tol
+    c, s = np.cos(rigid), np.sin(rigid)
+    turned = (V - 0.5) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + 0.5 + [0, 1, 0]
+    x = np.concatenate([twisted, turned])
+    cg = CGSolver(model.row_start, model.cols, model.free, 10, device)
+    check = fem.TurnCheck(model, True)
+    identity = np.tile(np.eye(3, dtype=np.float32), (model.tet_count, 1, 1))
+    rotation = wp.array(identity, dtype=wp.mat33, device=device)
+    body_turn = wp.zeros(2, dtype=wp.vec3, device=device)
+    changed = wp.zeros(1, dtype=wp.int32, device=device)
+    check.look(wp.array(x.astype(np.float32), dtype=wp.vec3, device=device), tol, cg, rotation, body_turn, changed)
+
+    expected = identity.astype(float).copy()
+    enough = []
+    for k, pos in enumerate([twisted, turned]):
+        turn, R, vol = _numpy_turns(pos, V + ([0, 1, 0] if k else 0), T, identity[: len(T)].astype(float))
+        enough.append(np.sum(vol * turn**4) / np.sum(vol) > tol**4 or turn.max() > 2 * tol)
+        if enough[-1]:
+            rows = expected[k * len(T) : (k + 1) * len(T)]
+            rows[turn > tol] = R[turn > tol]
+    np.testing.assert_allclose(rotation.numpy(), expected, atol=2e-4)
+    assert changed.numpy()[0] == int(np.abs(expected - identity).max() > 0)
+    assert enough == [twist not in (0.0, 0.015), twist >= 0.05]
+    if twist == 0.015:  # some of its tets turned past the tolerance, too few: left as they were
+        turn = _numpy_turns(twisted, V, T, identity[: len(T)].astype(float))[0]
+        assert turn.max() > tol and np.allclose(rotation.numpy()[: len(T)], identity[: len(T)], atol=1e-6)

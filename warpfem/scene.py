@@ -73,7 +73,9 @@ class SolverConfig:
             fixed mode that leaves it out gets :data:`~warpfem.presets.FIXED_CG_ITERATIONS`.
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
         rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
-        rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised.
+        rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised, in a body
+            whose tets turned past it on average (the volume average of the turn to the fourth power) or one of
+            whose tets turned past twice it.
         elements: ``"linear"`` (4-node) or ``"quadratic"`` (10-node) tets, which bend without locking.
         static_lift: Whether each step ends with the visible surface lifted out of the ground and the still
             obstacles (see :class:`~warpfem.sim.solver.Solver`); false: their penalties alone, as the paper.

@@ -64,22 +64,78 @@ def elastic_forces_and_stiffness(
     )
 
 
-def turn_rotations(
-    model: Model, x: wp.array, tolerance: float, cg: CGSolver, rotation: wp.array, changed_out: wp.array
-) -> None:
-    """Replace each tet's ``rotation`` by its rotation at ``x`` where they differ by more than ``tolerance`` (rad).
+class TurnCheck:
+    """The rotation updates' look at the tets: which turned within the step enough to re-linearise.
 
-    ``changed_out[0]`` becomes 1 where one was replaced (zero it first); nothing is replaced once one of
-    ``cg``'s solves since its statistics were last read stopped short of its tolerance. One launch for all bodies.
+    A single linear solve misreads a tet that turned by ``theta`` past the rotation it was solved with by a
+    strain of about ``theta^2 / 2``, whose energy goes as ``theta^4``. A body is re-linearised where the volume
+    average of its tets' ``theta^4`` exceeds ``tolerance^4`` (it misreads more energy than the whole body turned
+    by ``tolerance`` would), or where one of its tets turned more than twice ``tolerance`` (a crushed part: an
+    impact's first contact). A spin turns every tet alike and updates past ``tolerance`` as a per-tet test
+    would; a landing that turns a few tets a little does not. In a body that updates, the tets that turned more
+    than ``tolerance`` take their rotation at the step's end.
+
+    Args:
+        model: The scene's model.
+        updates: Whether the solver makes rotation updates at all (else nothing is allocated).
     """
-    wp.launch(
-        K.turn_rotations,
-        dim=model.tet_count,
-        inputs=[x, model.tets, model.dm_inv, tolerance, cg.tolerance, cg.residual_max, CAP_SLACK],
-        outputs=[rotation, changed_out],
-        device=model.device,
-        block_dim=spread_block_dim(model.tet_count, model.device),
-    )
+
+    def __init__(self, model: Model, updates: bool) -> None:
+        self.model = model
+        dev, n = model.device, model.tet_count if updates else 0
+        self.turned = wp.zeros(n, dtype=wp.mat33, device=dev)
+        """Each tet's rotation at the positions last looked at."""
+        self.turn = wp.zeros(n, dtype=float, device=dev)
+        """Each tet's turn (rad) from the rotation it was solved with."""
+        volume = np.bincount(model.tet_body.numpy(), model.rest_volume.numpy(), minlength=len(model.bodies))
+        self.body_volume = wp.array(volume.astype(np.float32), dtype=float, device=dev)
+
+    def look(
+        self,
+        x: wp.array,
+        tolerance: float,
+        cg: CGSolver,
+        rotation: wp.array,
+        body_turn: wp.array,
+        changed_out: wp.array,
+    ) -> None:
+        """Replace ``rotation`` by the tets' rotations at ``x`` where they turned enough (see the class; rad).
+
+        ``body_turn`` (one vec3 per body, zeroed first) receives each body's sum of volume x turn^4 and count of
+        tets past twice ``tolerance``;
+        ``changed_out[0]`` becomes 1 where a rotation was replaced (zero it first). Nothing is replaced once one
+        of ``cg``'s solves since its statistics were last read stopped short of its tolerance. Two launches for
+        all bodies.
+        """
+        m = self.model
+        block = spread_block_dim(m.tet_count, m.device)
+        wp.launch(
+            K.turn_rotations,
+            dim=m.tet_count,
+            inputs=[
+                x,
+                m.tets,
+                m.dm_inv,
+                m.rest_volume,
+                m.tet_body,
+                rotation,
+                cg.tolerance,
+                cg.residual_max,
+                CAP_SLACK,
+                tolerance,
+            ],  # fmt: skip
+            outputs=[self.turned, self.turn, body_turn],
+            device=m.device,
+            block_dim=block,
+        )
+        wp.launch(
+            K.replace_turned,
+            dim=m.tet_count,
+            inputs=[self.turned, self.turn, m.tet_body, body_turn, self.body_volume, tolerance],
+            outputs=[rotation, changed_out],
+            device=m.device,
+            block_dim=block,
+        )
 
 
 class RotationWatch:

@@ -62,9 +62,12 @@ class Solver:
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
         rotation_updates: After the first solve, how many times at most to re-linearise the tets that turned
             more than ``rotation_tolerance`` (rad) within the step about their rotation at its end and solve
-            again from that answer (a solve only where some did; 0: never). One linear solve moves each vertex
-            along the tangent of its rotation, which stretches a fast-turning body and adds energy; these
-            updates converge to implicit Euler with the elastic force at the step's end, which does not.
+            again from that answer, in the bodies whose tets turned that much on average (the volume average of
+            the turn to the fourth power) or one of whose tets turned twice that
+            (:class:`~warpfem.sim.fem.TurnCheck`); a solve only where some body did; 0: never. One linear solve
+            moves each vertex along the tangent of its rotation, which stretches a fast-turning body and adds
+            energy; these updates converge to implicit Euler with the elastic force at the step's end, which
+            does not.
             Once a solve stops short of its tolerance, the updates pause until CG's statistics are next read
             (:meth:`read_cg_stats`; a ``Simulation`` reads them after every frame): rotations read off an
             unconverged answer steer the next solve wrong. A loop that never reads them runs without updates
@@ -109,8 +112,14 @@ class Solver:
         self.matrix = wp.zeros(model.nnz_blocks, dtype=wp.mat33, device=dev)
         self.rotation = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.gravity = wp.zeros(1, dtype=wp.vec3, device=dev)
-        self.momentum = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
+        bodies = len(model.bodies)
+        self._per_body = wp.zeros(bodies * (1 + rotation_updates), dtype=wp.vec3, device=dev)
+        """What a step sums per body, in one array that the step's clear zeroes: momentum, then the turns."""
+        self.momentum = self._per_body[:bodies]
         """Each body's momentum at the start of the step (the speculative static contacts' body speed)."""
+        self._body_turn = [self._per_body[bodies * k : bodies * (k + 1)] for k in range(1, rotation_updates + 1)]
+        """Per rotation update, how far each body's tets turned (:class:`~warpfem.sim.fem.TurnCheck`)."""
+        self._turn_check = fem.TurnCheck(model, rotation_updates > 0)
         self.colliders = StaticColliders(
             [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies], self.gravity
         )
@@ -183,7 +192,7 @@ class Solver:
         self._cleared = [
             self.force,
             self.grad,
-            self.momentum,
+            self._per_body,
             self.matrix_base,
             collider.point_contact if collider is not None else self._no_int,
             *self.late,
@@ -305,7 +314,9 @@ class Solver:
     def _update_rotations(self, state_in: State, state_out: State, dt: float, k: int) -> None:
         """The k-th look at the tets' rotations; a solve, and the next look, only where some turned."""
         turned = self.turned[k - 1]
-        fem.turn_rotations(self.model, state_out.x, self.rotation_tolerance, self.cg, self.rotation, turned)
+        self._turn_check.look(
+            state_out.x, self.rotation_tolerance, self.cg, self.rotation, self._body_turn[k - 1], turned
+        )
         wp.capture_if(turned, on_true=lambda: self._relinearise(state_in, state_out, dt, k))
 
     def _relinearise(self, state_in: State, state_out: State, dt: float, k: int) -> None:
