@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 import warpfem
-from warpfem.sim.solver import DEFAULT_CONTACT_PASSES
 
 
 def _thrown(speed: float, obstacle: dict | None = None) -> dict:
@@ -57,7 +56,7 @@ def test_late_contacts_catch_a_body_thrown_at_the_ground(device, speed):
     body pivots about its first contact and swings its other side down faster than it fell) are caught
     within the step: the dense surface stays within 0.2 % of the size of the ground, and at 10 m/s sinks
     several times deeper without those late contacts."""
-    caught = _lowest_over_run(device, speed, contact_passes=DEFAULT_CONTACT_PASSES)
+    caught = _lowest_over_run(device, speed, contact_passes=2)
     assert caught < 0.002
     if speed == 10.0:
         assert _lowest_over_run(device, speed, contact_passes=0) > 3 * caught
@@ -222,7 +221,7 @@ def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
     step; found only at the start of the next step, and with each step linearised about the rotations at its
     start (which stretches the deforming surfaces along their tangents), they overlap by more than 1.5 %."""
     assert _head_on(device, 5.0) < 0.01
-    assert _head_on(device, 15.0) < 0.01
+    assert _head_on(device, 15.0, contact_passes=2) < 0.01
     assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0) > 0.015
 
 
