@@ -11,7 +11,6 @@ impacts pay for it.
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 from warpfem.kernels import approach as K
@@ -39,7 +38,6 @@ class ApproachWatch:
         self._momentum = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._lower = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._upper = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self._size = wp.array(np.array([b.size for b in model.bodies], np.float32), dtype=float, device=dev)
         self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
         """1 where the frame about to run needs twice the substeps (the condition :meth:`decide` sets)."""
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -51,10 +49,10 @@ class ApproachWatch:
         wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flag], device=dev)
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
-        approach_in = [self._momentum, m.body_mass, *boxes, self._size, frame_dt, step_dt, self.limit]
+        approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, self.limit]
         wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[self.flag], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]
-        closing_in = [*contacts, state.v, m.cells, m.point_cell, m.point_bary, m.vertex_body, self._size, step_dt]
+        closing_in = [*contacts, state.v, m.cells, m.point_cell, m.point_bary, m.vertex_body, m.body_size, step_dt]
         wp.launch(K.contacts_closing, dim=c.capacity, inputs=[*closing_in, self.limit], outputs=[self.flag], device=dev)
 
     def count(self) -> None:

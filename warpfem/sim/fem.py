@@ -87,8 +87,6 @@ class TurnCheck:
         """Each tet's rotation at the positions last looked at."""
         self.turn = wp.zeros(n, dtype=float, device=dev)
         """Each tet's turn (rad) from the rotation it was solved with."""
-        volume = np.bincount(model.tet_body.numpy(), model.rest_volume.numpy(), minlength=len(model.bodies))
-        self.body_volume = wp.array(volume.astype(np.float32), dtype=float, device=dev)
 
     def look(
         self,
@@ -131,7 +129,7 @@ class TurnCheck:
         wp.launch(
             K.replace_turned,
             dim=m.tet_count,
-            inputs=[self.turned, self.turn, m.tet_body, body_turn, self.body_volume, tolerance],
+            inputs=[self.turned, self.turn, m.tet_body, body_turn, m.body_volume, tolerance],
             outputs=[rotation, changed_out],
             device=m.device,
             block_dim=block,

@@ -99,6 +99,8 @@ class Model:
     tet_body: wp.array  # int32, body of each tet
     vertex_body: wp.array  # int32, body of each tet vertex
     body_mass: wp.array  # float, each body's mass (kg)
+    body_size: wp.array  # float, each body's size (m): Body.size
+    body_volume: wp.array  # float, each body's rest volume (m^3)
     tet_face_start: wp.array  # int32 (q+1), CSR rows: the surface faces touching each tet's corners
     tet_faces: wp.array  # vec3i, those faces (global vertex indices, wound outward)
     tet_face_ids: wp.array  # int32, the global index of each of those faces
@@ -551,6 +553,8 @@ class ModelBuilder:
             tet_body=tet_body,
             vertex_body=arr("vertex_body", wp.int32, i32),
             body_mass=arr_of(np.array([b["mass"].sum() for b in self._bodies], np.float32), float),
+            body_size=arr_of(np.array([b["size"] for b in self._bodies], np.float32), float),
+            body_volume=arr_of(np.array([b["volume"].sum() for b in self._bodies], np.float32), float),
             tet_face_start=arr("tet_face_start", wp.int32, i32),
             tet_faces=arr("tet_faces", wp.vec3i, i32),
             tet_face_ids=arr("tet_face_ids", wp.int32, i32),
