@@ -634,16 +634,60 @@ def add_elastic(
 
 
 @wp.kernel
+def late_bodies(
+    late_vertex: wp.array(dtype=wp.int32),
+    vertex_body: wp.array(dtype=wp.int32),
+    late_skin: wp.array(dtype=wp.int32),
+    skin_cell: wp.array(dtype=wp.int32),
+    cell_body: wp.array(dtype=wp.int32),
+    contact_counts: wp.array(dtype=wp.int32),
+    capacity: int,
+    contact_point: wp.array(dtype=wp.int32),
+    contact_cell: wp.array(dtype=wp.int32),
+    point_cell: wp.array(dtype=wp.int32),
+    late_body_out: wp.array(dtype=wp.int32),
+):
+    """Marks the bodies a late solve moves.
+
+    Each a late static contact touched (a marked vertex or skin point), and each on either side of one of the
+    collision stage's contacts this step (``contact_counts[0]`` of them).
+
+    A body that touches no other keeps its answer unless a late contact touched it; the others move, since
+    theirs is tied to their neighbours' through the contacts.
+    """
+    i = wp.tid()
+    if i < late_vertex.shape[0]:
+        if late_vertex[i] != 0:
+            late_body_out[vertex_body[i]] = 1
+    if i < late_skin.shape[0]:
+        if late_skin[i] != 0:
+            late_body_out[cell_body[skin_cell[i]]] = 1
+    if contact_counts.shape[0] > 0:
+        if i < wp.min(contact_counts[0], capacity):
+            late_body_out[cell_body[point_cell[contact_point[i]]]] = 1
+            late_body_out[cell_body[contact_cell[i]]] = 1
+
+
+@wp.kernel
 def refresh_preconditioner(
     free: wp.array(dtype=wp.int32),
     diag_slot: wp.array(dtype=wp.int32),
     matrix: wp.array(dtype=wp.mat33),
+    vertex_body: wp.array(dtype=wp.int32),
+    solving: wp.array(dtype=wp.int32),
     diag_inv_out: wp.array(dtype=wp.mat33),
 ):
-    """The inverse diagonal blocks again, after late contacts changed them (zero on pinned vertices)."""
+    """The inverse diagonal blocks again, zero on pinned vertices.
+
+    With ``solving`` (per body, else empty), zero too on the bodies it does not mark: a solve with this
+    preconditioner leaves them as they are.
+    """
     i = wp.tid()
     if free[i] != 0:
-        diag_inv_out[i] = wp.inverse(matrix[diag_slot[i]])
+        keep = solving.shape[0] == 0
+        if not keep:
+            keep = solving[vertex_body[i]] != 0
+        diag_inv_out[i] = wp.where(keep, wp.inverse(matrix[diag_slot[i]]), wp.mat33())
 
 
 @wp.kernel

@@ -33,8 +33,9 @@ def write(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:
 
 
 def test_scene_solver_defaults_are_the_solvers():
-    from warpfem.sim.solver import DEFAULT_ROTATION_TOLERANCE, DEFAULT_ROTATION_UPDATES
+    from warpfem.sim.solver import DEFAULT_CONTACT_PASSES, DEFAULT_ROTATION_TOLERANCE, DEFAULT_ROTATION_UPDATES
 
+    assert SolverConfig().contact_passes == DEFAULT_CONTACT_PASSES
     assert SolverConfig().rotation_updates == DEFAULT_ROTATION_UPDATES
     assert SolverConfig().rotation_tolerance == DEFAULT_ROTATION_TOLERANCE
 
@@ -171,6 +172,8 @@ ERRORS = [
     ("cg_iterations 0", "[solver]\ncg_iterations = 0\n" + OBJ, "solver.cg_iterations", ">= 1"),
     ("cg_tolerance 1", "[solver]\ncg_tolerance = 1.0\n" + OBJ, "solver.cg_tolerance", "< 1"),
     ("cg_tolerance 0", "[solver]\ncg_tolerance = 0\n" + OBJ, "solver.cg_tolerance", "> 0"),
+    ("contact_passes -1", "[solver]\ncontact_passes = -1\n" + OBJ, "solver.contact_passes", ">= 0"),
+    ("contact_passes 1.5", "[solver]\ncontact_passes = 1.5\n" + OBJ, "solver.contact_passes", "integer"),
     ("rotation_updates -1", "[solver]\nrotation_updates = -1\n" + OBJ, "solver.rotation_updates", ">= 0"),
     ("rotation_updates 1.5", "[solver]\nrotation_updates = 1.5\n" + OBJ, "solver.rotation_updates", "integer"),
     ("rotation_tolerance -0.1", "[solver]\nrotation_tolerance = -0.1\n" + OBJ, "solver.rotation_tolerance", ">= 0"),

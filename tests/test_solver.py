@@ -8,7 +8,7 @@ from warpfem.build import add_body
 from warpfem.prep.shapes import box_tet_mesh
 from warpfem.sim.integrate import Box, Sphere
 from warpfem.sim.model import ModelBuilder
-from warpfem.sim.solver import Ground, Solver
+from warpfem.sim.solver import DEFAULT_CONTACT_PASSES, Ground, Solver
 
 G = 9.81
 
@@ -265,7 +265,9 @@ def test_late_contact_passes_only_where_something_can_be_touched(device):
     """``contact_passes`` is kept where a static collider or contacts exist, 0 for a lone body in empty space
     (it pays nothing for them), and a negative count is refused."""
     model, _ = _cube(device, y0=0.5)
-    assert Solver(model).contact_passes == 2 and Solver(model, contact_passes=1).contact_passes == 1
+    assert (
+        Solver(model).contact_passes == DEFAULT_CONTACT_PASSES and Solver(model, contact_passes=2).contact_passes == 2
+    )
     assert Solver(model, ground=None).contact_passes == 0
     with pytest.raises(ValueError, match="contact_passes"):
         Solver(model, contact_passes=-1)

@@ -29,10 +29,10 @@ def _thrown(speed: float, obstacle: dict | None = None) -> dict:
 
 def _deepest_over_run(device: str, doc: dict, depth, **solver) -> float:
     """The deepest the bunny's dense surface goes into its collider over the run (``depth(points)``: m, of the
-    dense points alone), relative to its size (bounding-box diagonal); ``solver``: solver attributes to set."""
+    dense points alone), relative to its size (bounding-box diagonal); ``solver``: the scene's ``[solver]``
+    keys to set."""
+    doc = {**doc, "solver": {**doc.get("solver", {}), **solver}}
     sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="throw"), device=device)
-    for key, value in solver.items():
-        setattr(sim.solver, key, value)
     size = float(np.linalg.norm(np.ptp(sim.dense_points("bunny"), axis=0)))
     deepest = 0.0
     for _ in range(doc["scene"]["frames"]):
@@ -198,15 +198,13 @@ def _head_on(
 
     doc = {
         "scene": {"frames": 30, "substeps": 4, "gravity": [0.0, 0.0, 0.0]},
-        "solver": {"elements": elements},
+        "solver": {"elements": elements}
+        | ({"contact_passes": contact_passes} if contact_passes is not None else {})
+        | ({"rotation_updates": rotation_updates} if rotation_updates is not None else {}),
         "ground": {"enabled": False},
         "object": [thrown("left", -0.55, speed, 90.0), thrown("right", 0.55, -speed, -90.0)],
     }
     sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="head_on"), device=device)
-    if contact_passes is not None:
-        sim.solver.contact_passes = contact_passes
-    if rotation_updates is not None:
-        sim.solver.rotation_updates = rotation_updates
     worst = 0.0
     for _ in range(30):
         sim.step_frame()

@@ -387,6 +387,7 @@ def solver_of(scene: Scene, model: Model, cg_path: str | None = None, held: list
         collision=CollisionSettings(stiffness=c.stiffness, friction=c.friction) if c.enabled else None,
         cg_path=cg_path,
         handles=handles,
+        contact_passes=scene.solver.contact_passes,
         rotation_updates=scene.solver.rotation_updates,
         rotation_tolerance=scene.solver.rotation_tolerance,
         static_lift=scene.solver.static_lift,

@@ -72,6 +72,10 @@ class SolverConfig:
         cg_iterations: The iteration count in fixed mode, the cap in tolerance mode (>= 1). A scene file in
             fixed mode that leaves it out gets :data:`~warpfem.presets.FIXED_CG_ITERATIONS`.
         cg_tolerance: Relative residual ||r|| / ||b|| to stop at in tolerance mode (0 < tol < 1).
+        contact_passes: Looks per step for the contacts a solve's answer makes that the step did not count,
+            each followed by a solve of the bodies they touch where some were found (>= 0; see
+            :class:`~warpfem.sim.solver.Solver`); the first also looks between bodies, the others at the ground
+            and obstacles only.
         rotation_updates: Re-linearisations per step at most (>= 0; see :class:`~warpfem.sim.solver.Solver`).
         rotation_tolerance: The turn within a step (rad, >= 0) past which a tet is re-linearised, in a body
             whose tets turned past it on average (the volume average of the turn to the fourth power) or one of
@@ -85,6 +89,7 @@ class SolverConfig:
     cg_mode: str = "tolerance"
     cg_iterations: int = 400
     cg_tolerance: float = 1e-4
+    contact_passes: int = 1
     rotation_updates: int = 2
     rotation_tolerance: float = 0.01
     elements: str = "linear"
@@ -103,6 +108,7 @@ class SolverConfig:
         _check_choice(err, "elements", self.elements, ("linear", "quadratic"))
         _check_int(err, "cg_iterations", self.cg_iterations, 1)
         _check_range(err, "cg_tolerance", self.cg_tolerance, gt=0.0, lt=1.0)
+        _check_int(err, "contact_passes", self.contact_passes, 0)
         _check_int(err, "rotation_updates", self.rotation_updates, 0)
         _check_range(err, "rotation_tolerance", self.rotation_tolerance, ge=0.0)
         if not isinstance(self.static_lift, bool):

@@ -421,11 +421,12 @@ def add_elastic(
     matrix_out: wp.array,
     rhs_out: wp.array,
     diag_inv_out: wp.array,
+    solving: wp.array,
 ) -> None:
     """The system with an elastic part kept apart: matrix, right-hand side and preconditioner from their bases.
 
     The elastic arrays are zeroed as they are read (the next assembly, of this step or the next, adds into
-    them).
+    them). ``solving``: as :func:`refresh_preconditioner`'s.
     """
     count = max(matrix_out.shape[0], model.vertex_count)
     wp.launch(
@@ -436,19 +437,47 @@ def add_elastic(
         device=model.device,
         block_dim=spread_block_dim(count, model.device),
     )
-    refresh_preconditioner(model, matrix_out, diag_inv_out)
+    refresh_preconditioner(model, matrix_out, diag_inv_out, solving)
 
 
-def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.array) -> None:
-    """The inverse diagonal blocks of ``matrix`` again (after late contacts changed them)."""
+def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.array, solving: wp.array) -> None:
+    """The inverse diagonal blocks of ``matrix`` again (after late contacts changed them).
+
+    ``solving``: per body, which bodies a solve with them moves (zero blocks on the others); empty: all.
+    """
     wp.launch(
         K.refresh_preconditioner,
         dim=model.vertex_count,
-        inputs=[model.free, model.diag_slot, matrix],
+        inputs=[model.free, model.diag_slot, matrix, model.vertex_body, solving],
         outputs=[diag_inv_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )
+
+
+def late_bodies(
+    model: Model,
+    late: tuple[wp.array, wp.array],
+    contacts: tuple[wp.array, int, wp.array, wp.array],
+    late_body_out: wp.array,
+) -> None:
+    """Mark in ``late_body_out`` (per body, zeroed at the step's start) the bodies a late solve moves.
+
+    Those a late static contact touched and those touching another body (``kernels.integrate.late_bodies``).
+    ``late``: the late static contacts' marks (tet vertices, skin points); ``contacts``: the collision stage's
+    counts, capacity, contact points and cells (empty arrays and 0 without one).
+    """
+    counts, capacity, point, cell = contacts
+    dim = max(late[0].shape[0], late[1].shape[0], capacity, 1)
+    wp.launch(
+        K.late_bodies,
+        dim=dim,
+        inputs=[late[0], model.vertex_body, late[1], model.skin_cell, model.cell_body, counts, capacity, point,
+                cell, model.point_cell],
+        outputs=[late_body_out],
+        device=model.device,
+        block_dim=spread_block_dim(dim, model.device),
+    )  # fmt: skip
 
 
 def advance_positions(

@@ -24,7 +24,7 @@ from warpfem.sim.rigid import RigidCorrection
 
 DEFAULT_GROUND = Ground()
 
-DEFAULT_CONTACT_PASSES = 2
+DEFAULT_CONTACT_PASSES = 1
 """Late-contact passes per step unless told (see :class:`Solver`); chosen by measurement (docs/decisions.md)."""
 
 LATE_BODY_PASSES = 1
@@ -55,8 +55,11 @@ class Solver:
             touch (one body without self-collision) gets no collision stage at all.
         contact_passes: After a solve, how many times to look for contacts its new velocities cross that
             the step did not count (a point sped up within the step, or dragged by its body), add them and
-            solve again from that answer (a solve only where some were found); 0: none. Each pass costs a
-            look at every collision point and, where contacts were added, a warm-started solve.
+            solve again from that answer (a solve only where some were found, of the bodies they touched and
+            those touching another body: a body on its own that none touched keeps its answer, as it would
+            alone); 0: none. The first :data:`LATE_BODY_PASSES` look between bodies too, the others at the
+            static colliders. Each pass costs a look at every collision point and, where contacts were added,
+            a warm-started solve.
         cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
             "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
@@ -170,12 +173,22 @@ class Solver:
     def _allocate_flags(self, rotation_updates: int, static: bool) -> None:
         """The step's conditions (rotation updates, late-contact passes) and the late static contacts' marks."""
         dev, n = self.model.device, self.model.vertex_count
-        self.flags = wp.zeros(rotation_updates + self._contact_passes, dtype=wp.int32, device=dev)
+        passes, bodies = self._contact_passes, len(self.model.bodies)
+        self.flags = wp.zeros(rotation_updates + passes + (bodies if passes else 0), dtype=wp.int32, device=dev)
         """The step's conditions, each its own slot so one launch clears them all at the step's start."""
         self.turned = [self.flags[k : k + 1] for k in range(rotation_updates)]
         """Whether the k-th rotation update changed some tet (the condition of its solve)."""
-        self.late_count = [self.flags[k : k + 1] for k in range(rotation_updates, len(self.flags))]
+        self.late_count = [self.flags[k : k + 1] for k in range(rotation_updates, rotation_updates + passes)]
         """Late contacts the k-th pass added (the condition of its solve)."""
+        self.late_body = self.flags[rotation_updates + passes :] if passes else self._no_int
+        """Per body, whether a late contact touched it this step (the bodies a late solve moves)."""
+        c = self.collider
+        self._late_found = (
+            (c.counts, c.capacity, c.contact_point, c.contact_cell)
+            if c is not None
+            else (self._no_int, 0, *[self._no_int] * 2)
+        )
+        """Where the collision stage keeps the late pass's contacts between bodies (``integrate.late_bodies``)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
             wp.zeros(self.model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
@@ -286,7 +299,7 @@ class Solver:
     def _add_elastic(self, dt: float) -> None:
         integrate.add_elastic(
             self.model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
-            self.rhs, self.diag_inv,
+            self.rhs, self.diag_inv, self._no_int,
         )  # fmt: skip
 
     def _deflated(self, state_in: State, dt: float) -> RigidDeflation | None:
@@ -350,8 +363,14 @@ class Solver:
             wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt))
 
     def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
-        integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv)
-        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, deflation=self._deflated(state_in, dt))
+        """Solve again for the bodies the late contacts touched; the others keep their answer as it is.
+
+        Without deflation: where it is needed, the rigid correction is too, so the late contacts enter the
+        system without elasticity and mark their bodies as touching, which deflation leaves alone anyway.
+        """
+        integrate.late_bodies(self.model, self.late, self._late_found, self.late_body)
+        integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv, self.late_body)
+        self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._finish(state_in, state_out, dt)
 
     def lift_dense(self, state: State) -> None:
