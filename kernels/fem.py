@@ -386,12 +386,13 @@ def replace_turned(
     tolerance: float,
     rotation: wp.array(dtype=wp.mat33),
     changed_out: wp.array(dtype=wp.int32),
+    body_changed_out: wp.array(dtype=wp.int32),
 ):
     """Re-linearise the tets past ``tolerance`` (rad) in the bodies that turned enough.
 
     In each body whose volume average of turn^4 exceeds ``tolerance``^4, or one of whose tets turned more than
     twice ``tolerance``, the tets that turned more than ``tolerance`` take their rotation at the step's end;
-    ``changed_out[0]`` becomes 1 where one did.
+    ``changed_out[0]`` becomes 1 where one did, and ``body_changed_out`` of its body.
     """
     e = wp.tid()
     b = tet_body[e]
@@ -400,3 +401,4 @@ def replace_turned(
     if turn[e] > tolerance and enough:
         rotation[e] = turned[e]
         changed_out[0] = 1
+        body_changed_out[b] = 1

@@ -634,7 +634,7 @@ def add_elastic(
 
 
 @wp.kernel
-def late_bodies(
+def moving_bodies(
     late_vertex: wp.array(dtype=wp.int32),
     vertex_body: wp.array(dtype=wp.int32),
     late_skin: wp.array(dtype=wp.int32),
@@ -645,27 +645,27 @@ def late_bodies(
     contact_point: wp.array(dtype=wp.int32),
     contact_cell: wp.array(dtype=wp.int32),
     point_cell: wp.array(dtype=wp.int32),
-    late_body_out: wp.array(dtype=wp.int32),
+    moving_out: wp.array(dtype=wp.int32),
 ):
-    """Marks the bodies a late solve moves.
+    """Marks the bodies an extra solve of the step moves.
 
     Each a late static contact touched (a marked vertex or skin point), and each on either side of one of the
     collision stage's contacts this step (``contact_counts[0]`` of them).
 
-    A body that touches no other keeps its answer unless a late contact touched it; the others move, since
-    theirs is tied to their neighbours' through the contacts.
+    A body that touches no other keeps its answer unless it is marked for another reason (a late contact, a
+    rotation update); the others move, since theirs is tied to their neighbours' through the contacts.
     """
     i = wp.tid()
     if i < late_vertex.shape[0]:
         if late_vertex[i] != 0:
-            late_body_out[vertex_body[i]] = 1
+            moving_out[vertex_body[i]] = 1
     if i < late_skin.shape[0]:
         if late_skin[i] != 0:
-            late_body_out[cell_body[skin_cell[i]]] = 1
+            moving_out[cell_body[skin_cell[i]]] = 1
     if contact_counts.shape[0] > 0:
         if i < wp.min(contact_counts[0], capacity):
-            late_body_out[cell_body[point_cell[contact_point[i]]]] = 1
-            late_body_out[cell_body[contact_cell[i]]] = 1
+            moving_out[cell_body[point_cell[contact_point[i]]]] = 1
+            moving_out[cell_body[contact_cell[i]]] = 1
 
 
 @wp.kernel

@@ -175,7 +175,9 @@ def test_rotation_updates_re_linearise_bodies_that_turned_enough(device, twist, 
     rotation = wp.array(identity, dtype=wp.mat33, device=device)
     body_turn = wp.zeros(2, dtype=wp.vec3, device=device)
     changed = wp.zeros(1, dtype=wp.int32, device=device)
-    check.look(wp.array(x.astype(np.float32), dtype=wp.vec3, device=device), tol, cg, rotation, body_turn, changed)
+    body_changed = wp.zeros(2, dtype=wp.int32, device=device)
+    points = wp.array(x.astype(np.float32), dtype=wp.vec3, device=device)
+    check.look(points, tol, cg, rotation, body_turn, changed, body_changed)
 
     expected = identity.astype(float).copy()
     enough = []
@@ -187,6 +189,9 @@ def test_rotation_updates_re_linearise_bodies_that_turned_enough(device, twist, 
             rows[turn > tol] = R[turn > tol]
     np.testing.assert_allclose(rotation.numpy(), expected, atol=2e-4)
     assert changed.numpy()[0] == int(np.abs(expected - identity).max() > 0)
+    n = len(T)
+    replaced = [int(np.abs(expected[k * n : (k + 1) * n] - identity[:n]).max() > 0) for k in range(2)]
+    assert body_changed.numpy().tolist() == replaced
     assert enough == [twist not in (0.0, 0.015), twist >= 0.05]
     if twist == 0.015:  # some of its tets turned past the tolerance, too few: left as they were
         turn = _numpy_turns(twisted, V, T, identity[: len(T)].astype(float))[0]

@@ -96,12 +96,14 @@ class TurnCheck:
         rotation: wp.array,
         body_turn: wp.array,
         changed_out: wp.array,
+        body_changed_out: wp.array,
     ) -> None:
         """Replace ``rotation`` by the tets' rotations at ``x`` where they turned enough (see the class; rad).
 
         ``body_turn`` (one vec3 per body, zeroed first) receives each body's sum of volume x turn^4 and count of
         tets past twice ``tolerance``;
-        ``changed_out[0]`` becomes 1 where a rotation was replaced (zero it first). Nothing is replaced once one
+        ``changed_out[0]`` becomes 1 where a rotation was replaced, and ``body_changed_out`` (one per body) of
+        each body where one was (zero them first). Nothing is replaced once one
         of ``cg``'s solves since its statistics were last read stopped short of its tolerance. Two launches for
         all bodies.
         """
@@ -130,7 +132,7 @@ class TurnCheck:
             K.replace_turned,
             dim=m.tet_count,
             inputs=[self.turned, self.turn, m.tet_body, body_turn, m.body_volume, tolerance],
-            outputs=[rotation, changed_out],
+            outputs=[rotation, changed_out, body_changed_out],
             device=m.device,
             block_dim=block,
         )

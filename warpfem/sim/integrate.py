@@ -455,26 +455,27 @@ def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.arra
     )
 
 
-def late_bodies(
+def moving_bodies(
     model: Model,
     late: tuple[wp.array, wp.array],
     contacts: tuple[wp.array, int, wp.array, wp.array],
-    late_body_out: wp.array,
+    moving_out: wp.array,
 ) -> None:
-    """Mark in ``late_body_out`` (per body, zeroed at the step's start) the bodies a late solve moves.
+    """Mark in ``moving_out`` (per body, zeroed at the step's start) the bodies an extra solve of the step moves.
 
-    Those a late static contact touched and those touching another body (``kernels.integrate.late_bodies``).
-    ``late``: the late static contacts' marks (tet vertices, skin points); ``contacts``: the collision stage's
-    counts, capacity, contact points and cells (empty arrays and 0 without one).
+    Those a late static contact touched and those touching another body (``kernels.integrate.moving_bodies``);
+    what else a solve moves (the bodies a rotation update re-linearised) is marked by its own launch.
+    ``late``: the late static contacts' marks (tet vertices, skin points; empty: none); ``contacts``: the
+    collision stage's counts, capacity, contact points and cells (empty arrays and 0 without one).
     """
     counts, capacity, point, cell = contacts
     dim = max(late[0].shape[0], late[1].shape[0], capacity, 1)
     wp.launch(
-        K.late_bodies,
+        K.moving_bodies,
         dim=dim,
         inputs=[late[0], model.vertex_body, late[1], model.skin_cell, model.cell_body, counts, capacity, point,
                 cell, model.point_cell],
-        outputs=[late_body_out],
+        outputs=[moving_out],
         device=model.device,
         block_dim=spread_block_dim(dim, model.device),
     )  # fmt: skip

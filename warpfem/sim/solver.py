@@ -173,22 +173,28 @@ class Solver:
     def _allocate_flags(self, rotation_updates: int, static: bool) -> None:
         """The step's conditions (rotation updates, late-contact passes) and the late static contacts' marks."""
         dev, n = self.model.device, self.model.vertex_count
-        passes, bodies = self._contact_passes, len(self.model.bodies)
-        self.flags = wp.zeros(rotation_updates + passes + (bodies if passes else 0), dtype=wp.int32, device=dev)
-        """The step's conditions, each its own slot so one launch clears them all at the step's start."""
-        self.turned = [self.flags[k : k + 1] for k in range(rotation_updates)]
+        updates, passes, bodies = rotation_updates, self._contact_passes, len(self.model.bodies)
+        marks = (updates + (1 if passes else 0)) * bodies
+        self.flags = wp.zeros(updates + passes + marks, dtype=wp.int32, device=dev)
+        """The step's conditions and per-body marks, each its own slots so one launch clears them all at the step's
+        start."""
+        self.turned = [self.flags[k : k + 1] for k in range(updates)]
         """Whether the k-th rotation update changed some tet (the condition of its solve)."""
-        self.late_count = [self.flags[k : k + 1] for k in range(rotation_updates, rotation_updates + passes)]
+        self.late_count = [self.flags[k : k + 1] for k in range(updates, updates + passes)]
         """Late contacts the k-th pass added (the condition of its solve)."""
-        self.late_body = self.flags[rotation_updates + passes :] if passes else self._no_int
-        """Per body, whether a late contact touched it this step (the bodies a late solve moves)."""
+        first = updates + passes
+        self.turn_body = [self.flags[first + k * bodies : first + (k + 1) * bodies] for k in range(updates)]
+        """Per rotation update and body, whether its solve moves the body (it turned, or it touches another)."""
+        first += updates * bodies
+        self.late_body = self.flags[first : first + bodies] if passes else self._no_int
+        """Per body, whether a late solve moves it (a late contact touched it, or it touches another body)."""
         c = self.collider
-        self._late_found = (
+        self._found = (
             (c.counts, c.capacity, c.contact_point, c.contact_cell)
             if c is not None
             else (self._no_int, 0, *[self._no_int] * 2)
         )
-        """Where the collision stage keeps the late pass's contacts between bodies (``integrate.late_bodies``)."""
+        """Where the collision stage keeps its contacts (``integrate.moving_bodies``)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
             wp.zeros(self.model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
@@ -296,10 +302,11 @@ class Solver:
         if apart:
             self._add_elastic(dt)
 
-    def _add_elastic(self, dt: float) -> None:
+    def _add_elastic(self, dt: float, moving: wp.array | None = None) -> None:
+        """The system from its bases; ``moving``: per body, the bodies the next solve moves (None: all)."""
         integrate.add_elastic(
             self.model, self.matrix_base, self.elastic_matrix, self.rhs_base, self.elastic_force, dt, self.matrix,
-            self.rhs, self.diag_inv, self._no_int,
+            self.rhs, self.diag_inv, self._no_int if moving is None else moving,
         )  # fmt: skip
 
     def _deflated(self, state_in: State, dt: float) -> RigidDeflation | None:
@@ -328,17 +335,24 @@ class Solver:
         """The k-th look at the tets' rotations; a solve, and the next look, only where some turned."""
         turned = self.turned[k - 1]
         self._turn_check.look(
-            state_out.x, self.rotation_tolerance, self.cg, self.rotation, self._body_turn[k - 1], turned
-        )
+            state_out.x, self.rotation_tolerance, self.cg, self.rotation, self._body_turn[k - 1], turned,
+            self.turn_body[k - 1],
+        )  # fmt: skip
         wp.capture_if(turned, on_true=lambda: self._relinearise(state_in, state_out, dt, k))
 
     def _relinearise(self, state_in: State, state_out: State, dt: float, k: int) -> None:
-        """The system again about the rotations ``rotation`` holds, solved from the last answer."""
+        """The system again about the rotations ``rotation`` holds, solved from the last answer.
+
+        The solve moves the bodies that were re-linearised and those touching another body; a body on its own
+        that did not turn enough keeps its answer, as it would alone.
+        """
         fem.elastic_forces_and_stiffness(
             self.model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self._no_vec3,
             given_rotation=True,
         )  # fmt: skip
-        self._add_elastic(dt)
+        moving = self.turn_body[k - 1]
+        integrate.moving_bodies(self.model, (self._no_int, self._no_int), self._found, moving)
+        self._add_elastic(dt, moving)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, deflation=self._deflated(state_in, dt))
         self._finish(state_in, state_out, dt)
         if k < self.rotation_updates:
@@ -368,7 +382,7 @@ class Solver:
         Without deflation: where it is needed, the rigid correction is too, so the late contacts enter the
         system without elasticity and mark their bodies as touching, which deflation leaves alone anyway.
         """
-        integrate.late_bodies(self.model, self.late, self._late_found, self.late_body)
+        integrate.moving_bodies(self.model, self.late, self._found, self.late_body)
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv, self.late_body)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._finish(state_in, state_out, dt)
