@@ -89,7 +89,7 @@ class SolverConfig:
     cg_mode: str = "tolerance"
     cg_iterations: int = 400
     cg_tolerance: float = 1e-4
-    contact_passes: int = 1
+    contact_passes: int = 2
     rotation_updates: int = 2
     rotation_tolerance: float = 0.01
     elements: str = "linear"

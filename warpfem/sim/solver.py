@@ -24,7 +24,7 @@ from warpfem.sim.rigid import RigidCorrection
 
 DEFAULT_GROUND = Ground()
 
-DEFAULT_CONTACT_PASSES = 1
+DEFAULT_CONTACT_PASSES = 2
 """Late-contact passes per step unless told (see :class:`Solver`); chosen by measurement (docs/decisions.md)."""
 
 LATE_BODY_PASSES = 1
