@@ -13,6 +13,7 @@ import warp as wp
 
 from .embedding import interpolate
 from .grid import warp_sum_at
+from .rigid import mark_pair
 
 # static collider kinds
 PLANE = wp.constant(0)
@@ -640,17 +641,15 @@ def moving_bodies(
     late_skin: wp.array(dtype=wp.int32),
     skin_cell: wp.array(dtype=wp.int32),
     cell_body: wp.array(dtype=wp.int32),
-    contact_counts: wp.array(dtype=wp.int32),
-    capacity: int,
-    contact_point: wp.array(dtype=wp.int32),
-    contact_cell: wp.array(dtype=wp.int32),
-    point_cell: wp.array(dtype=wp.int32),
+    pair_count: wp.array(dtype=wp.int32),
+    verts_a: wp.array(dtype=wp.vec4i),
+    verts_b: wp.array(dtype=wp.vec4i),
     moving_out: wp.array(dtype=wp.int32),
 ):
     """Marks the bodies an extra solve of the step moves.
 
-    Each a late static contact touched (a marked vertex or skin point), and each on either side of one of the
-    collision stage's contacts this step (``contact_counts[0]`` of them).
+    Each a late static contact touched (a marked vertex or skin point), and both bodies of each live contact
+    pair between bodies (the coupling's, as ``kernels.rigid.mark_touched_pairs`` marks them).
 
     A body that touches no other keeps its answer unless it is marked for another reason (a late contact, a
     rotation update); the others move, since theirs is tied to their neighbours' through the contacts.
@@ -662,10 +661,7 @@ def moving_bodies(
     if i < late_skin.shape[0]:
         if late_skin[i] != 0:
             moving_out[cell_body[skin_cell[i]]] = 1
-    if contact_counts.shape[0] > 0:
-        if i < wp.min(contact_counts[0], capacity):
-            moving_out[cell_body[point_cell[contact_point[i]]]] = 1
-            moving_out[cell_body[contact_cell[i]]] = 1
+    mark_pair(i, pair_count, verts_a, verts_b, vertex_body, moving_out)
 
 
 @wp.kernel

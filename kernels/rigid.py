@@ -12,6 +12,21 @@ import warp as wp
 from .product import mat43, pair_terms
 
 
+@wp.func
+def mark_pair(
+    k: int,
+    count: wp.array(dtype=wp.int32),
+    verts_a: wp.array(dtype=wp.vec4i),
+    verts_b: wp.array(dtype=wp.vec4i),
+    vertex_body: wp.array(dtype=wp.int32),
+    paired_out: wp.array(dtype=wp.int32),
+):
+    """Marks both bodies of contact pair k where it is live (k below ``count[0]`` and the capacity)."""
+    if k < wp.min(count[0], verts_a.shape[0]):
+        paired_out[vertex_body[verts_a[k][0]]] = 1
+        paired_out[vertex_body[verts_b[k][0]]] = 1
+
+
 @wp.kernel
 def mark_touched_pairs(
     count: wp.array(dtype=wp.int32),
@@ -21,10 +36,7 @@ def mark_touched_pairs(
     paired_out: wp.array(dtype=wp.int32),
 ):
     """Marks both bodies of each live contact pair."""
-    k = wp.tid()
-    if k < count[0]:
-        paired_out[vertex_body[verts_a[k][0]]] = 1
-        paired_out[vertex_body[verts_b[k][0]]] = 1
+    mark_pair(wp.tid(), count, verts_a, verts_b, vertex_body, paired_out)
 
 
 @wp.kernel

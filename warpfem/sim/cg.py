@@ -158,6 +158,7 @@ class CGSolver:
         self.pairs.verts_a, self.pairs.weights_a = coupling.verts_a, coupling.weights_a
         self.pairs.verts_b, self.pairs.weights_b = coupling.verts_b, coupling.weights_b
         self.pairs.matrix = coupling.matrix
+        """The coupling's contact pairs as the kernels read them (empty without a coupling)."""
         # one thread per chunk, then up to PAIR_THREADS threads striding over the live pairs
         threads = chunks + min(coupling.matrix.shape[0], PAIR_THREADS)
         self._apply_threads = threads

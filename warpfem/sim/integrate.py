@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import integrate as K
+from warpfem.kernels.product import Pairs
 from warpfem.presets import STATIC_OFFSET
 from warpfem.sim.drive import Motion, quat_of_matrix
 from warpfem.sim.launch import spread_block_dim
@@ -455,26 +456,20 @@ def refresh_preconditioner(model: Model, matrix: wp.array, diag_inv_out: wp.arra
     )
 
 
-def moving_bodies(
-    model: Model,
-    late: tuple[wp.array, wp.array],
-    contacts: tuple[wp.array, int, wp.array, wp.array],
-    moving_out: wp.array,
-) -> None:
+def moving_bodies(model: Model, late: tuple[wp.array, wp.array], pairs: Pairs, moving_out: wp.array) -> None:
     """Mark in ``moving_out`` (per body, zeroed at the step's start) the bodies an extra solve of the step moves.
 
     Those a late static contact touched and those touching another body (``kernels.integrate.moving_bodies``);
     what else a solve moves (the bodies a rotation update re-linearised) is marked by its own launch.
-    ``late``: the late static contacts' marks (tet vertices, skin points; empty: none); ``contacts``: the
-    collision stage's counts, capacity, contact points and cells (empty arrays and 0 without one).
+    ``late``: the late static contacts' marks (tet vertices, skin points; empty: none); ``pairs``: CG's contact
+    pairs (:attr:`~warpfem.sim.cg.CGSolver.pairs`; none without a collision stage).
     """
-    counts, capacity, point, cell = contacts
-    dim = max(late[0].shape[0], late[1].shape[0], capacity, 1)
+    dim = max(late[0].shape[0], late[1].shape[0], pairs.verts_a.shape[0], 1)
     wp.launch(
         K.moving_bodies,
         dim=dim,
-        inputs=[late[0], model.vertex_body, late[1], model.skin_cell, model.cell_body, counts, capacity, point,
-                cell, model.point_cell],
+        inputs=[late[0], model.vertex_body, late[1], model.skin_cell, model.cell_body, pairs.count, pairs.verts_a,
+                pairs.verts_b],
         outputs=[moving_out],
         device=model.device,
         block_dim=spread_block_dim(dim, model.device),

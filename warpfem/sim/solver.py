@@ -188,13 +188,6 @@ class Solver:
         first += updates * bodies
         self.late_body = self.flags[first : first + bodies] if passes else self._no_int
         """Per body, whether a late solve moves it (a late contact touched it, or it touches another body)."""
-        c = self.collider
-        self._found = (
-            (c.counts, c.capacity, c.contact_point, c.contact_cell)
-            if c is not None
-            else (self._no_int, 0, *[self._no_int] * 2)
-        )
-        """Where the collision stage keeps its contacts (``integrate.moving_bodies``)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
             wp.zeros(self.model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
@@ -351,7 +344,7 @@ class Solver:
             given_rotation=True,
         )  # fmt: skip
         moving = self.turn_body[k - 1]
-        integrate.moving_bodies(self.model, (self._no_int, self._no_int), self._found, moving)
+        integrate.moving_bodies(self.model, (self._no_int, self._no_int), self.cg.pairs, moving)
         self._add_elastic(dt, moving)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v, deflation=self._deflated(state_in, dt))
         self._finish(state_in, state_out, dt)
@@ -382,7 +375,7 @@ class Solver:
         Without deflation: where it is needed, the rigid correction is too, so the late contacts enter the
         system without elasticity and mark their bodies as touching, which deflation leaves alone anyway.
         """
-        integrate.moving_bodies(self.model, self.late, self._found, self.late_body)
+        integrate.moving_bodies(self.model, self.late, self.cg.pairs, self.late_body)
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv, self.late_body)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._finish(state_in, state_out, dt)
