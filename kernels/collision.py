@@ -33,7 +33,6 @@ from .surface import (
     lattice_index,
     visible_depth,
 )
-from .tree import group_holds, leaf_holds, lowest_bit, overlaps
 
 
 @wp.kernel
@@ -109,6 +108,111 @@ def collision_points(
     point_velocity_out[i] = u
     speed = wp.length(u)
     warp_max_at(speed, point_body[i], speed_max_out)
+
+
+BLOCK_SYNC = r"""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+"""
+
+
+@wp.func_native(BLOCK_SYNC)
+def block_sync():
+    """Barrier of the threads of a block; their global writes before it are visible to all after it.
+
+    Every thread of the block must reach it. A no-op on the CPU, where a block is one thread.
+    """
+    ...
+
+
+@wp.func
+def leaf_box(leaf: wp.vec4i, tets: wp.array(dtype=wp.vec4i), x: wp.array(dtype=wp.vec3)):
+    """Bounding box of a leaf's tets (-1: none); empty (lower above upper) for a leaf without tets."""
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(4):
+        if leaf[k] >= 0:
+            t = tets[leaf[k]]
+            for c in range(4):
+                lo = wp.min(lo, x[t[c]])
+                hi = wp.max(hi, x[t[c]])
+    return lo, hi
+
+
+@wp.kernel
+def refit_trees(
+    # inputs
+    tets: wp.array(dtype=wp.vec4i),
+    x: wp.array(dtype=wp.vec3),
+    body_tet_start: wp.array(dtype=wp.int32),
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    threads: int,
+    # outputs
+    inverse_out: wp.array(dtype=wp.mat33),
+    origin_out: wp.array(dtype=wp.vec3),
+    node_lower_out: wp.array(dtype=wp.vec3),
+    node_upper_out: wp.array(dtype=wp.vec3),
+    body_lower_out: wp.array(dtype=wp.vec3),
+    body_upper_out: wp.array(dtype=wp.vec3),
+):
+    """Per body (one block of ``threads`` threads): its tets' inverse edge matrices, first corners, tree boxes.
+
+    The tree of body b is complete, in heap order (node k has children 2k+1 and 2k+2) from
+    ``node_start[b]``, its L = ``leaf_start[b+1] - leaf_start[b]`` leaves last; the leaves are boxed from
+    their tets' corners, then each level from the one below it, with a block barrier between levels. The
+    root's box is the body's. A degenerate (flat) tet gets a zero inverse, which the inside test refuses.
+    """
+    body, lane = wp.tid()
+    for e in range(body_tet_start[body] + lane, body_tet_start[body + 1], threads):
+        t = tets[e]
+        x0 = x[t[0]]
+        A = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+        inverse_out[e] = wp.where(wp.abs(wp.determinant(A)) < 1.0e-20, wp.mat33(), wp.inverse(A))
+        origin_out[e] = x0
+    ns = node_start[body]
+    ls = leaf_start[body]
+    first_leaf = leaf_start[body + 1] - ls - 1
+    for j in range(lane, first_leaf + 1, threads):
+        lo, hi = leaf_box(leaf_tets[ls + j], tets, x)
+        node_lower_out[ns + first_leaf + j] = lo
+        node_upper_out[ns + first_leaf + j] = hi
+    block_sync()
+    end = first_leaf
+    while end > 0:
+        begin = (end - 1) // 2
+        for k in range(begin + lane, end, threads):
+            a = ns + 2 * k + 1
+            node_lower_out[ns + k] = wp.min(node_lower_out[a], node_lower_out[a + 1])
+            node_upper_out[ns + k] = wp.max(node_upper_out[a], node_upper_out[a + 1])
+        block_sync()
+        end = begin
+    if lane == 0:
+        body_lower_out[body] = node_lower_out[ns]
+        body_upper_out[body] = node_upper_out[ns]
+
+
+@wp.func
+def leaf_holds(
+    q: wp.vec3,
+    leaf: wp.vec4i,
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
+) -> int:
+    """Bit k set if the leaf's k-th tet holds ``q`` (a flat tet, with a zero inverse, holds nothing).
+
+    The four tets' loads do not depend on one another, so they are in flight together.
+    """
+    mask = int(0)
+    for k in range(4):
+        e = wp.max(leaf[k], 0)
+        inverse = tet_inverse[e]
+        w = tet_weights(q, inverse, tet_origin[e])
+        if leaf[k] >= 0 and wp.min(w) >= 0.0 and wp.determinant(inverse) != 0.0:
+            mask = mask | (1 << k)
+    return mask
 
 
 @wp.struct
@@ -312,6 +416,37 @@ def answer_pending(
         )  # fmt: skip
 
 
+@wp.func
+def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
+    """Whether point q lies in the box [lo, hi]."""
+    return q[0] >= lo[0] and q[1] >= lo[1] and q[2] >= lo[2] and q[0] <= hi[0] and q[1] <= hi[1] and q[2] <= hi[2]
+
+
+@wp.func
+def group_holds(
+    q: wp.vec3, node_lower: wp.array(dtype=wp.vec3), node_upper: wp.array(dtype=wp.vec3), base: int, size: int
+) -> int:
+    """Bit j set if box ``base + j`` holds ``q``, for the ``size`` (at most 8) consecutive boxes from ``base``.
+
+    The boxes' loads do not depend on one another, so they are in flight together.
+    """
+    mask = int(0)
+    for j in range(8):
+        k = base + wp.min(j, size - 1)
+        if j < size and overlaps(q, node_lower[k], node_upper[k]):
+            mask = mask | (1 << j)
+    return mask
+
+
+@wp.func
+def lowest_bit(mask: int) -> int:
+    """Index of the lowest set bit of a nonzero mask."""
+    j = int(0)
+    while (mask >> j) & 1 == 0:
+        j += 1
+    return j
+
+
 WALK_STRIDE = wp.constant(3)
 """Tree levels a walk descends at a time: it tests 2^3 = 8 boxes at once (the grandchildren's children)."""
 
@@ -353,8 +488,7 @@ def walk_tree(
     levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
     hold the point in leaf order; the first that answers (:func:`depth_in_tet` gives a positive depth, or
     status 2 or 3) ends the walk. Returns that tet (-1 if none), the point's weights in it and the answer, for
-    :func:`answer_pending` to record after the walk, which keeps the walk's registers few; and whether some
-    leaf's box held the point.
+    :func:`answer_pending` to record after the walk, which keeps the walk's registers few.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -374,7 +508,6 @@ def walk_tree(
     pending_d = float(0.0)
     pending_g = wp.vec3()
     pending_bound = float(0.0)
-    near = bool(False)
     while not found and (mask != 0 or level > top):
         if mask == 0:
             # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole
@@ -389,7 +522,6 @@ def walk_tree(
             node = base + lowest_bit(mask)
             mask = mask & (mask - 1)
             if level == leaf_level:
-                near = True
                 leaf = leaf_tets[ls + node - (leaves - 1)]
                 inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
                 while inside != 0 and not found:
@@ -415,86 +547,7 @@ def walk_tree(
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
                 mask = group_holds(q, node_lower, node_upper, ns + base, 8)
-    return pending, pending_w, pending_status, pending_d, pending_g, pending_bound, near
-
-
-@wp.struct
-class Nearness:
-    """What lets a late pass leave out the walks that cannot find a contact.
-
-    A start pass walks trees whose boxes are grown by each body's ``margin`` (m) and records, per detection
-    thread, whether its walks reached a leaf whose box held the point (``flag``). A point no start walk
-    brought that near another body's tets, moving less than half that body's margin together with the body's
-    fastest corner (``body_speed``, m/s, at the answer a late pass tests), cannot lie in one of its tets at the
-    step's end. Empty ``margin``: nothing is left out.
-    """
-
-    margin: wp.array(dtype=float)
-    body_speed: wp.array(dtype=float)
-    flag: wp.array(dtype=wp.int32)
-
-
-@wp.func
-def start_near(near: Nearness, p: int, lanes: int) -> bool:
-    """Whether a start pass's walk of point p (any of its ``lanes`` threads) reached a leaf."""
-    reached = bool(False)
-    for k in range(lanes):
-        reached = reached or near.flag[p * lanes + k] != 0
-    return reached
-
-
-@wp.func
-def out_of_reach(near: Nearness, body: int, was_near: bool, speed: float, dt: float) -> bool:
-    """Whether a late walk of ``body``'s tree surely finds nothing for a point moving at ``speed`` (m/s)."""
-    if was_near or near.margin.shape[0] == 0:
-        return False
-    return dt * (speed + near.body_speed[body]) < 0.5 * near.margin[body]
-
-
-@wp.func
-def against_body(
-    p: int,
-    q: wp.vec3,
-    body: int,
-    same: bool,
-    node_start: wp.array(dtype=wp.int32),
-    leaf_start: wp.array(dtype=wp.int32),
-    leaf_tets: wp.array(dtype=wp.vec4i),
-    node_lower: wp.array(dtype=wp.vec3),
-    node_upper: wp.array(dtype=wp.vec3),
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    dt: float,
-    tets: wp.array(dtype=wp.vec4i),
-    cells: wp.array(dtype=wp.vec4i),
-    tet_inverse: wp.array(dtype=wp.mat33),
-    tet_origin: wp.array(dtype=wp.vec3),
-    tet_face_start: wp.array(dtype=wp.int32),
-    tet_faces: wp.array(dtype=wp.vec3i),
-    tet_face_ids: wp.array(dtype=wp.int32),
-    face_depth: wp.array(dtype=float),
-    surface: VisibleSurface,
-    point_velocity: wp.array(dtype=wp.vec3),
-    point_anchor: wp.array(dtype=wp.vec3i),
-    row_start: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
-    depth: wp.array(dtype=float),
-    grad: wp.array(dtype=wp.vec3),
-    late: int,
-    found_out: Found,
-) -> bool:
-    """Point p (at q) against one body's tree: its contact recorded, if any; returns whether a leaf held it."""
-    e, w, status, d, g, bound, reached = walk_tree(
-        p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets, tet_inverse,
-        tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity, point_anchor,
-        row_start, cols, depth, grad,
-    )  # fmt: skip
-    if e >= 0:
-        answer_pending(
-            p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces, tet_face_ids,
-            face_depth, surface, point_velocity, point_anchor, row_start, cols, depth, grad, found_out, late,
-        )  # fmt: skip
-    return reached
+    return pending, pending_w, pending_status, pending_d, pending_g, pending_bound
 
 
 @wp.kernel
@@ -530,7 +583,6 @@ def detect_contacts(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    near: Nearness,
     # outputs
     found_out: Found,
 ):
@@ -540,8 +592,7 @@ def detect_contacts(
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
     each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
-    Each contact goes to ``found_out`` (:class:`Found`). A ``late`` pass leaves out the points that have a
-    contact and the walks ``near`` (:class:`Nearness`) shows cannot find one; a start pass records it.
+    Each contact goes to ``found_out`` (:class:`Found`).
     """
     tid = wp.tid()
     p = tid // lanes
@@ -551,25 +602,25 @@ def detect_contacts(
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    was_near = late == 0 or start_near(near, p, lanes)
-    speed = wp.length(point_velocity[p])
-    reached = bool(False)
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
     candidate = int(-1)
     while wp.bvh_query_next(bodies, body):
         candidate += 1
         same = body == body_p
-        if candidate % lanes != lane or (same and not self_ok) or out_of_reach(near, body, was_near, speed, dt):
+        if candidate % lanes != lane or (same and not self_ok):
             continue
-        held = against_body(
-            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets, cells,
+        e, w, status, d, g, bound = walk_tree(
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
-            point_anchor, row_start, cols, depth, grad, late, found_out,
+            point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
-        reached = reached or held
-    if late == 0:
-        near.flag[tid] = int(reached)
+        if e >= 0:
+            answer_pending(
+                p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
+                tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth, grad,
+                found_out, late,
+            )  # fmt: skip
 
 
 @wp.kernel
@@ -606,7 +657,6 @@ def detect_contacts_direct(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    near: Nearness,
     # outputs
     found_out: Found,
 ):
@@ -623,27 +673,23 @@ def detect_contacts_direct(
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    was_near = late == 0 or start_near(near, p, lanes)
-    speed = wp.length(point_velocity[p])
-    reached = bool(False)
     candidate = int(-1)
     for body in range(body_lower.shape[0]):
         if overlaps(q, body_lower[body], body_upper[body]):
             candidate += 1
             same = body == body_p
-            if (
-                candidate % lanes == lane
-                and (self_ok or not same)
-                and not out_of_reach(near, body, was_near, speed, dt)
-            ):
-                held = against_body(
+            if candidate % lanes == lane and (self_ok or not same):
+                e, w, status, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    cells, tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
-                    point_velocity, point_anchor, row_start, cols, depth, grad, late, found_out,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    point_velocity, point_anchor, row_start, cols, depth, grad,
                 )  # fmt: skip
-                reached = reached or held
-    if late == 0:
-        near.flag[tid] = int(reached)
+                if e >= 0:
+                    answer_pending(
+                        p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
+                        tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth,
+                        grad, found_out, late,
+                    )  # fmt: skip
 
 
 @wp.func

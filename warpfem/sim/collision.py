@@ -19,7 +19,6 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import collision as K
-from warpfem.kernels import tree as T
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
@@ -53,12 +52,6 @@ DIRECT_BODIES = 16
 """Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
 a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of the detection launch and
 whose refit is a launch of its own each step (docs/decisions.md)."""
-
-NEAR_MARGIN = 0.02
-"""How far a step's first detection grows each body's tree boxes, as a share of the body's size: a late pass
-walks only the points whose walks then came that near another body's tets, or that move, with that body,
-half of it within the step (:class:`warpfem.kernels.collision.Nearness`; chosen by measurement,
-docs/decisions.md)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""
@@ -128,24 +121,17 @@ class Collider:
         self.node_upper = wp.zeros_like(self.node_lower)
         self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
-        self.lanes = DETECT_LANES if dev.is_cuda else 1
-        """Threads per collision point in contact detection, at most :data:`DETECT_LANES` (any count finds the same
-        contacts)."""
-        self.near = K.Nearness()
-        """What lets a late pass leave out walks that cannot find a contact (filled by the step's detection)."""
-        self.near.margin = wp.array([NEAR_MARGIN * b.size for b in model.bodies], dtype=float, device=dev)
-        self.near.body_speed = wp.zeros(len(model.bodies), dtype=float, device=dev)
-        self.near.flag = wp.zeros(n_points * DETECT_LANES, dtype=wp.int32, device=dev)
-        self._no_margin = wp.zeros(0, dtype=float, device=dev)
         self.direct = len(model.bodies) <= DIRECT_BODIES
         """Whether detection tests every body's box itself rather than querying a BVH of them."""
         self.body_bvh = None
         if not self.direct:
-            self._bound(model.rest_x, wp.zeros_like(model.rest_x), grow=True)  # the boxes the BVH is built from
+            self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.visible, self._dense_meshes = visible_surface(model)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
+        self.lanes = DETECT_LANES if dev.is_cuda else 1
+        """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -159,12 +145,11 @@ class Collider:
             device=self.model.device,
         )
 
-    def prepare(self, x: wp.array, v: wp.array, grow: bool = True) -> None:
+    def prepare(self, x: wp.array, v: wp.array) -> None:
         """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
 
         The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
-        inverses, the body trees (their boxes grown by the bodies' near margins with ``grow``, as a step's
-        first detection has them) and the body BVH. A step may run this alongside the elastic launch, on
+        inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
         another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
         """
         m = self.model
@@ -175,7 +160,7 @@ class Collider:
             outputs=[self.points, self.point_velocity, self.speed_max],
             device=m.device,
         )
-        self._bound(x, v, grow)
+        self._bound(x)
 
     def respond(
         self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, cleared: bool = False
@@ -210,7 +195,7 @@ class Collider:
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added. With ``base_out`` (the
         right-hand side and matrix without elasticity, which the rigid correction reads), there too.
         """
-        self.prepare(x, v, grow=False)
+        self.prepare(x, v)
         wp.launch(
             K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
         )
@@ -261,28 +246,14 @@ class Collider:
             device=dev,
         )
 
-    def _bound(self, x: wp.array, v: wp.array, grow: bool) -> None:
-        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH (if any) refitted.
-
-        With ``grow`` the boxes are grown by the bodies' near margins; the bodies' fastest corners in ``v``.
-        """
+    def _bound(self, x: wp.array) -> None:
+        """At positions ``x``: tet inverses and first corners, body trees and boxes, the body BVH (if any) refitted."""
         m = self.model
         threads = BODY_BLOCK if m.device.is_cuda else 1
-        margin = self.near.margin if grow else self._no_margin
         wp.launch_tiled(
-            T.refit_trees,
+            K.refit_trees,
             dim=[len(m.bodies)],
-            inputs=[
-                m.tets,
-                x,
-                self.body_tet_start,
-                self.node_start,
-                self.leaf_start,
-                self.leaf_tets,
-                v,
-                margin,
-                threads,
-            ],
+            inputs=[m.tets, x, self.body_tet_start, self.node_start, self.leaf_start, self.leaf_tets, threads],
             outputs=[
                 self.tet_inverse,
                 self.tet_origin,
@@ -290,7 +261,6 @@ class Collider:
                 self.node_upper,
                 self.body_lowers,
                 self.body_uppers,
-                self.near.body_speed,
             ],
             block_dim=threads,
             device=m.device,
@@ -352,7 +322,6 @@ class Collider:
                 lanes,
                 self.point_contact,
                 int(late),
-                self.near,
             ],
             outputs=[self.found],
             device=m.device,
