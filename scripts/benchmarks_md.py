@@ -164,6 +164,57 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     return lines
 
 
+def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
+    """The same scenes at an earlier commit on the same device within PEER_HOURS (``before-*.json``): speed and
+    the dense check side by side, before and after."""
+    env = data["environment"]
+    ours_at = datetime.fromisoformat(env["date"])
+    found = None
+    for candidate in sorted(RESULTS.glob("before-*.json")):
+        before = json.loads(candidate.read_text())
+        benv = before["environment"]
+        gap = abs((datetime.fromisoformat(benv["date"]) - ours_at).total_seconds())
+        if benv["device"] == env["device"] and gap <= PEER_HOURS * 3600:
+            found = (candidate, before)
+    if found is None:
+        return []
+    path, before = found
+    old = {(r["kind"], r["n"]): r for r in before["runs"]}
+    lines = [
+        "",
+        "## Before and after",
+        "",
+        f"`{path.name}`: commit `{before['environment']['commit'][:10]}` on the same device and driver, the same"
+        " day, each commit with its own scene defaults and its own preprocessing; dense penetration worst over the"
+        " timed frames / at their end, inside another body and below the ground, relative to the body's size, as"
+        " above.",
+        "",
+        "| scene | ms/frame before | after | after / before | inside another body, before | after"
+        " | below the ground, before | after | Newton ms/frame | speed-up after |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in data["runs"]:
+        b = old.get((r["kind"], r["n"]))
+        if b is None or "dense_check" not in b or "dense_check" not in r:
+            continue
+        peer_run = newton.get(r["n"]) if r["kind"] == "pile" else None
+        peer = (
+            f"{peer_run['ms_per_frame']:.1f} | {peer_run['ms_per_frame'] / r['ms_per_frame']:.1f}x"
+            if peer_run
+            else " |"
+        )
+        cells = []
+        for key in ("relative", "below_relative"):
+            for run in (b, r):
+                check = run["dense_check"]
+                cells.append(f"{100 * check['worst'][key]:.2f} / {100 * check['end'][key]:.2f} %")
+        lines.append(
+            f"| {scene_name(r)} | {b['ms_per_frame']:.2f} | {r['ms_per_frame']:.2f} | "
+            f"{r['ms_per_frame'] / b['ms_per_frame']:.2f}x | {' | '.join(cells)} | {peer} |"
+        )
+    return lines
+
+
 def tolerance_lines(data: dict) -> list[str]:
     """The paper scenes' CG tolerances against the error CG alone adds in one frame."""
     trade = [r for r in data["runs"] if "frame_error" in r and r["kind"] != "pile"]
@@ -277,6 +328,7 @@ def main() -> int:
     newton, used, peer = peer_runs(data["environment"])
     lines = header_lines(path, data, used, peer)
     lines += main_table_lines(data, newton)
+    lines += before_after_lines(data, newton)
     lines += tolerance_lines(data)
     lines += deviation_lines(data, newton)
     lines += cg_scale_lines(data)
