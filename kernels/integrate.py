@@ -12,7 +12,7 @@ points' velocity relative to its own surface's.
 import warp as wp
 
 from .embedding import interpolate
-from .grid import warp_sum_at
+from .grid import warp_max_at, warp_sum_at
 from .rigid import mark_pair
 
 # static collider kinds
@@ -26,6 +26,10 @@ FAR = 1.0e30
 
 # a tangential speed below this (m/s) counts as sticking when the friction coefficient is computed
 FRICTION_SPEED_EPS = 1.0e-3
+
+CLEAR_SLACK = 1.0e-6
+"""How much more clearance (m) than its reach a skin point needs for a late pass to leave it out: the depth
+tests' own float32 rounding (see :func:`late_skin_contacts`)."""
 
 FRICTION_TIE_RATIO = 4.0
 """The most a body-body contact's implicit friction may stiffen its tangential coupling, relative to the
@@ -246,6 +250,7 @@ def clear_step(
     late_skin: wp.array(dtype=wp.int32),
     contact_counts: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
+    body_speed: wp.array(dtype=float),
 ):
     """Zero every array a step accumulates into or counts in: one launch instead of a memset each."""
     i = wp.tid()
@@ -267,6 +272,8 @@ def clear_step(
         contact_counts[i] = 0
     if i < flags.shape[0]:
         flags[i] = 0
+    if i < body_speed.shape[0]:
+        body_speed[i] = 0.0
 
 
 @wp.kernel
@@ -375,6 +382,22 @@ def add_symmetric(
                 wp.atomic_add(matrix_out, slot, (w[a] * w[b]) * block)
 
 
+@wp.func
+def skin_clearance(c: Colliders, p: wp.vec3, w: wp.vec4, body: int, dt: float) -> float:
+    """How fast (times dt, m) the nodes of a skin point's cell may move in a step without carrying it to a collider.
+
+    The point (at ``p``, weights ``w``) lies ``-depth`` above each collider's offset, which moves at most
+    ``dt |v_c|`` towards it; the point itself moves at most ``sum |w_k|`` times its fastest node. A late
+    pass whose body's fastest node moves less than this within the step cannot find it crossing
+    (:func:`late_skin_contacts`).
+    """
+    clear = float(FAR)
+    for o in range(c.kind.shape[0]):
+        depth = offset_depth(c, o, collider_distance(c, o, p)[0], body)
+        clear = wp.min(clear, -depth - dt * wp.length(collider_velocity(c, o, p, dt)))
+    return clear / (wp.abs(w[0]) + wp.abs(w[1]) + wp.abs(w[2]) + wp.abs(w[3]))
+
+
 @wp.kernel
 def skin_colliders(
     x: wp.array(dtype=wp.vec3),
@@ -391,13 +414,15 @@ def skin_colliders(
     dt: float,
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
+    clear_out: wp.array(dtype=float),
 ):
     """The static colliders acting on the skin: dense vertices that lie outside the coarse tets.
 
     The same :func:`static_contact` as a vertex gets, at a point embedded in a cell (``x_p = sum w_k x_k``):
     its force goes to the cell's nodes by the weights ``w`` and its matrix term ``S`` to their blocks as
     ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
-    negative; the term stays symmetric positive semi-definite).
+    negative; the term stays symmetric positive semi-definite). With ``clear_out``, each point's clearance
+    there (:func:`skin_clearance`).
     """
     i = wp.tid()
     e = skin_cell[i]
@@ -413,6 +438,8 @@ def skin_colliders(
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
             add_symmetric(matrix_out, cell_slots, e, w, s)
+    if clear_out.shape[0] > 0:
+        clear_out[i] = skin_clearance(colliders, xp, w, body, dt)
 
 
 @wp.func
@@ -461,13 +488,17 @@ def late_vertex_contacts(
     rhs_out: wp.array(dtype=wp.vec3),
     matrix_base_out: wp.array(dtype=wp.mat33),
     rhs_base_out: wp.array(dtype=wp.vec3),
+    body_speed_out: wp.array(dtype=float),
 ):
     """:func:`late_contact` on each free tet vertex inside the visible surface not yet given one this step.
 
     Adds to its right-hand side and diagonal block (and to the system without elasticity, where
-    ``rhs_base_out`` is not empty), marks it in ``late_out`` and counts it in ``count_out[0]``.
+    ``rhs_base_out`` is not empty), marks it in ``late_out`` and counts it in ``count_out[0]``. Every vertex's
+    speed in ``v_new`` goes into its body's maximum in ``body_speed_out`` (where not empty).
     """
     i = wp.tid()
+    if body_speed_out.shape[0] > 0:
+        warp_max_at(wp.length(v_new[i]), vertex_body[i], body_speed_out)
     if free[i] == 0 or vertex_depth[i] < 0.0 or late_out[i] != 0:
         return
     b = vertex_body[i]
@@ -500,6 +531,8 @@ def late_skin_contacts(
     body_mass: wp.array(dtype=float),
     colliders: Colliders,
     dt: float,
+    clear: wp.array(dtype=float),
+    body_speed: wp.array(dtype=float),
     late_out: wp.array(dtype=wp.int32),
     count_out: wp.array(dtype=wp.int32),
     matrix_out: wp.array(dtype=wp.mat33),
@@ -511,15 +544,19 @@ def late_skin_contacts(
 
     Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
     cell's blocks (and to the system without elasticity, as :func:`late_vertex_contacts`); it is marked and
-    counted as there.
+    counted as there. A point whose ``clear`` ance at the step's start (:func:`skin_clearance`) its body's
+    fastest node this step (``body_speed``) cannot cover is left out unread: most of a body's skin, far from
+    any collider (none where ``clear`` is empty).
     """
     i = wp.tid()
     if late_out[i] != 0:
         return
     e = skin_cell[i]
+    body = cell_body[e]
+    if clear.shape[0] > 0 and clear[i] > dt * body_speed[body] + CLEAR_SLACK:
+        return
     t = cells[e]
     w = skin_bary[i]
-    body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
     for o in range(colliders.kind.shape[0]):
         f, s = late_contact(

@@ -306,10 +306,13 @@ def skin_colliders(
     dt: float,
     force_out: wp.array,
     matrix_out: wp.array,
+    clear_out: wp.array,
 ) -> None:
     """Add the static colliders' penalty and friction on the model's skin points to the forces and the matrix.
 
-    A launch over the skin points (dense vertices outside the coarse tets), none where there are none.
+    A launch over the skin points (dense vertices outside the coarse tets), none where there are none. Each
+    point's clearance from the colliders goes to ``clear_out`` where it is not empty (what lets a late pass
+    leave it out: ``kernels.integrate.skin_clearance``).
     """
     count = model.skin_cell.shape[0]
     if count == 0 or colliders.kind.shape[0] == 0:
@@ -331,7 +334,7 @@ def skin_colliders(
             colliders.arrays,
             dt,
         ],
-        outputs=[force_out, matrix_out],
+        outputs=[force_out, matrix_out, clear_out],
         device=model.device,
     )
 
@@ -349,13 +352,18 @@ def late_contacts(
     rhs_out: wp.array,
     matrix_base_out: wp.array,
     rhs_base_out: wp.array,
+    clear: wp.array,
+    body_speed: wp.array,
 ) -> None:
     """Add to the system the static contacts that a solve's ``v_new`` crosses unseen (see ``kernels.integrate``).
 
     Also to the system without elasticity ``matrix_base_out`` and ``rhs_base_out`` where those are not empty.
 
     ``late`` marks the tet vertices and skin points already given one this step (zero them at its start);
-    ``count_out[0]`` counts those added.
+    ``count_out[0]`` counts those added. ``clear``: the skin points' clearances from this step's
+    :func:`skin_colliders`, and ``body_speed`` each body's fastest vertex in the step's answers so far (zero it
+    at the step's start; the vertex launch raises it): the skin points those speeds cannot carry to a collider
+    are left out (none where ``clear`` is empty).
     """
     c = colliders
     wp.launch(
@@ -363,7 +371,7 @@ def late_contacts(
         dim=model.vertex_count,
         inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.arrays,
                 model.vertex_body, momentum, model.body_mass, dt],
-        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
+        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out, body_speed],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )  # fmt: skip
@@ -372,7 +380,8 @@ def late_contacts(
             K.late_skin_contacts,
             dim=model.skin_cell.shape[0],
             inputs=[state.x, state.v, v_new, model.cells, model.cell_slots, model.free, model.skin_cell,
-                    model.skin_bary, model.skin_mass, model.cell_body, momentum, model.body_mass, c.arrays, dt],
+                    model.skin_bary, model.skin_mass, model.cell_body, momentum, model.body_mass, c.arrays, dt,
+                    clear, body_speed],
             outputs=[late[1], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
             device=model.device,
         )  # fmt: skip

@@ -188,11 +188,17 @@ class Solver:
         first += updates * bodies
         self.late_body = self.flags[first : first + bodies] if passes else self._no_int
         """Per body, whether a late solve moves it (a late contact touched it, or it touches another body)."""
+        skin = self.model.skin_cell.shape[0] if static else 0
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
-            wp.zeros(self.model.skin_cell.shape[0] if static else 0, dtype=wp.int32, device=dev),
+            wp.zeros(skin, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
+        self.skin_clear = wp.zeros(skin if passes else 0, dtype=float, device=dev)
+        """Per skin point, how far its cell's nodes may move in the step without carrying it to a static collider
+        (what lets a late pass leave it out: ``kernels.integrate.skin_clearance``)."""
+        self.body_speed = wp.zeros(bodies if skin and passes else 0, dtype=float, device=dev)
+        """Per body, its fastest vertex in the step's answers so far (the late passes' reach)."""
 
     def _list_cleared(self) -> None:
         """List what a step zeroes before it accumulates and counts, in one launch.
@@ -210,6 +216,7 @@ class Solver:
             *self.late,
             collider.counts if collider is not None else self._no_int,
             self.flags,
+            self.body_speed,
         ]
         self._cleared_dim = max(a.shape[0] for a in self._cleared)
 
@@ -273,7 +280,9 @@ class Solver:
         model = self.model
         if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
             integrate.body_momentum(model, state_in, self.momentum)
-        integrate.skin_colliders(model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base)
+        integrate.skin_colliders(
+            model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base, self.skin_clear
+        )
         apart = self.apart
         integrate.build_system(
             model,
@@ -362,7 +371,7 @@ class Solver:
                 integrate.late_contacts(
                     self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
                     self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
-                    self.rhs_base if base else self._no_vec3,
+                    self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed,
                 )  # fmt: skip
             if self.collider is not None and k < LATE_BODY_PASSES:
                 bases = (self.rhs_base, self.matrix_base) if base else None
