@@ -384,11 +384,11 @@ def add_symmetric(
 
 @wp.func
 def skin_clearance(c: Colliders, p: wp.vec3, w: wp.vec4, body: int, dt: float) -> float:
-    """How fast (times dt, m) the nodes of a skin point's cell may move in a step without carrying it to a collider.
+    """How far (m) the nodes of a skin point's cell may move within a step without carrying it onto a collider.
 
     The point (at ``p``, weights ``w``) lies ``-depth`` above each collider's offset, which moves at most
-    ``dt |v_c|`` towards it; the point itself moves at most ``sum |w_k|`` times its fastest node. A late
-    pass whose body's fastest node moves less than this within the step cannot find it crossing
+    ``dt |v_c|`` towards it; the point itself moves at most ``sum |w_k|`` times as far as its fastest node. A
+    late pass whose body's fastest node moves less than this within the step cannot find it crossing
     (:func:`late_skin_contacts`).
     """
     clear = float(FAR)
@@ -544,9 +544,9 @@ def late_skin_contacts(
 
     Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
     cell's blocks (and to the system without elasticity, as :func:`late_vertex_contacts`); it is marked and
-    counted as there. A point whose ``clear`` ance at the step's start (:func:`skin_clearance`) its body's
-    fastest node this step (``body_speed``) cannot cover is left out unread: most of a body's skin, far from
-    any collider (none where ``clear`` is empty).
+    counted as there. A point is left out unread where its clearance at the step's start (``clear``,
+    :func:`skin_clearance`) is more than its body's fastest node (``body_speed``, m/s) moves within the step:
+    most of a body's skin, far from any collider (none is left out where ``clear`` is empty).
     """
     i = wp.tid()
     if late_out[i] != 0:
