@@ -209,8 +209,12 @@ def within_step(depth: float, n: wp.vec3, vp: wp.vec3, v_body: wp.vec3, g: wp.ve
 
 
 @wp.func
-def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float):
+def contact_from(
+    c: Colliders, o: int, dn: wp.vec4, vc: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float
+):
     """Collider ``o``'s penalty force and matrix term on a point of mass ``m`` of body ``body`` (zero if none).
+
+    ``dn``: the point's :func:`collider_distance`; ``vc``: :func:`collider_velocity` there.
 
     The collider (stiffness k per unit mass and friction mu in its ``response``) acts on a point that ends the
     step below its surface at its own speed or at its body's, which drags it along, relative to the surface's
@@ -220,12 +224,10 @@ def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec
     surface's tangential speed, c = mu k m depth / |v_t|. The depth counts from the collider's offset above its
     surface (:func:`offset_depth`).
     """
-    dn = collider_distance(c, o, p)
     n = wp.vec3(dn[1], dn[2], dn[3])
     depth = offset_depth(c, o, dn[0], body)
     force = wp.vec3()
     block = wp.mat33()
-    vc = collider_velocity(c, o, p, dt)
     if within_step(depth, n, vp - vc, v_body - vc, c.gravity[0], dt):
         response = c.response[o]
         k = response[0] * m
@@ -237,6 +239,12 @@ def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec
         force = k * (pen + dt * wp.dot(n, vc)) * n + friction * (tangent * vc)
         block = dt * dt * k * nn + dt * friction * tangent
     return force, block
+
+
+@wp.func
+def static_contact(c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float):
+    """Collider ``o``'s penalty force and matrix term on a point at ``p`` (:func:`contact_from`)."""
+    return contact_from(c, o, collider_distance(c, o, p), collider_velocity(c, o, p, dt), vp, v_body, m, body, dt)
 
 
 @wp.kernel
@@ -382,22 +390,6 @@ def add_symmetric(
                 wp.atomic_add(matrix_out, slot, (w[a] * w[b]) * block)
 
 
-@wp.func
-def skin_clearance(c: Colliders, p: wp.vec3, w: wp.vec4, body: int, dt: float) -> float:
-    """How far (m) the nodes of a skin point's cell may move within a step without carrying it onto a collider.
-
-    The point (at ``p``, weights ``w``) lies ``-depth`` above each collider's offset, which moves at most
-    ``dt |v_c|`` towards it; the point itself moves at most ``sum |w_k|`` times as far as its fastest node. A
-    late pass whose body's fastest node moves less than this within the step cannot find it crossing
-    (:func:`late_skin_contacts`).
-    """
-    clear = float(FAR)
-    for o in range(c.kind.shape[0]):
-        depth = offset_depth(c, o, collider_distance(c, o, p)[0], body)
-        clear = wp.min(clear, -depth - dt * wp.length(collider_velocity(c, o, p, dt)))
-    return clear / (wp.abs(w[0]) + wp.abs(w[1]) + wp.abs(w[2]) + wp.abs(w[3]))
-
-
 @wp.kernel
 def skin_colliders(
     x: wp.array(dtype=wp.vec3),
@@ -421,8 +413,12 @@ def skin_colliders(
     The same :func:`static_contact` as a vertex gets, at a point embedded in a cell (``x_p = sum w_k x_k``):
     its force goes to the cell's nodes by the weights ``w`` and its matrix term ``S`` to their blocks as
     ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
-    negative; the term stays symmetric positive semi-definite). With ``clear_out``, each point's clearance
-    there (:func:`skin_clearance`).
+    negative; the term stays symmetric positive semi-definite).
+
+    With ``clear_out``, each point's clearance: how far (m) its cell's nodes may move within the step without
+    carrying it onto a collider. It lies ``-depth`` above each collider's offset, which moves at most
+    ``dt |v_c|`` towards it, and moves at most ``sum |w_k|`` times as far as its fastest node; a late pass
+    whose body's fastest node moves less than that cannot find it crossing (:func:`late_skin_contacts`).
     """
     i = wp.tid()
     e = skin_cell[i]
@@ -432,14 +428,18 @@ def skin_colliders(
     vp = interpolate(v, t, w)
     body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
+    clear = float(FAR)
     for o in range(colliders.kind.shape[0]):
-        f, s = static_contact(colliders, o, xp, vp, v_body, skin_mass[i], body, dt)
+        dn = collider_distance(colliders, o, xp)
+        vc = collider_velocity(colliders, o, xp, dt)
+        f, s = contact_from(colliders, o, dn, vc, vp, v_body, skin_mass[i], body, dt)
         if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
             for c in range(4):
                 wp.atomic_add(force_out, t[c], w[c] * f)
             add_symmetric(matrix_out, cell_slots, e, w, s)
+        clear = wp.min(clear, -offset_depth(colliders, o, dn[0], body) - dt * wp.length(vc))
     if clear_out.shape[0] > 0:
-        clear_out[i] = skin_clearance(colliders, xp, w, body, dt)
+        clear_out[i] = clear / (wp.abs(w[0]) + wp.abs(w[1]) + wp.abs(w[2]) + wp.abs(w[3]))
 
 
 @wp.func
@@ -544,8 +544,8 @@ def late_skin_contacts(
 
     Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
     cell's blocks (and to the system without elasticity, as :func:`late_vertex_contacts`); it is marked and
-    counted as there. A point is left out unread where its clearance at the step's start (``clear``,
-    :func:`skin_clearance`) is more than its body's fastest node (``body_speed``, m/s) moves within the step:
+    counted as there. A point is left out unread where its clearance at the step's start (``clear``, from
+    :func:`skin_colliders`) is more than its body's fastest node (``body_speed``, m/s) moves within the step:
     most of a body's skin, far from any collider (none is left out where ``clear`` is empty).
     """
     i = wp.tid()

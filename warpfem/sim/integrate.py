@@ -312,7 +312,7 @@ def skin_colliders(
 
     A launch over the skin points (dense vertices outside the coarse tets), none where there are none. Each
     point's clearance from the colliders goes to ``clear_out`` where it is not empty (what lets a late pass
-    leave it out: ``kernels.integrate.skin_clearance``).
+    leave it out: ``kernels.integrate.skin_colliders``).
     """
     count = model.skin_cell.shape[0]
     if count == 0 or colliders.kind.shape[0] == 0:

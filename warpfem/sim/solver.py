@@ -196,7 +196,7 @@ class Solver:
         """Which tet vertices and skin points got a late static contact this step."""
         self.skin_clear = wp.zeros(skin if passes else 0, dtype=float, device=dev)
         """Per skin point, how far its cell's nodes may move in the step without carrying it to a static collider
-        (what lets a late pass leave it out: ``kernels.integrate.skin_clearance``)."""
+        (what lets a late pass leave it out: ``kernels.integrate.skin_colliders``)."""
         self.body_speed = wp.zeros(bodies if skin and passes else 0, dtype=float, device=dev)
         """Per body, its fastest vertex in the step's answers so far (the late passes' reach)."""
 
