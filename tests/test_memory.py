@@ -50,12 +50,13 @@ def test_a_mesh_obstacle_is_counted_at_least_as_warp_allocates_it():
     vertices, faces = np.asarray(ball.vertices), np.asarray(ball.faces)
     obstacle = MeshCollider(vertices, faces, closed=True)
     wp.init()
-    StaticColliders([MeshCollider(np.eye(3), np.array([[0, 1, 2]]))], "cpu", [1.0])  # Warp's first use allocates too
+    size = wp.array([1.0], dtype=float, device="cpu")
+    StaticColliders([MeshCollider(np.eye(3), np.array([[0, 1, 2]]))], "cpu", size)  # Warp's first use allocates too
     gc.collect()  # nothing of earlier tests freed while counting
     gc.disable()
     try:
         before = in_use()
-        colliders = StaticColliders([obstacle], "cpu", [1.0])
+        colliders = StaticColliders([obstacle], "cpu", size)
         kept = in_use() - before
     finally:
         gc.enable()

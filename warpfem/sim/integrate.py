@@ -154,12 +154,13 @@ class StaticColliders:
 
     ``arrays`` is the :class:`warpfem.kernels.integrate.Colliders` the kernels take; ``moving`` lists the
     moving colliders as ``(index, motion, rest rotation, rest translation)`` for :class:`~warpfem.sim.drive.Drive`.
-    ``body_size``: each body's size (m), which the colliders' offsets are shares of. ``gravity``: the solver's
+    ``body_size``: each body's size (m; :attr:`Model.body_size <warpfem.sim.model.Model>`), which the colliders'
+    offsets are shares of, read where it is. ``gravity``: the solver's
     one-element gravity array (m/s^2), read by the speculative contact test (None: no gravity).
     """
 
     def __init__(
-        self, colliders: Sequence[Collider], device, body_size: Sequence[float], gravity: wp.array | None = None
+        self, colliders: Sequence[Collider], device, body_size: wp.array, gravity: wp.array | None = None
     ) -> None:
         self.colliders = list(colliders)
         kind, center, rotation, size, response, meshes, self.moving = [], [], [], [], [], [], []
@@ -208,7 +209,7 @@ class StaticColliders:
         a.moving = arr([int(getattr(c, "motion", None) is not None) for c in colliders], wp.int32, 0)
         a.size = arr(size, wp.vec3, 3)
         a.response = arr(response, wp.vec3, 3)
-        a.body_size = wp.array(np.asarray(body_size, np.float32), dtype=float, device=device)
+        a.body_size = body_size
         a.mesh = arr(meshes, wp.uint64, 0)
         a.face_start = arr(face_start, wp.int32, 0)
         a.open_edges = wp.array(np.concatenate(open_edges).astype(np.int32), dtype=wp.int32, device=device)

@@ -124,7 +124,7 @@ class Solver:
         """Per rotation update, how far each body's tets turned (:class:`~warpfem.sim.fem.TurnCheck`)."""
         self._turn_check = fem.TurnCheck(model, rotation_updates > 0)
         self.colliders = StaticColliders(
-            [*([ground] if ground is not None else []), *obstacles], dev, [b.size for b in model.bodies], self.gravity
+            [*([ground] if ground is not None else []), *obstacles], dev, model.body_size, self.gravity
         )
         still = static_lift and self.colliders.kind.shape[0] > len(self.colliders.moving)
         self.static_lift = still and model.skin_cell.shape[0] > 0
