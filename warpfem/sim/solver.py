@@ -58,8 +58,8 @@ class Solver:
             solve again from that answer (a solve only where some were found, of the bodies they touched and
             those touching another body: a body on its own that none touched keeps its answer, as it would
             alone); 0: none. The first :data:`LATE_BODY_PASSES` look between bodies too, the others at the
-            static colliders. Each pass costs a look at every collision point and, where contacts were added,
-            a warm-started solve.
+            static colliders. A pass runs only after the one before it solved (the first: always); each costs a
+            look at every collision point and, where contacts were added, a warm-started solve.
         cg_path: How CG runs (:data:`warpfem.sim.cg.MODES`): "grid" (one persistent launch per solve) or
             "launches" (two launches per iteration), optionally "grid:B" for B blocks; None: the default
             (:data:`warpfem.sim.cg.DEFAULT_MODE`).
@@ -360,34 +360,39 @@ class Solver:
         if k < self.rotation_updates:
             self._update_rotations(state_in, state_out, dt, k + 1)
 
-    def _late_passes(self, state_in: State, state_out: State, dt: float) -> None:
-        """The contact passes: contacts the answer makes that the step did not count, and a solve where any."""
-        if not self.contact_passes:
+    def _late_passes(self, state_in: State, state_out: State, dt: float, k: int = 0) -> None:
+        """The k-th contact pass: contacts the answer makes that the step did not count, and a solve where any.
+
+        The next pass runs only after such a solve: an answer a pass found nothing in would show the next
+        pass nothing either.
+        """
+        if k >= self.contact_passes:
             return
         base = self.rigid is not None and self.rigid.needed(dt)  # the rigid correction reads the late contacts
-        for k in range(self.contact_passes):
-            count = self.late_count[k]
-            if self.colliders.kind.shape[0]:
-                integrate.late_contacts(
-                    self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
-                    self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
-                    self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed,
-                )  # fmt: skip
-            if self.collider is not None and k < LATE_BODY_PASSES:
-                bases = (self.rhs_base, self.matrix_base) if base else None
-                self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases)
-            wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt))
+        count = self.late_count[k]
+        if self.colliders.kind.shape[0]:
+            integrate.late_contacts(
+                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
+                self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
+                self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed,
+            )  # fmt: skip
+        if self.collider is not None and k < LATE_BODY_PASSES:
+            bases = (self.rhs_base, self.matrix_base) if base else None
+            self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases)
+        wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt, k))
 
-    def _solve_again(self, state_in: State, state_out: State, dt: float) -> None:
-        """Solve again for the bodies the late contacts touched; the others keep their answer as it is.
+    def _solve_again(self, state_in: State, state_out: State, dt: float, k: int) -> None:
+        """Solve again for the bodies the k-th pass's contacts touched, then run the next pass.
 
-        Without deflation: where it is needed, the rigid correction is too, so the late contacts enter the
-        system without elasticity and mark their bodies as touching, which deflation leaves alone anyway.
+        The other bodies keep their answer as it is. Without deflation: where it is needed, the rigid correction
+        is too, so the late contacts enter the system without elasticity and mark their bodies as touching,
+        which deflation leaves alone anyway.
         """
         integrate.moving_bodies(self.model, self.late, self.cg.pairs, self.late_body)
         integrate.refresh_preconditioner(self.model, self.matrix, self.diag_inv, self.late_body)
         self.cg.solve(self.matrix, self.diag_inv, self.rhs, state_out.v)
         self._finish(state_in, state_out, dt)
+        self._late_passes(state_in, state_out, dt, k + 1)
 
     def lift_dense(self, state: State) -> None:
         """Lift every dense vertex of ``state`` out of the still colliders as a step lifts the skin points.
