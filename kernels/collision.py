@@ -91,14 +91,18 @@ def collision_points(
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     point_body: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    capacity: int,
     points_out: wp.array(dtype=wp.vec3),
     point_velocity_out: wp.array(dtype=wp.vec3),
     speed_max_out: wp.array(dtype=float),
+    first_out: wp.array(dtype=wp.int32),
 ):
     """Collision point positions and velocities (interpolated like the dense mesh); per body the top speed.
 
     The speed is an atomic max per body, one per warp where the warp's points are one body's (the points are
     stored body after body), attempted only when above the value already there (:func:`kernels.grid.warp_max_at`).
+    A late pass's (``first_out`` not empty): where its contacts start in the buffers, ``min(count, capacity)``.
     """
     i = wp.tid()
     t = cells[point_cell[i]]
@@ -108,6 +112,8 @@ def collision_points(
     point_velocity_out[i] = u
     speed = wp.length(u)
     warp_max_at(speed, point_body[i], speed_max_out)
+    if i == 0 and first_out.shape[0] > 0:
+        first_out[0] = wp.min(count[0], capacity)
 
 
 BLOCK_SYNC = r"""
@@ -783,12 +789,6 @@ def contact_forces(
         wp.atomic_add(force_out, tt[k], -w_t[k] * f)
         wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
         wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
-
-
-@wp.kernel
-def late_begin(count: wp.array(dtype=wp.int32), capacity: int, first_out: wp.array(dtype=wp.int32)):
-    """Where a late pass's contacts start in the buffers: after those found so far (at most the capacity)."""
-    first_out[0] = wp.min(count[0], capacity)
 
 
 @wp.kernel

@@ -82,6 +82,7 @@ class Collider:
         """How many contacts the step found, and where those being answered start in the buffers (0, or a late
         pass's first): ``count`` and ``first``, views of it."""
         self.count, self.first = self.counts[0:1], self.counts[1:2]
+        self._first = (wp.zeros(0, dtype=wp.int32, device=dev), self.first)  # what a prepare sets: nothing, first
         self._late_again = wp.zeros(1, dtype=wp.int32, device=dev)  # the count of a late pass answered twice
         self.contact_point = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
         self.contact_cell = wp.zeros(self.capacity, dtype=wp.int32, device=dev)
@@ -145,19 +146,20 @@ class Collider:
             device=self.model.device,
         )
 
-    def prepare(self, x: wp.array, v: wp.array) -> None:
+    def prepare(self, x: wp.array, v: wp.array, late: bool = False) -> None:
         """What detection needs at positions ``x`` and velocities ``v`` that the elastic launch does not touch.
 
         The collision points and their velocities (the tet fields interpolated like the dense mesh), the tet
         inverses, the body trees and the body BVH. A step may run this alongside the elastic launch, on
-        another stream (see ``Solver.phases``); :meth:`respond` needs it done first.
+        another stream (see ``Solver.phases``); :meth:`respond` needs it done first. ``late``: for a late pass,
+        which also sets where its contacts start in the buffers (``first``).
         """
         m = self.model
         wp.launch(
             K.collision_points,
             dim=self.points.shape[0],
-            inputs=[m.cells, x, v, m.point_cell, m.point_bary, m.point_body],
-            outputs=[self.points, self.point_velocity, self.speed_max],
+            inputs=[m.cells, x, v, m.point_cell, m.point_bary, m.point_body, self.count, self.capacity],
+            outputs=[self.points, self.point_velocity, self.speed_max, self._first[late]],
             device=m.device,
         )
         self._bound(x)
@@ -195,10 +197,7 @@ class Collider:
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added. With ``base_out`` (the
         right-hand side and matrix without elasticity, which the rigid correction reads), there too.
         """
-        self.prepare(x, v)
-        wp.launch(
-            K.late_begin, dim=1, inputs=[self.count, self.capacity], outputs=[self.first], device=self.model.device
-        )
+        self.prepare(x, v, late=True)
         self._detect(x, v, dt, late=True)
         self._answer(v, dt, rhs_out, matrix_out, count_out)
         if base_out is not None:
