@@ -360,8 +360,7 @@ def test_tet_trees_refuse_a_body_deeper_than_the_walk_can_keep(monkeypatch):
 
 @pytest.mark.parametrize("bodies", ["direct", "bvh"])
 @pytest.mark.parametrize("cells", [(1, 1, 1), (3, 4, 3), (5, 4, 5)])
-@pytest.mark.parametrize("lanes", [1, 2, 4])
-def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells, bodies, monkeypatch):
+def test_detection_finds_exactly_the_points_inside_other_bodies(device, cells, bodies, monkeypatch):
     """Against a NumPy barycentric test of every collision point against every tet it may collide with.
 
     With the bodies' boxes tested directly (few bodies) and through a BVH of them (many: forced here).
@@ -395,7 +394,6 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
     v = wp.zeros_like(xs)
     rotation = wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device)
     c = solver.collider
-    c.lanes = lanes  # threads per point, each walking a share of the bodies whose boxes hold it
     c.rotate_gradients(rotation)
     c.prepare(xs, v)
     c.respond(xs, v, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix))

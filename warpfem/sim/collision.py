@@ -43,11 +43,6 @@ class CollisionSettings:
 
 DEFAULT_COLLISION = CollisionSettings()
 
-DETECT_LANES = 4
-"""Threads per collision point of contact detection on CUDA, each walking every fourth of the bodies whose
-boxes hold the point (one thread on the CPU, where parallel lanes buy nothing). Chosen by measurement on an
-H100 (docs/decisions.md)."""
-
 DIRECT_BODIES = 16
 """Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
 a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of the detection launch and
@@ -131,8 +126,6 @@ class Collider:
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.visible, self._dense_meshes = visible_surface(model)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
-        self.lanes = DETECT_LANES if dev.is_cuda else 1
-        """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -285,11 +278,10 @@ class Collider:
     def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
         """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
         m = self.model
-        lanes = self.lanes
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
             K.detect_contacts_direct if self.direct else K.detect_contacts,
-            dim=self.points.shape[0] * lanes,
+            dim=self.points.shape[0],
             inputs=[
                 *bodies,
                 self.node_start,
@@ -318,7 +310,6 @@ class Collider:
                 m.cols,
                 m.vertex_depth,
                 self.grad,
-                lanes,
                 self.point_contact,
                 int(late),
             ],
