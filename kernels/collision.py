@@ -586,6 +586,7 @@ def detect_contacts(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
+    lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
     # outputs
@@ -595,10 +596,13 @@ def detect_contacts(
 
     The body BVH gives the bodies the point may collide with (another body, or its own if that collides
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
-    own body, which it lies among, unless that body collides with itself. One thread a point walks them in
-    turn. Each contact goes to ``found_out`` (:class:`Found`).
+    own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
+    each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
+    Each contact goes to ``found_out`` (:class:`Found`).
     """
-    p = wp.tid()
+    tid = wp.tid()
+    p = tid // lanes
+    lane = tid - p * lanes
     if late != 0 and point_contact[p] != 0:
         return
     q = points[p]
@@ -606,9 +610,11 @@ def detect_contacts(
     self_ok = body_self[body_p] != 0
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
+    candidate = int(-1)
     while wp.bvh_query_next(bodies, body):
+        candidate += 1
         same = body == body_p
-        if same and not self_ok:
+        if candidate % lanes != lane or (same and not self_ok):
             continue
         e, w, status, d, g, bound = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
@@ -654,6 +660,7 @@ def detect_contacts_direct(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
+    lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
     # outputs
@@ -662,18 +669,22 @@ def detect_contacts_direct(
     """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
 
     No body BVH to refit or query (whose traversal stack takes shared memory in every block); the candidates
-    are the bodies in index order.
+    are the bodies in index order, shared among ``lanes`` threads as there.
     """
-    p = wp.tid()
+    tid = wp.tid()
+    p = tid // lanes
+    lane = tid - p * lanes
     if late != 0 and point_contact[p] != 0:
         return
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
+    candidate = int(-1)
     for body in range(body_lower.shape[0]):
         if overlaps(q, body_lower[body], body_upper[body]):
+            candidate += 1
             same = body == body_p
-            if self_ok or not same:
+            if candidate % lanes == lane and (self_ok or not same):
                 e, w, status, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,

@@ -360,7 +360,8 @@ def test_tet_trees_refuse_a_body_deeper_than_the_walk_can_keep(monkeypatch):
 
 @pytest.mark.parametrize("bodies", ["direct", "bvh"])
 @pytest.mark.parametrize("cells", [(1, 1, 1), (3, 4, 3), (5, 4, 5)])
-def test_detection_finds_exactly_the_points_inside_other_bodies(device, cells, bodies, monkeypatch):
+@pytest.mark.parametrize("lanes", [1, 2, 4])
+def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, cells, bodies, monkeypatch):
     """Against a NumPy barycentric test of every collision point against every tet it may collide with.
 
     With the bodies' boxes tested directly (few bodies) and through a BVH of them (many: forced here).
@@ -394,6 +395,7 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, cells, b
     v = wp.zeros_like(xs)
     rotation = wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device)
     c = solver.collider
+    c.lanes = lanes  # threads per point, each walking a share of the bodies whose boxes hold it
     c.rotate_gradients(rotation)
     c.prepare(xs, v)
     c.respond(xs, v, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix))
@@ -458,3 +460,12 @@ def test_top_speed_per_body_matches_numpy(device):
     expected = np.array([speed[body == k].max() for k in range(3)])
     np.testing.assert_allclose(c.read_speeds(), expected, rtol=1e-5)
     assert not c.read_speeds().any()  # reset by the read
+
+
+def test_detection_shares_points_among_lanes_only_where_they_leave_the_device_idle():
+    """Up to four threads a collision point while the points number under 1024 per SM; one where they fill it."""
+    from warpfem.sim.collision import detect_lanes
+
+    h200 = type("Device", (), {"is_cuda": True, "sm_count": 132})()
+    assert [detect_lanes(n, h200) for n in (1, 22_464, 36_916, 67_584, 89_856, 1_437_696)] == [4, 4, 3, 2, 1, 1]
+    assert detect_lanes(22_464, wp.get_device("cpu")) == 1

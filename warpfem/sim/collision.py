@@ -43,6 +43,27 @@ class CollisionSettings:
 
 DEFAULT_COLLISION = CollisionSettings()
 
+DETECT_LANES = 4
+"""The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the
+bodies whose boxes hold the point (:func:`detect_lanes`)."""
+
+DETECT_FILL = 1024
+"""Threads per SM that contact detection aims at: where the collision points are fewer than this times the
+SMs, lanes share each point's bodies so that the launch fills the device; where they are more, a point has one
+thread, since lanes then only add threads waiting on loads. Chosen by measurement on an H200
+(docs/decisions.md)."""
+
+
+def detect_lanes(points: int, device) -> int:
+    """Threads per collision point of contact detection for ``points`` points on ``device`` (1 on the CPU).
+
+    Any count finds the same contacts.
+    """
+    if not device.is_cuda:
+        return 1
+    return max(1, min(DETECT_LANES, device.sm_count * DETECT_FILL // max(points, 1)))
+
+
 DIRECT_BODIES = 16
 """Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
 a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of the detection launch and
@@ -126,6 +147,8 @@ class Collider:
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         self.visible, self._dense_meshes = visible_surface(model)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
+        self.lanes = detect_lanes(n_points, dev)
+        """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -278,10 +301,11 @@ class Collider:
     def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
         """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
         m = self.model
+        lanes = self.lanes
         bodies = [self.body_lowers, self.body_uppers] if self.direct else [self.body_bvh.id]
         wp.launch(
             K.detect_contacts_direct if self.direct else K.detect_contacts,
-            dim=self.points.shape[0],
+            dim=self.points.shape[0] * lanes,
             inputs=[
                 *bodies,
                 self.node_start,
@@ -310,6 +334,7 @@ class Collider:
                 m.cols,
                 m.vertex_depth,
                 self.grad,
+                lanes,
                 self.point_contact,
                 int(late),
             ],
