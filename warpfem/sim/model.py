@@ -275,36 +275,18 @@ barycentric weight is below minus this lies outside the tets, a skin point the s
 (inside the tets, where the weights are convex, the corners' own contacts already keep it out of the ground)."""
 
 
-def space_order(points: np.ndarray) -> np.ndarray:
-    """The order of ``points`` (n, 3) along a Z-order curve through their bounding box (1,024 cells a side).
-
-    Points next to each other in that order are near each other in space, so the threads of a warp that take
-    them read the same tets and walk the same tree branches.
-    """
-    if len(points) == 0:
-        return np.zeros(0, np.int64)
-    lo = points.min(axis=0)
-    cells = ((points - lo) * (1023.0 / max(float(np.ptp(points, axis=0).max()), 1e-30))).astype(np.int64)
-    code = np.zeros(len(points), np.int64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return np.argsort(code, kind="stable")
-
-
 def _embedded_points(
     g: BodyArrays,
     tets: np.ndarray,
-    vertices: np.ndarray,
     corner_mass: np.ndarray,
     embed_tet: np.ndarray | None,
     embed_bary: np.ndarray | None,
-    quadratic: bool,
+    quadratic_at: np.ndarray | None,
 ) -> dict[str, np.ndarray]:
     """A body's embedded points (dense vertices, skin and collision points) in its cells, and their masses.
 
-    The skin and collision points in space order (:func:`space_order`). ``quadratic``: quadratic tets, whose
-    vertices after the corners are edge nodes; the points then go to the sub-tets (:mod:`warpfem.sim.cells`).
+    ``quadratic_at``: for quadratic tets, the vertices whose shortest octahedron diagonals cut each tet into its
+    sub-tets (:mod:`warpfem.sim.cells`); None: linear tets, their own cells.
     """
     point_bary = np.asarray(g.point_bary, np.float64)
     embed_tet = np.zeros(0, np.int32) if embed_tet is None else np.asarray(embed_tet, np.int32)
@@ -316,19 +298,15 @@ def _embedded_points(
         skin = embed_bary.min(axis=1) < -SKIN_WEIGHT if len(embed_tet) else np.zeros(0, bool)
         skin_tet, skin_bary = embed_tet[skin], embed_bary[skin]
         skin_mass = np.full(len(skin_tet), corner_mass.sum() / max(len(embed_tet), 1))
-    point_tet, point_anchor = np.asarray(g.point_tet, np.int32), np.asarray(g.point_anchor, np.int32)
-    order = space_order(np.einsum("pk,pkj->pj", point_bary, vertices[tets[point_tet]]))
-    point_tet, point_bary, point_anchor = point_tet[order], point_bary[order], point_anchor[order]
-    skin = space_order(np.einsum("pk,pkj->pj", skin_bary, vertices[tets[skin_tet]]))
-    skin_tet, skin_bary, skin_mass = skin_tet[skin], skin_bary[skin], skin_mass[skin]
+    point_tet = np.asarray(g.point_tet, np.int32)
     if g.dense_points:  # samples of the visible surface: equal shares of the body's mass
         point_mass = np.full(len(point_tet), corner_mass.sum() / max(len(point_tet), 1))
     else:
         point_mass = np.einsum("pk,pk->p", point_bary, corner_mass[tets[point_tet]])
     embed_cell, skin_cell, point_cell = embed_tet, skin_tet, point_tet  # linear tets are their own cells
     diagonal = np.zeros(0, np.int8)
-    if quadratic:  # every embedded point in its sub-tet
-        diagonal = shortest_diagonals(vertices, tets)
+    if quadratic_at is not None:  # every embedded point in its sub-tet
+        diagonal = shortest_diagonals(quadratic_at, tets)
         embed_cell, embed_bary = sub_cells(embed_tet, embed_bary, diagonal)
         skin_cell, skin_bary = sub_cells(skin_tet, skin_bary, diagonal)
         point_cell, point_bary = sub_cells(point_tet, point_bary, diagonal)
@@ -341,7 +319,6 @@ def _embedded_points(
         point_cell=point_cell,
         point_bary=point_bary,
         point_mass=point_mass,
-        point_anchor=point_anchor,
         diagonal=diagonal,
     )
 
@@ -481,7 +458,9 @@ class ModelBuilder:
         free = mass > 0.0
         if pinned is not None:
             free &= ~np.asarray(pinned, dtype=bool)
-        embedded = _embedded_points(g, tets, vertices, corner_mass, embed_tet, embed_bary, tet_edges is not None)
+        embedded = _embedded_points(
+            g, tets, corner_mass, embed_tet, embed_bary, vertices if tet_edges is not None else None
+        )
         self._bodies.append(
             dict(
                 name=name,
@@ -502,6 +481,7 @@ class ModelBuilder:
                 edges=np.zeros((0, 6), np.int32) if tet_edges is None else tet_edges,
                 size=size,
                 self_collision=bool(self_collision),
+                point_anchor=np.asarray(g.point_anchor, np.int32),
                 tet_extent=np.abs(d).max(axis=(1, 2)),
                 surface_faces=np.asarray(g.surface_faces, np.int32),
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
