@@ -275,6 +275,44 @@ barycentric weight is below minus this lies outside the tets, a skin point the s
 (inside the tets, where the weights are convex, the corners' own contacts already keep it out of the ground)."""
 
 
+SPACE_ORDER_POINTS = True
+"""Whether an ordered model (:meth:`ModelBuilder.finalize`) orders its collision points, which detection's
+threads take in turn."""
+
+SPACE_ORDER_SKIN = True
+"""Whether it orders its skin points, which the static colliders' launches take in turn."""
+
+
+def space_order(points: np.ndarray) -> np.ndarray:
+    """The order of ``points`` (n, 3) along a Z-order curve through their bounding box (1,024 cells a side)."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    lo = points.min(axis=0)
+    cells = ((points - lo) * (1023.0 / max(float(np.ptp(points, axis=0).max()), 1e-30))).astype(np.int64)
+    code = np.zeros(len(points), np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def _spatially_ordered(flat: dict[str, np.ndarray], cells: np.ndarray, prefix: str, keys: tuple[str, ...]) -> None:
+    """Reorder ``flat``'s per-point arrays (``prefix``: ``point`` or ``skin``; and ``keys``) in space.
+
+    Each body's points follow :func:`space_order` of their rest positions (``cells``: each cell's nodes); the
+    bodies keep their order.
+    """
+    cell, body = flat[f"{prefix}_cell"], flat[f"{prefix}_body"]
+    if len(cell) == 0:
+        return
+    rest = np.einsum("pk,pkj->pj", flat[f"{prefix}_bary"].reshape(-1, 4), flat["x"][cells[cell]])
+    ends = np.flatnonzero(np.diff(body)) + 1  # a body's points are consecutive
+    spans = zip(np.r_[0, ends], np.r_[ends, len(body)], strict=True)
+    order = np.concatenate([a + space_order(rest[a:b]) for a, b in spans])
+    for key in (f"{prefix}_cell", f"{prefix}_bary", f"{prefix}_body", *keys):
+        flat[key] = flat[key].reshape(len(cell), -1)[order].reshape(flat[key].shape)
+
+
 def _embedded_points(
     g: BodyArrays,
     tets: np.ndarray,
@@ -492,8 +530,13 @@ class ModelBuilder:
         )
         return len(self._bodies) - 1
 
-    def finalize(self, device: str | wp.context.Device | None = None) -> Model:
-        """Build the flat model on ``device`` (default: Warp's default device)."""
+    def finalize(self, device: str | wp.context.Device | None = None, ordered: bool | None = None) -> Model:
+        """Build the flat model on ``device`` (default: Warp's default device).
+
+        ``ordered``: store each body's collision and skin points along a Z-order curve (:func:`space_order`);
+        default: on CUDA, where a warp's threads then walk the same branches (docs/decisions.md). At the same
+        positions the same contacts are found; only the order of float sums changes.
+        """
         if not self._bodies:
             raise InputError("a scene needs at least one body")
         device = wp.get_device(device)
@@ -522,6 +565,12 @@ class ModelBuilder:
             )
             cells, cell_slots = arr_of(node_cells, wp.vec4i), arr_of(node_cell_slots, wp.int32)
             cell_body = arr_of(node_cell_body.astype(np.int32), wp.int32)
+        if device.is_cuda if ordered is None else ordered:
+            corners = node_cells if all(quadratic) else flat["tets"]
+            if SPACE_ORDER_POINTS:
+                _spatially_ordered(flat, corners, "point", ("point_anchor", "point_mass"))
+            if SPACE_ORDER_SKIN:
+                _spatially_ordered(flat, corners, "skin", ("skin_mass",))
         i32 = np.int32
         return Model(
             device=device,
@@ -612,6 +661,7 @@ class ModelBuilder:
             add("point_cell", b["point_cell"] + c0)
             add("point_anchor", np.where(b["point_anchor"] >= 0, b["point_anchor"] + v0, -1))
             add("point_body", np.full(len(b["point_cell"]), index))
+            add("skin_body", np.full(len(b["skin_cell"]), index))
             add("tet_body", np.full(len(b["tets"]), index))
             add("vertex_body", np.full(len(b["x"]), index))
             add("leaf_tets", np.where(b["leaf_tets"] >= 0, b["leaf_tets"] + t0, -1))
