@@ -20,7 +20,7 @@ import warp as wp
 
 from warpfem.kernels import collision as K
 from warpfem.sim.contacts import Coupling
-from warpfem.sim.launch import WARP_THREADS, WIDE_BLOCK
+from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
 
 
@@ -63,11 +63,6 @@ def detect_lanes(points: int, device) -> int:
         return 1
     return max(1, min(DETECT_LANES, device.sm_count * DETECT_FILL // max(points, 1)))
 
-
-DIRECT_BODIES = 16
-"""Scenes of at most this many bodies: each collision point tests every body's box itself instead of querying
-a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of the detection launch and
-whose refit is a launch of its own each step (docs/decisions.md)."""
 
 BODY_BLOCK = 256
 """Threads per body of the tree refit (CUDA)."""

@@ -10,6 +10,12 @@ WARP_THREADS = 32
 WIDE_BLOCK = 256
 """Threads per block of a launch large enough to fill the device (Warp's default)."""
 
+DIRECT_BODIES = 16
+"""Scenes of at most this many bodies: contact detection tests each collision point against every body's box
+itself instead of querying a ``wp.Bvh`` of them, whose traversal stack costs shared memory in every block of
+the detection launch and whose refit is a launch of its own each step. Larger scenes store their collision and
+skin points in space order on CUDA (``warpfem.sim.model.ModelBuilder.finalize``; docs/decisions.md)."""
+
 SPREAD_BLOCKS = (WARP_THREADS, WIDE_BLOCK)
 """The block sizes :func:`spread_block_dim` chooses from. Warp compiles a module once per block size it is
 launched with, so a size that followed the scene's would compile again for a scene of another size; the

@@ -17,6 +17,7 @@ import warp as wp
 from warpfem.errors import InputError
 from warpfem.kernels.fem import vec6i
 from warpfem.sim.cells import CELLS_PER_QUADRATIC_TET, EDGES, cell_arrays, shortest_diagonals, sub_cells
+from warpfem.sim.launch import DIRECT_BODIES
 
 
 @dataclass(frozen=True)
@@ -275,14 +276,6 @@ barycentric weight is below minus this lies outside the tets, a skin point the s
 (inside the tets, where the weights are convex, the corners' own contacts already keep it out of the ground)."""
 
 
-SPACE_ORDER_POINTS = True
-"""Whether an ordered model (:meth:`ModelBuilder.finalize`) orders its collision points, which detection's
-threads take in turn."""
-
-SPACE_ORDER_SKIN = True
-"""Whether it orders its skin points, which the static colliders' launches take in turn."""
-
-
 def space_order(points: np.ndarray) -> np.ndarray:
     """The order of ``points`` (n, 3) along a Z-order curve through their bounding box (1,024 cells a side)."""
     if len(points) == 0:
@@ -533,9 +526,11 @@ class ModelBuilder:
     def finalize(self, device: str | wp.context.Device | None = None, ordered: bool | None = None) -> Model:
         """Build the flat model on ``device`` (default: Warp's default device).
 
-        ``ordered``: store each body's collision and skin points along a Z-order curve (:func:`space_order`);
-        default: on CUDA, where a warp's threads then walk the same branches (docs/decisions.md). At the same
-        positions the same contacts are found; only the order of float sums changes.
+        ``ordered``: store each body's collision and skin points along a Z-order curve (:func:`space_order`),
+        so that a warp's threads, which take consecutive points, walk the same branches of the same trees.
+        Default: on CUDA in scenes of more than :data:`~warpfem.sim.launch.DIRECT_BODIES` bodies, whose
+        detection it makes faster (in fewer bodies' it made it slower: docs/decisions.md). At the same positions
+        the same contacts are found; only the order of float sums changes.
         """
         if not self._bodies:
             raise InputError("a scene needs at least one body")
@@ -565,12 +560,10 @@ class ModelBuilder:
             )
             cells, cell_slots = arr_of(node_cells, wp.vec4i), arr_of(node_cell_slots, wp.int32)
             cell_body = arr_of(node_cell_body.astype(np.int32), wp.int32)
-        if device.is_cuda if ordered is None else ordered:
+        if (device.is_cuda and len(bodies) > DIRECT_BODIES) if ordered is None else ordered:
             corners = node_cells if all(quadratic) else flat["tets"]
-            if SPACE_ORDER_POINTS:
-                _spatially_ordered(flat, corners, "point", ("point_anchor", "point_mass"))
-            if SPACE_ORDER_SKIN:
-                _spatially_ordered(flat, corners, "skin", ("skin_mass",))
+            _spatially_ordered(flat, corners, "point", ("point_anchor", "point_mass"))
+            _spatially_ordered(flat, corners, "skin", ("skin_mass",))
         i32 = np.int32
         return Model(
             device=device,
