@@ -164,6 +164,35 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     return lines
 
 
+def large_pile_lines(found: tuple[Path, dict] | None) -> list[str]:
+    """The pile of 1,024, run on its own (``scripts/bench.py --piles 1024``): too large for the replayed check,
+    its dense penetration is measured at the end of the timed frames only."""
+    if not found:
+        return []
+    path, data = found
+    env = data["environment"]
+    lines = [
+        "",
+        "## The pile of 1,024",
+        "",
+        f"`{path.name}` (commit `{env['commit'][:10]}`, {env['device']}): 64 layers of 16, the upper ones still"
+        " falling at the end of the timed frames; dense penetration at that end only (inside another body / below"
+        " the ground, relative to the body's size).",
+        "",
+        "| scene | substeps | tets | dense triangles | ms/frame | CG it/step | at the end |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in data["runs"]:
+        end = r["dense_check"]["end"]
+        refined = f" (x2 in {r['refined_frames']} of {r['frames_timed']})" if r.get("refined_frames") else ""
+        lines.append(
+            f"| {scene_name(r)} | {r['substeps']}{refined} | {r['tets']:,} | {r['dense_triangles']:,} | "
+            f"{r['ms_per_frame']:.1f} | {r['cg_iterations_per_step']:.0f} | "
+            f"{100 * end['relative']:.2f} % / {100 * end['below_relative']:.2f} % |"
+        )
+    return lines
+
+
 def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     """The same scenes at an earlier commit on the same device within PEER_HOURS (``before-*.json``): speed and
     the dense check side by side, before and after."""
@@ -328,6 +357,7 @@ def main() -> int:
     newton, used, peer = peer_runs(data["environment"])
     lines = header_lines(path, data, used, peer)
     lines += main_table_lines(data, newton)
+    lines += large_pile_lines(newest("pile1024-cuda*.json"))
     lines += before_after_lines(data, newton)
     lines += tolerance_lines(data)
     lines += deviation_lines(data, newton)
