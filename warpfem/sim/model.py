@@ -289,21 +289,23 @@ def space_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def _spatially_ordered(flat: dict[str, np.ndarray], cells: np.ndarray, prefix: str, keys: tuple[str, ...]) -> None:
-    """Reorder ``flat``'s per-point arrays (``prefix``: ``point`` or ``skin``; and ``keys``) in space.
+def _spatially_ordered(flat: dict[str, np.ndarray], cells: np.ndarray) -> None:
+    """Reorder ``flat``'s collision and skin points in space (``cells``: each cell's nodes).
 
-    Each body's points follow :func:`space_order` of their rest positions (``cells``: each cell's nodes); the
-    bodies keep their order.
+    Each body's points of each kind follow :func:`space_order` of their rest positions; the bodies keep their
+    order.
     """
-    cell, body = flat[f"{prefix}_cell"], flat[f"{prefix}_body"]
-    if len(cell) == 0:
-        return
-    rest = np.einsum("pk,pkj->pj", flat[f"{prefix}_bary"].reshape(-1, 4), flat["x"][cells[cell]])
-    ends = np.flatnonzero(np.diff(body)) + 1  # a body's points are consecutive
-    spans = zip(np.r_[0, ends], np.r_[ends, len(body)], strict=True)
-    order = np.concatenate([a + space_order(rest[a:b]) for a, b in spans])
-    for key in (f"{prefix}_cell", f"{prefix}_bary", f"{prefix}_body", *keys):
-        flat[key] = flat[key].reshape(len(cell), -1)[order].reshape(flat[key].shape)
+    for prefix, keys in (("point", ("anchor", "mass")), ("skin", ("mass",))):
+        cell, body = flat[f"{prefix}_cell"], flat[f"{prefix}_body"]
+        if len(cell) == 0:
+            continue
+        rest = np.einsum("pk,pkj->pj", flat[f"{prefix}_bary"].reshape(-1, 4), flat["x"][cells[cell]])
+        ends = np.flatnonzero(np.diff(body)) + 1  # a body's points are consecutive
+        spans = zip(np.r_[0, ends], np.r_[ends, len(body)], strict=True)
+        order = np.concatenate([a + space_order(rest[a:b]) for a, b in spans])
+        for key in ("cell", "bary", "body", *keys):
+            data = flat[f"{prefix}_{key}"]
+            flat[f"{prefix}_{key}"] = data.reshape(len(cell), -1)[order].reshape(data.shape)
 
 
 def _embedded_points(
@@ -561,9 +563,7 @@ class ModelBuilder:
             cells, cell_slots = arr_of(node_cells, wp.vec4i), arr_of(node_cell_slots, wp.int32)
             cell_body = arr_of(node_cell_body.astype(np.int32), wp.int32)
         if (device.is_cuda and len(bodies) > DIRECT_BODIES) if ordered is None else ordered:
-            corners = node_cells if all(quadratic) else flat["tets"]
-            _spatially_ordered(flat, corners, "point", ("point_anchor", "point_mass"))
-            _spatially_ordered(flat, corners, "skin", ("skin_mass",))
+            _spatially_ordered(flat, node_cells if all(quadratic) else flat["tets"])
         i32 = np.int32
         return Model(
             device=device,
