@@ -282,6 +282,14 @@ def frame_error(sim: warpfem.Simulation, scene, device, cache_dir: Path, cg_path
     return {"converged_cg_tolerance": CONVERGED_CG, **end_gap(ours, reference.states[0].x.numpy())}
 
 
+CHECKS_OVER_RUN = 12
+"""Frames of the timed run, replayed, on which the dense meshes are checked for penetration."""
+
+CHECK_MAX_BODIES = 64
+"""Scenes of more bodies are checked at the end only by default (the check of a frame grows with the bodies in
+contact): ``--check-bodies``."""
+
+
 def time_scene(
     scene,
     device,
@@ -290,11 +298,12 @@ def time_scene(
     warmup: int = 2,
     cg_path: str | None = None,
     accuracy: bool = False,
+    check_bodies: int = CHECK_MAX_BODIES,
 ) -> dict:
     """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures.
 
     With ``accuracy``, also the error of one frame from where the timed frames end against converged CG
-    (:func:`frame_error`).
+    (:func:`frame_error`). ``check_bodies``: see :func:`dense_check`.
     """
     sim = build(scene, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
@@ -319,7 +328,7 @@ def time_scene(
     dense = sim.dense.numpy()
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
     end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
-    check = dense_check(sim, start, frames)
+    check = dense_check(sim, start, frames, check_bodies)
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
     error = frame_error(sim, scene, device, cache_dir, cg_path) if accuracy else None
@@ -357,19 +366,14 @@ def time_scene(
     }
 
 
-CHECKS_OVER_RUN = 12
-"""Frames of the timed run, replayed, on which the dense meshes are checked for penetration."""
-
-CHECK_MAX_BODIES = 64
-"""Scenes of more bodies are checked at the end only (the check of a frame grows with the bodies in contact)."""
-
-
-def dense_check(sim: warpfem.Simulation, start: warpfem.State, frames: int) -> dict:
+def dense_check(
+    sim: warpfem.Simulation, start: warpfem.State, frames: int, most_bodies: int = CHECK_MAX_BODIES
+) -> dict:
     """Penetration of the dense meshes measured on the meshes alone (``warpfem.io.penetration``).
 
     At the end of the timed frames, and the worst over :data:`CHECKS_OVER_RUN` frames of a replay of them from
     ``start`` (on CUDA the replay drifts from the timed run as float atomics add in another order); ``sim``
-    is left where the timed frames ended.
+    is left where the timed frames ended. Scenes of more than ``most_bodies`` bodies are checked at the end only.
     """
     from dataclasses import asdict
 
@@ -380,7 +384,7 @@ def dense_check(sim: warpfem.Simulation, start: warpfem.State, frames: int) -> d
 
     end = worst = now()
     checked = 1
-    if len(sim.body_names) <= CHECK_MAX_BODIES:
+    if len(sim.body_names) <= most_bodies:
         saved = snapshot(sim)
         sim.states[0].assign(start)
         every = max(1, frames // CHECKS_OVER_RUN)
@@ -554,6 +558,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--cache-dir", type=Path, default=ROOT / ".warpfem-cache")
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
     parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument(
+        "--check-bodies",
+        type=int,
+        default=CHECK_MAX_BODIES,
+        help=f"scenes of more bodies get the dense penetration check at the end only (default {CHECK_MAX_BODIES})",
+    )
     parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,mixed,cg")
@@ -647,7 +657,9 @@ def _time_all(work: list, cg_paths: list[str], args: argparse.Namespace, device,
         t0 = time.perf_counter()
         path = None if cg_path == "auto" else cg_path
         measured = kind not in ("pile", "mixed") or (kind == "pile" and n in args.deviation)
-        run = time_scene(scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured)
+        run = time_scene(
+            scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured, check_bodies=args.check_bodies
+        )
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
             run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)
         run.update(kind=kind, n=n, wall_s=time.perf_counter() - t0)
@@ -673,6 +685,8 @@ def main(argv=None) -> int:
     device = wp.get_device(args.device or ("cpu" if args.quick else ("cuda:0" if wp.is_cuda_available() else "cpu")))
     skip = set(filter(None, args.skip.split(",")))
     cg_paths = [p for p in args.cg_paths.split(",") if p]
+    if args.check_bodies < 0:
+        parser.error(f"--check-bodies: expected a body count >= 0, got {args.check_bodies}")
     if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
         parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     parts = {"paper", "piles", "mixed", "cg"}

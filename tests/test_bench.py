@@ -71,6 +71,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--skip", "pile"], "--skip"),
         ("bench.py", ["--cg-paths", "grid:0"], "--cg-paths"),
         ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
+        ("bench.py", ["--check-bodies", "-1"], "--check-bodies"),
         ("bench_newton.py", ["--piles", "1.5"], "--piles"),
         ("bench_end_to_end.py", ["--queue-mb", "-1"], "--queue-mb"),
         ("bench_end_to_end.py", ["--writers", "two"], "--writers"),
