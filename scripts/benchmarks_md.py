@@ -165,8 +165,8 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
 
 
 def large_pile_lines(found: tuple[Path, dict] | None) -> list[str]:
-    """The pile of 1,024, run on its own (``scripts/bench.py --piles 1024``): too large for the replayed check,
-    its dense penetration is measured at the end of the timed frames only."""
+    """The pile of 1,024, run on its own (``scripts/bench.py --piles 1024``), with its dense penetration at the
+    end of the timed frames (past ``--check-bodies``' default, a pile's replay is not checked)."""
     if not found:
         return []
     path, data = found

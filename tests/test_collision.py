@@ -474,8 +474,11 @@ def test_detection_shares_points_among_lanes_only_where_they_leave_the_device_id
     assert detect_lanes(22_464, wp.get_device("cpu")) == 1
 
 
+_finalize = ModelBuilder.finalize
+
+
 def _bunnies(ordered: bool, monkeypatch) -> warpfem.Simulation:
-    """Two overlapping bunnies (400 faces, 0.4 m), their model stored in space order or not."""
+    """Two overlapping bunnies (400 faces), their model stored in space order or not."""
     monkeypatch.setattr(ModelBuilder, "finalize", functools.partialmethod(_finalize, ordered=ordered))
     bunny = {"mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "scale": 0.5}
     doc = {
@@ -486,9 +489,6 @@ def _bunnies(ordered: bool, monkeypatch) -> warpfem.Simulation:
         ],
     }
     return warpfem.Simulation(warpfem.Scene.from_dict(doc, name="bunnies"), device="cpu")
-
-
-_finalize = ModelBuilder.finalize
 
 
 def test_points_in_space_order_are_the_same_points_near_each_other(monkeypatch):
