@@ -477,12 +477,13 @@ def test_detection_shares_points_among_lanes_only_where_they_leave_the_device_id
 _finalize = ModelBuilder.finalize
 
 
-def _bunnies(ordered: bool, monkeypatch) -> warpfem.Simulation:
+def _bunnies(ordered: bool, elements: str, monkeypatch) -> warpfem.Simulation:
     """Two overlapping bunnies (400 faces), their model stored in space order or not."""
     monkeypatch.setattr(ModelBuilder, "finalize", functools.partialmethod(_finalize, ordered=ordered))
     bunny = {"mesh": "builtin:bunny", "subdivide": 0, "faces": 400, "scale": 0.5}
     doc = {
         "scene": {"frames": 1},
+        "solver": {"elements": elements},
         "object": [
             {**bunny, "name": "a", "translate": [0.0, 0.5, 0.0]},
             {**bunny, "name": "b", "translate": [0.12, 0.6, 0.05], "rotate": [0.0, 60.0, 0.0]},
@@ -491,10 +492,12 @@ def _bunnies(ordered: bool, monkeypatch) -> warpfem.Simulation:
     return warpfem.Simulation(warpfem.Scene.from_dict(doc, name="bunnies"), device="cpu")
 
 
-def test_points_in_space_order_are_the_same_points_near_each_other(monkeypatch):
-    """A model in space order (the default on CUDA) holds each body's collision and skin points unchanged (rest
-    position, anchors, mass), only reordered within the body; consecutive points lie at a quarter of the
-    distance apart or less; and at the rest pose detection finds the same points inside the other body."""
+@pytest.mark.parametrize("elements", ["linear", "quadratic"])
+def test_points_in_space_order_are_the_same_points_near_each_other(elements, monkeypatch):
+    """A model in space order (the default on CUDA for more than 16 bodies) holds each body's collision and skin
+    points unchanged (rest position, anchors, mass), only reordered within the body; consecutive points lie at a
+    quarter of the distance apart or less; and at the rest pose detection finds the same points inside the other
+    body. With quadratic tets the points lie in their sub-tets, whose nodes give their positions."""
 
     def rows(model, prefix, extra):
         cells = model.cells.numpy()[getattr(model, f"{prefix}_cell").numpy()]
@@ -513,7 +516,7 @@ def test_points_in_space_order_are_the_same_points_near_each_other(monkeypatch):
         found = c.points.numpy()[c.contact_point.numpy()[:n]]
         return np.unique(np.round(found.astype(np.float64), 5), axis=0)
 
-    plain, ordered = _bunnies(False, monkeypatch), _bunnies(True, monkeypatch)
+    plain, ordered = _bunnies(False, elements, monkeypatch), _bunnies(True, elements, monkeypatch)
     a, b = plain.model, ordered.model
     assert np.array_equal(a.point_body.numpy(), b.point_body.numpy())
     for prefix, extra in (("point", ("anchor", "mass", "body")), ("skin", ("mass",))):
