@@ -120,7 +120,6 @@ class VisibleSurface:
     mesh_origin: wp.array(dtype=wp.vec3)  # per body
     mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
     reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
-    offset: wp.array(dtype=float)  # per body, how far outside its surface a contact starts (m)
 
 
 @wp.func
@@ -142,11 +141,11 @@ def visible_depth(
     if mesh == wp.uint64(0):
         return d, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
-    near = (wp.max(bound, 0.0) + s.offset[b]) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
+    near = bound / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack on the bound
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
         if near < s.reach[b]:
-            return -s.offset[b], g
+            return 0.0, g
         return d, g
     offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
     dist = wp.length(offset)

@@ -23,10 +23,6 @@ COPY_TOLERANCE = 1.0e-6
 """Largest rest-position mismatch, as a fraction of the body's size, for two bodies to share one mesh."""
 
 
-CONTACT_OFFSET = 0.0
-"""Trial: a body's contacts start this share of its size outside its surface."""
-
-
 def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
     """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it)."""
     dev = model.device
@@ -68,7 +64,6 @@ def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
     s.mesh_origin = wp.array(np.array(origin, np.float32), dtype=wp.vec3, device=dev)
     s.mesh_scale = wp.array(np.array(scale, np.float32), dtype=float, device=dev)
     s.reach = wp.array(np.array(reach, np.float32), dtype=float, device=dev)
-    s.offset = wp.array(np.array([CONTACT_OFFSET * b.size for b in model.bodies], np.float32), dtype=float, device=dev)
     return s, meshes
 
 
