@@ -528,11 +528,9 @@ class ModelBuilder:
     def finalize(self, device: str | wp.context.Device | None = None, ordered: bool | None = None) -> Model:
         """Build the flat model on ``device`` (default: Warp's default device).
 
-        ``ordered``: store each body's collision and skin points along a Z-order curve (:func:`space_order`),
-        so that a warp's threads, which take consecutive points, walk the same branches of the same trees.
-        Default: on CUDA in scenes of more than :data:`~warpfem.sim.launch.DIRECT_BODIES` bodies, whose
-        detection it makes faster (in fewer bodies' it made it slower: docs/decisions.md). At the same positions
-        the same contacts are found; only the order of float sums changes.
+        ``ordered``: each body's collision and skin points along a Z-order curve (:func:`space_order`), so that a
+        warp's threads walk the same tree branches; default: on CUDA with more than
+        :data:`~warpfem.sim.launch.DIRECT_BODIES` bodies, where it makes detection faster (docs/decisions.md).
         """
         if not self._bodies:
             raise InputError("a scene needs at least one body")
@@ -550,20 +548,18 @@ class ModelBuilder:
         def arr_of(data: np.ndarray, dtype) -> wp.array:
             return wp.array(np.ascontiguousarray(data), dtype=dtype, device=device)
 
-        tets, tet_slots, tet_body = (
-            arr("tets", wp.vec4i, np.int32),
-            arr_of(pattern["tet_slots"], wp.int32),
-            arr("tet_body", wp.int32, np.int32),
-        )
+        tets, tet_slots = arr("tets", wp.vec4i, np.int32), arr_of(pattern["tet_slots"], wp.int32)
+        tet_body = arr("tet_body", wp.int32, np.int32)
         cells, cell_slots, cell_body = tets, tet_slots, tet_body  # linear tets are their own cells
+        corners = flat["tets"]
         if all(quadratic):
-            node_cells, node_cell_slots, node_cell_body = cell_arrays(
-                flat["tets"], edges, flat["diagonal"], pattern["node_slots"], flat["tet_body"]
+            corners, slots, owner = cell_arrays(
+                corners, edges, flat["diagonal"], pattern["node_slots"], flat["tet_body"]
             )
-            cells, cell_slots = arr_of(node_cells, wp.vec4i), arr_of(node_cell_slots, wp.int32)
-            cell_body = arr_of(node_cell_body.astype(np.int32), wp.int32)
+            cells, cell_slots = arr_of(corners, wp.vec4i), arr_of(slots, wp.int32)
+            cell_body = arr_of(owner.astype(np.int32), wp.int32)
         if (device.is_cuda and len(bodies) > DIRECT_BODIES) if ordered is None else ordered:
-            _spatially_ordered(flat, node_cells if all(quadratic) else flat["tets"])
+            _spatially_ordered(flat, corners)
         i32 = np.int32
         return Model(
             device=device,
