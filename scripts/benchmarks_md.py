@@ -184,9 +184,8 @@ def large_pile_lines(found: tuple[Path, dict] | None) -> list[str]:
     ]
     for r in data["runs"]:
         end = r["dense_check"]["end"]
-        refined = f" (x2 in {r['refined_frames']} of {r['frames_timed']})" if r.get("refined_frames") else ""
         lines.append(
-            f"| {scene_name(r)} | {r['substeps']}{refined} | {r['tets']:,} | {r['dense_triangles']:,} | "
+            f"| {scene_name(r)} | {substeps_text(r)} | {r['tets']:,} | {r['dense_triangles']:,} | "
             f"{r['ms_per_frame']:.1f} | {r['cg_iterations_per_step']:.0f} | "
             f"{100 * end['relative']:.2f} % / {100 * end['below_relative']:.2f} % |"
         )
