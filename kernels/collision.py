@@ -324,14 +324,13 @@ def depth_in_tet(
         if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
             bound = depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q)
-            if bound < 0.0:
+            if bound + surface.offset[surface.tet_body[e]] < 0.0:
                 return 3, d, g, bound
             return 2, d, g, bound
-        return 1, d, g, 0.0
+        return 1, d + surface.offset[surface.tet_body[e]], g, 0.0
     # deep inside: the paper's interpolated distance field and rotated gradients
     d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-    g = interpolate_directions(grad, t, w)
-    return 1, d, g, 0.0
+    return 1, d + surface.offset[surface.tet_body[e]], interpolate_directions(grad, t, w), 0.0
 
 
 @wp.func
@@ -416,6 +415,7 @@ def answer_pending(
         )  # fmt: skip
     if status == 2:
         d, g = visible_depth(surface, x, e, t, lam, d, g, bound)
+        d += surface.offset[surface.tet_body[e]]
     if status == 1 or status == 2:
         store_contact(
             p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,

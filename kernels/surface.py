@@ -120,6 +120,7 @@ class VisibleSurface:
     mesh_origin: wp.array(dtype=wp.vec3)  # per body
     mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
     reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
+    offset: wp.array(dtype=float)  # per body, how far outside its surface a contact with it starts (m)
 
 
 @wp.func
@@ -132,7 +133,8 @@ def visible_depth(
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
     :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
-    the query looks no farther, and a point with no surface that near lies outside (depth 0 returned).
+    the query looks no farther than that and the body's contact ``offset`` outside it, and a point with no
+    surface that near lies outside the offset (minus the offset returned).
     ``d``, ``g`` are returned where the body has no dense surface or, beyond the bound, none lies within
     its reach of the point.
     """
@@ -141,11 +143,11 @@ def visible_depth(
     if mesh == wp.uint64(0):
         return d, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
-    near = bound / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack on the bound
+    near = (wp.max(bound, 0.0) + s.offset[b]) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
         if near < s.reach[b]:
-            return 0.0, g
+            return -s.offset[b], g
         return d, g
     offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
     dist = wp.length(offset)

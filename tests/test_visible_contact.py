@@ -5,6 +5,7 @@ import pytest
 import warp as wp
 
 import warpfem
+from warpfem.presets import CONTACT_OFFSET
 
 
 def _thrown(speed: float, obstacle: dict | None = None) -> dict:
@@ -397,7 +398,9 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     """Two rounded boxes (superellipsoids, 0.4 x 0.2 x 0.4 m, 20k dense faces: their dense surfaces bulge
     out of the coarse ones at every edge) stacked on a third whose base is pinned, scene defaults otherwise:
     after 2 s the stack stands where it was put, at rest, and no dense vertex is deeper than 0.3 % of the size
-    inside another body (winding numbers on the dense meshes)."""
+    inside another body (winding numbers on the dense meshes). Each body rests on the one below within twice
+    the contacts' offset of its dense surface (libigl's signed distance between the dense meshes)."""
+    import igl
     import trimesh
 
     sphere = trimesh.creation.icosphere(subdivisions=5)
@@ -425,6 +428,12 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     assert np.allclose(centres[1:, [0, 2]], [[0.03, 0.0], [-0.03, 0.02]], atol=0.01)  # not slid off
     assert np.all(np.diff(centres[:, 1]) > 0.19)  # each on the one below
     assert warpfem.frame_penetration(sim).relative < 0.003
+    faces = [np.asarray(b.dense_faces, np.int64).reshape(-1, 3) for b in sim.model.bodies]
+    size = float(np.linalg.norm(np.ptp(after[0], axis=0)))
+    points = [p.astype(np.float64) for p in after]
+    for upper in (1, 2):
+        gap = float(igl.signed_distance(points[upper], points[upper - 1], faces[upper - 1])[0].min())
+        assert gap < 2.0 * CONTACT_OFFSET * size, gap / size
 
 
 @pytest.mark.parametrize("elements", ["linear", "quadratic"])

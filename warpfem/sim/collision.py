@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import collision as K
+from warpfem.presets import CONTACT_OFFSET
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
@@ -33,11 +34,15 @@ class CollisionSettings:
             the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
             behaves like the ground's penalty (resting depth about g / stiffness).
         friction: Coulomb friction coefficient between bodies.
+        offset: How far outside another body's dense surface a contact with it starts, as a share of the
+            scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
+            rather than inside the visible surface, and resting bodies stand up to that far apart.
         contacts_per_point: Contact buffer capacity per collision point.
     """
 
     stiffness: float = 1.0e7
     friction: float = 0.5
+    offset: float = CONTACT_OFFSET
     contacts_per_point: float = 2.0
 
 
@@ -140,7 +145,8 @@ class Collider:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
-        self.visible, self._dense_meshes = visible_surface(model)
+        offset = settings.offset * min(b.size for b in model.bodies)
+        self.visible, self._dense_meshes = visible_surface(model, offset)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
