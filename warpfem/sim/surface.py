@@ -26,7 +26,7 @@ COPY_TOLERANCE = 1.0e-6
 def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, list[wp.Mesh]]:
     """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it).
 
-    ``offset`` (m): how far outside a body's surface a contact with it starts.
+    ``offset`` (m): how far outside a body's dense surface a contact with it starts (bodies with one only).
     """
     dev = model.device
     rest, tets = model.rest_x.numpy().astype(np.float64), model.tets.numpy()
@@ -67,7 +67,8 @@ def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, 
     s.mesh_origin = wp.array(np.array(origin, np.float32), dtype=wp.vec3, device=dev)
     s.mesh_scale = wp.array(np.array(scale, np.float32), dtype=float, device=dev)
     s.reach = wp.array(np.array(reach, np.float32), dtype=float, device=dev)
-    s.offset = wp.array(np.full(len(model.bodies), offset, np.float32), dtype=float, device=dev)
+    # a body without a dense surface has no cage around it to find the points in that gap: no offset
+    s.offset = wp.array(np.where(np.array(mesh_of) != 0, offset, 0.0).astype(np.float32), dtype=float, device=dev)
     return s, meshes
 
 
