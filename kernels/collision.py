@@ -284,18 +284,17 @@ def depth_in_tet(
 ):
     """Depth and direction of point p (at q, weights w in tet e, which holds it), and what they are.
 
-    Returns ``(status, d, g, bound)``: status 0 when the point is refused (a point of the tet's own body,
-    ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
-    of a body with a dense mesh: then :func:`kernels.surface.visible_depth` answers, with ``d``, ``g`` where
-    it finds no surface in reach, and ``bound`` (:func:`depth_above` at the nearest face) bounds the query.
-    The caller asks it after the tree walk, so the walk's registers are free. 3 when the point surely lies
-    outside that dense surface (``bound`` below zero): no contact, and no query.
+    Returns ``(status, d, g, bound)``: 0, the point refused (its own body's, ``same``, in its anchors' one-ring);
+    1, ``d``, ``g`` answer; 2, the tet touches a dense surface: :func:`kernels.surface.visible_depth` answers
+    after the walk (``d``, ``g`` where it finds nothing in reach), ``bound[0]`` (:func:`depth_above`) bounding
+    its query and ``bound[1]`` the contact offset, which fades to none at a cage's face; 3, surely outside that
+    surface and its offset: no contact, no query.
     """
     d = float(0.0)
     g = wp.vec3()
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
-            return 0, d, g, 0.0
+            return 0, d, g, wp.vec2(0.0)
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
@@ -307,30 +306,36 @@ def depth_in_tet(
         d_near = float(0.0)
         g_near = wp.vec3()
         f_near = f0
+        gap = float(0.0)  # the cage's margin over the visible surface at the face (and at the nearest face)
+        gap_near = float(0.0)
         for f in range(f0, f1):
             n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
             if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
                 entered = dist
                 d = depth_f
                 g = n_f
+                gap = plane - depth_f
             if dist < nearest:
                 nearest = dist
                 d_near = depth_f
                 g_near = n_f
                 f_near = f
+                gap_near = plane - depth_f
         if entered == 1.0e30:
             d = d_near
             g = g_near
+            gap = gap_near
         if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
             bound = depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q)
-            if bound + surface.offset[surface.tet_body[e]] < 0.0:
-                return 3, d, g, bound
-            return 2, d, g, bound
-        return 1, d + surface.offset[surface.tet_body[e]], g, 0.0
+            off = wp.min(surface.offset[surface.tet_body[e]], wp.max(gap, 0.0))  # none at the cage's face
+            if bound + off < 0.0:
+                return 3, d, g, wp.vec2(bound, off)
+            return 2, d, g, wp.vec2(bound, off)
+        return 1, d, g, wp.vec2(0.0)
     # deep inside: the paper's interpolated distance field and rotated gradients
     d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-    return 1, d + surface.offset[surface.tet_body[e]], interpolate_directions(grad, t, w), 0.0
+    return 1, d, interpolate_directions(grad, t, w), wp.vec2(0.0)
 
 
 @wp.func
@@ -381,7 +386,7 @@ def answer_pending(
     status: int,
     d: float,
     g: wp.vec3,
-    bound: float,
+    bound: wp.vec2,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
@@ -414,8 +419,8 @@ def answer_pending(
             point_velocity, point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
     if status == 2:
-        d, g = visible_depth(surface, x, e, t, lam, d, g, bound)
-        d += surface.offset[surface.tet_body[e]]
+        d, g = visible_depth(surface, x, e, t, lam, d, g, bound[0], bound[1])
+        d += bound[1]
     if status == 1 or status == 2:
         store_contact(
             p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
@@ -488,13 +493,11 @@ def walk_tree(
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
 
-    Depth first, left to right, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box
-    that holds the point are tested together (one round trip to memory instead of one per node), the bits of
-    those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
-    levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
-    hold the point in leaf order; the first that answers (:func:`depth_in_tet` gives a positive depth, or
-    status 2 or 3) ends the walk. Returns that tet (-1 if none), the point's weights in it and the answer, for
-    :func:`answer_pending` to record after the walk, which keeps the walk's registers few.
+    Depth first, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box that holds the
+    point are tested together (one round trip to memory), the bits of those that hold it kept 8 to a level in
+    an int64 stack (the first step down takes 1 to 3 levels). A leaf's four tets are tested together; the
+    first that answers (:func:`depth_in_tet`: a positive depth, or status 2 or 3) ends the walk. Returns that
+    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -513,7 +516,7 @@ def walk_tree(
     pending_status = int(0)
     pending_d = float(0.0)
     pending_g = wp.vec3()
-    pending_bound = float(0.0)
+    pending_bound = wp.vec2()
     while not found and (mask != 0 or level > top):
         if mask == 0:
             # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole

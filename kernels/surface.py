@@ -125,7 +125,15 @@ class VisibleSurface:
 
 @wp.func
 def visible_depth(
-    s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.vec4i, w: wp.vec4, d: float, g: wp.vec3, bound: float
+    s: VisibleSurface,
+    x: wp.array(dtype=wp.vec3),
+    e: int,
+    t: wp.vec4i,
+    w: wp.vec4,
+    d: float,
+    g: wp.vec3,
+    bound: float,
+    offset: float,
 ):
     """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``.
 
@@ -133,8 +141,8 @@ def visible_depth(
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
     :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
-    the query looks no farther than that and the body's contact ``offset`` outside it, and a point with no
-    surface that near lies outside the offset (minus the offset returned).
+    the query looks no farther than that and ``offset`` (m) outside it, and a point with no surface that
+    near lies outside the offset (minus the offset returned).
     ``d``, ``g`` are returned where the body has no dense surface or, beyond the bound, none lies within
     its reach of the point.
     """
@@ -143,17 +151,17 @@ def visible_depth(
     if mesh == wp.uint64(0):
         return d, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
-    near = (wp.max(bound, 0.0) + s.offset[b]) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
+    near = (wp.max(bound, 0.0) + offset) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
         if near < s.reach[b]:
-            return -s.offset[b], g
+            return -offset, g
         return d, g
-    offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
-    dist = wp.length(offset)
+    to_surface = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
+    dist = wp.length(to_surface)
     out = wp.mesh_eval_face_normal(mesh, hit.face)
     if dist > 1.0e-6 * s.reach[b]:
-        out = -hit.sign * offset / dist
+        out = -hit.sign * to_surface / dist
     depth = -hit.sign * dist * s.mesh_scale[b]
     shape = deformation_gradient(x, t, s.dm_inv[e])
     if wp.determinant(shape) <= 0.0:
