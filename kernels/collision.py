@@ -1,20 +1,18 @@
 """Body-body and self collisions: collision points against tets, penalty response from the distance field.
 
-Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below
-the body's dense surface at rest and the way out to that surface's nearest point, carried to the tet's
-current shape (:func:`kernels.surface.visible_depth`); where no dense surface is in reach, the distance
-below the plane of the surface face the point is moving out through (whose plane it would cross within a
-step at its speed relative to the tet; else the nearest), corrected by how far that face lies outside the
-visible surface, along its current outward normal. Deep inside, the paper's interpolated distance field
-and rotated gradients. Both are depths below the visible surface: contacts start where the visible surfaces meet.
+Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below the
+dense surface at rest and the way out to its nearest point, carried to the tet's current shape
+(:func:`kernels.surface.visible_depth`), plus the contact offset; where no dense surface is in reach, the depth
+below the face the point moves out through (else the nearest) corrected by how far that face lies outside the
+visible surface. Deep inside, the paper's interpolated distance field and rotated gradients.
 
-Collision points are samples of each body's dense surface, embedded like every dense vertex (in a cell: a
-tet, or a quadratic tet's sub-tet), or for a bare tet mesh its surface vertices plus optional samples on its
-triangles. A point ``p`` inside tet ``t`` of another body (or of its own, outside ``t``'s one-ring) gets the
-penalty force ``f = a d g`` (Kondo & Kanai, after Fisher & Lin); the reaction ``-f`` goes to the nodes of
-the cell of ``t`` that holds ``p``, by its weights there, so momentum is conserved. Implicitly the contact is
-a spring along ``g`` between the point and its image: the row ``J`` of ``g . (x_p - x_t)`` adds
-``dt^2 a J^T J`` to the system matrix, applied matrix-free in CG's product (pairs of embedded points).
+Collision points: samples of each body's dense surface, embedded like its dense vertices (in a tet or a
+quadratic tet's sub-tet), or a bare tet mesh's surface vertices and optional samples on its triangles. A point
+``p`` inside tet ``t`` of another body (or of its own, outside ``t``'s one-ring) gets the penalty force
+``f = a d g`` (Kondo & Kanai, after Fisher & Lin); the reaction ``-f`` goes to the nodes of the cell of ``t``
+that holds ``p``, by its weights there, so momentum is conserved. Implicitly the contact is a spring along
+``g`` between the point and its image: the row ``J`` of ``g . (x_p - x_t)`` adds ``dt^2 a J^T J`` to the
+system matrix, applied matrix-free in CG's product (pairs of embedded points).
 """
 
 import warp as wp
@@ -420,7 +418,6 @@ def answer_pending(
         )  # fmt: skip
     if status == 2:
         d, g = visible_depth(surface, x, e, t, lam, d, g, bound[0], bound[1])
-        d += bound[1]
     if status == 1 or status == 2:
         store_contact(
             p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,

@@ -135,34 +135,33 @@ def visible_depth(
     bound: float,
     offset: float,
 ):
-    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``.
+    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``, plus ``offset``.
 
     The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
     :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
-    the query looks no farther than that and ``offset`` (m) outside it, and a point with no surface that
-    near lies outside the offset (minus the offset returned).
-    ``d``, ``g`` are returned where the body has no dense surface or, beyond the bound, none lies within
-    its reach of the point.
+    the query looks no farther than that and ``offset`` (m, a contact's start outside the surface) outside it,
+    and a point with no surface that near lies outside (0 returned). ``d`` (plus the offset), ``g`` are returned
+    where the body has no dense surface or, beyond the bound, none lies within its reach of the point.
     """
     b = s.tet_body[e]
     mesh = s.mesh[b]
     if mesh == wp.uint64(0):
-        return d, g
+        return d + offset, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
     near = (wp.max(bound, 0.0) + offset) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
         if near < s.reach[b]:
-            return -offset, g
-        return d, g
+            return 0.0, g
+        return d + offset, g
     to_surface = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
     dist = wp.length(to_surface)
     out = wp.mesh_eval_face_normal(mesh, hit.face)
     if dist > 1.0e-6 * s.reach[b]:
         out = -hit.sign * to_surface / dist
-    depth = -hit.sign * dist * s.mesh_scale[b]
+    depth = offset - hit.sign * dist * s.mesh_scale[b]
     shape = deformation_gradient(x, t, s.dm_inv[e])
     if wp.determinant(shape) <= 0.0:
         return depth, g
