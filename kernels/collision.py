@@ -24,7 +24,8 @@ from .integrate import tie_friction
 from .surface import (
     VisibleSurface,
     add_rotated_gradients,
-    face_query,
+    contact_offset,
+    exit_face,
     face_weights,
     interpolate_directions,
     lattice_cell,
@@ -284,56 +285,32 @@ def depth_in_tet(
 
     Returns ``(status, d, g, bound)``: 0, the point refused (its own body's, ``same``, in its anchors' one-ring);
     1, ``d``, ``g`` answer; 2, the tet touches a dense surface: :func:`kernels.surface.visible_depth` answers
-    after the walk (``d``, ``g`` where it finds nothing in reach), ``bound[0]`` (:func:`depth_above`) bounding
-    its query and ``bound[1]`` the contact offset, which fades to none at a cage's face; 3, surely outside that
-    surface and its offset: no contact, no query.
+    after the walk (``d``, ``g`` where it finds nothing in reach), ``bound`` (:func:`depth_above`) bounding its
+    query; 3, surely outside that surface by more than its body's contact offset: no contact, no query.
     """
     d = float(0.0)
     g = wp.vec3()
     if same:
         if near_tet(row_start, cols, point_anchor[p], t):
-            return 0, d, g, wp.vec2(0.0)
+            return 0, d, g, 0.0
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
-        # near the surface: below the nearest face the point would leave through within a step, else the
-        # nearest face; along its outward normal (docs/decisions.md, "The face a point came in through")
+        # near the surface: below the face the point leaves through (docs/decisions.md, "The face a point came
+        # in through")
         step = dt * (point_velocity[p] - interpolate(v, t, w))
-        entered = float(1.0e30)
-        nearest = float(1.0e30)
-        d_near = float(0.0)
-        g_near = wp.vec3()
-        f_near = f0
-        gap = float(0.0)  # the cage's margin over the visible surface at the face (and at the nearest face)
-        gap_near = float(0.0)
-        for f in range(f0, f1):
-            n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
-            if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
-                entered = dist
-                d = depth_f
-                g = n_f
-                gap = plane - depth_f
-            if dist < nearest:
-                nearest = dist
-                d_near = depth_f
-                g_near = n_f
-                f_near = f
-                gap_near = plane - depth_f
-        if entered == 1.0e30:
-            d = d_near
-            g = g_near
-            gap = gap_near
-        if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
+        d, g, _margin, f_near = exit_face(x, face_depth, tet_face_ids, tet_faces, f0, f1, q, step)
+        b = surface.tet_body[e]
+        if surface.mesh[b] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
             bound = depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q)
-            off = wp.min(surface.offset[surface.tet_body[e]], wp.max(gap, 0.0))  # none at the cage's face
-            if bound + off < 0.0:
-                return 3, d, g, wp.vec2(bound, off)
-            return 2, d, g, wp.vec2(bound, off)
-        return 1, d, g, wp.vec2(0.0)
+            if bound + surface.offset < 0.0:
+                return 3, d, g, bound
+            return 2, d, g, bound
+        return 1, d, g, 0.0
     # deep inside: the paper's interpolated distance field and rotated gradients
     d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-    return 1, d, interpolate_directions(grad, t, w), wp.vec2(0.0)
+    return 1, d, interpolate_directions(grad, t, w), 0.0
 
 
 @wp.func
@@ -384,7 +361,7 @@ def answer_pending(
     status: int,
     d: float,
     g: wp.vec3,
-    bound: wp.vec2,
+    bound: float,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     dt: float,
@@ -417,7 +394,8 @@ def answer_pending(
             point_velocity, point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
     if status == 2:
-        d, g = visible_depth(surface, x, e, t, lam, d, g, bound[0], bound[1])
+        d, g = visible_depth(surface, x, e, t, lam, d, g, bound, contact_offset(p, e, t, lam, q, x, v, dt,
+            tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity))  # fmt: skip
     if status == 1 or status == 2:
         store_contact(
             p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
@@ -513,7 +491,7 @@ def walk_tree(
     pending_status = int(0)
     pending_d = float(0.0)
     pending_g = wp.vec3()
-    pending_bound = wp.vec2()
+    pending_bound = float(0.0)
     while not found and (mask != 0 or level > top):
         if mask == 0:
             # the group is done: back to the group of its parent (its 8 aligned siblings, or the whole

@@ -67,8 +67,7 @@ def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, 
     s.mesh_origin = wp.array(np.array(origin, np.float32), dtype=wp.vec3, device=dev)
     s.mesh_scale = wp.array(np.array(scale, np.float32), dtype=float, device=dev)
     s.reach = wp.array(np.array(reach, np.float32), dtype=float, device=dev)
-    # a body without a dense surface has no cage around it to find the points in that gap: no offset
-    s.offset = wp.array(np.where(np.array(mesh_of) != 0, offset, 0.0).astype(np.float32), dtype=float, device=dev)
+    s.offset = float(offset)  # none for a body without a dense surface: no cage around it finds points in the gap
     return s, meshes
 
 
