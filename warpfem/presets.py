@@ -56,7 +56,7 @@ APPROACH_LIMIT = 0.02
 before a frame runs twice the substeps (``[collision] approach_limit``). Chosen by measurement
 (docs/decisions.md, "Frames of fast approach at twice the substeps")."""
 
-CONTACT_OFFSET = 1.0e-3
+CONTACT_OFFSET = 2.0e-3
 """How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
 smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.
 Chosen by measurement (docs/decisions.md, "Body-body contacts from an offset")."""

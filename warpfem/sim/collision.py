@@ -45,6 +45,16 @@ class CollisionSettings:
     offset: float = CONTACT_OFFSET
     contacts_per_point: float = 2.0
 
+    def __post_init__(self) -> None:
+        if not self.stiffness > 0.0:
+            raise ValueError(f"CollisionSettings.stiffness must be > 0 1/s^2, got {self.stiffness}")
+        if not self.friction >= 0.0:
+            raise ValueError(f"CollisionSettings.friction must be >= 0, got {self.friction}")
+        if not 0.0 <= self.offset < 0.05:
+            raise ValueError(f"CollisionSettings.offset must be in [0, 0.05) of the size, got {self.offset}")
+        if not self.contacts_per_point > 0.0:
+            raise ValueError(f"CollisionSettings.contacts_per_point must be > 0, got {self.contacts_per_point}")
+
 
 DEFAULT_COLLISION = CollisionSettings()
 
