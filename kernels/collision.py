@@ -1,20 +1,18 @@
 """Body-body and self collisions: collision points against tets, penalty response from the distance field.
 
-Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below
-the body's dense surface at rest and the way out to that surface's nearest point, carried to the tet's
-current shape (:func:`kernels.surface.visible_depth`); where no dense surface is in reach, the distance
-below the plane of the surface face the point is moving out through (whose plane it would cross within a
-step at its speed relative to the tet; else the nearest), corrected by how far that face lies outside the
-visible surface, along its current outward normal. Deep inside, the paper's interpolated distance field
-and rotated gradients. Both are depths below the visible surface: contacts start where the visible surfaces meet.
+Depth and direction: in a tet touching the body's surface, the depth of the point's rest position below the
+dense surface at rest and the way out to its nearest point, carried to the tet's current shape
+(:func:`kernels.surface.visible_depth`), plus the contact offset; where no dense surface is in reach, the depth
+below the face the point moves out through (else the nearest) corrected by how far that face lies outside the
+visible surface. Deep inside, the paper's interpolated distance field and rotated gradients.
 
-Collision points are samples of each body's dense surface, embedded like every dense vertex (in a cell: a
-tet, or a quadratic tet's sub-tet), or for a bare tet mesh its surface vertices plus optional samples on its
-triangles. A point ``p`` inside tet ``t`` of another body (or of its own, outside ``t``'s one-ring) gets the
-penalty force ``f = a d g`` (Kondo & Kanai, after Fisher & Lin); the reaction ``-f`` goes to the nodes of
-the cell of ``t`` that holds ``p``, by its weights there, so momentum is conserved. Implicitly the contact is
-a spring along ``g`` between the point and its image: the row ``J`` of ``g . (x_p - x_t)`` adds
-``dt^2 a J^T J`` to the system matrix, applied matrix-free in CG's product (pairs of embedded points).
+Collision points: samples of each body's dense surface, embedded like its dense vertices (in a tet or a
+quadratic tet's sub-tet), or a bare tet mesh's surface vertices and optional samples on its triangles. A point
+``p`` inside tet ``t`` of another body (or of its own, outside ``t``'s one-ring) gets the penalty force
+``f = a d g`` (Kondo & Kanai, after Fisher & Lin); the reaction ``-f`` goes to the nodes of the cell of ``t``
+that holds ``p``, by its weights there, so momentum is conserved. Implicitly the contact is a spring along
+``g`` between the point and its image: the row ``J`` of ``g . (x_p - x_t)`` adds ``dt^2 a J^T J`` to the
+system matrix, applied matrix-free in CG's product (pairs of embedded points).
 """
 
 import warp as wp
@@ -26,7 +24,8 @@ from .integrate import tie_friction
 from .surface import (
     VisibleSurface,
     add_rotated_gradients,
-    face_query,
+    contact_offset,
+    exit_face,
     face_weights,
     interpolate_directions,
     lattice_cell,
@@ -284,12 +283,10 @@ def depth_in_tet(
 ):
     """Depth and direction of point p (at q, weights w in tet e, which holds it), and what they are.
 
-    Returns ``(status, d, g, bound)``: status 0 when the point is refused (a point of the tet's own body,
-    ``same``, in the one-ring of its anchors), 1 when ``d``, ``g`` answer, 2 when the tet touches the surface
-    of a body with a dense mesh: then :func:`kernels.surface.visible_depth` answers, with ``d``, ``g`` where
-    it finds no surface in reach, and ``bound`` (:func:`depth_above` at the nearest face) bounds the query.
-    The caller asks it after the tree walk, so the walk's registers are free. 3 when the point surely lies
-    outside that dense surface (``bound`` below zero): no contact, and no query.
+    Returns ``(status, d, g, bound)``: 0, the point refused (its own body's, ``same``, in its anchors' one-ring);
+    1, ``d``, ``g`` answer; 2, the tet touches a dense surface: :func:`kernels.surface.visible_depth` answers
+    after the walk (``d``, ``g`` where it finds nothing in reach), ``bound`` (:func:`depth_above`) bounding its
+    query; 3, surely outside that surface by more than its body's contact offset: no contact, no query.
     """
     d = float(0.0)
     g = wp.vec3()
@@ -299,39 +296,21 @@ def depth_in_tet(
     f0 = tet_face_start[e]
     f1 = tet_face_start[e + 1]
     if f1 > f0:
-        # near the surface: below the nearest face the point would leave through within a step, else the
-        # nearest face; along its outward normal (docs/decisions.md, "The face a point came in through")
+        # near the surface: below the face the point leaves through (docs/decisions.md, "The face a point came
+        # in through")
         step = dt * (point_velocity[p] - interpolate(v, t, w))
-        entered = float(1.0e30)
-        nearest = float(1.0e30)
-        d_near = float(0.0)
-        g_near = wp.vec3()
-        f_near = f0
-        for f in range(f0, f1):
-            n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
-            if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
-                entered = dist
-                d = depth_f
-                g = n_f
-            if dist < nearest:
-                nearest = dist
-                d_near = depth_f
-                g_near = n_f
-                f_near = f
-        if entered == 1.0e30:
-            d = d_near
-            g = g_near
-        if surface.mesh[surface.tet_body[e]] != wp.uint64(0):
+        d, g, _margin, f_near = exit_face(x, face_depth, tet_face_ids, tet_faces, f0, f1, q, step)
+        b = surface.tet_body[e]
+        if surface.mesh[b] != wp.uint64(0):
             rest_q = interpolate(surface.rest_x, t, w)
             bound = depth_above(surface.rest_x, face_depth, tet_faces[f_near], tet_face_ids[f_near], rest_q)
-            if bound < 0.0:
+            if bound + surface.offset < 0.0:
                 return 3, d, g, bound
             return 2, d, g, bound
         return 1, d, g, 0.0
     # deep inside: the paper's interpolated distance field and rotated gradients
     d = w[0] * depth[t[0]] + w[1] * depth[t[1]] + w[2] * depth[t[2]] + w[3] * depth[t[3]]
-    g = interpolate_directions(grad, t, w)
-    return 1, d, g, 0.0
+    return 1, d, interpolate_directions(grad, t, w), 0.0
 
 
 @wp.func
@@ -415,7 +394,8 @@ def answer_pending(
             point_velocity, point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
     if status == 2:
-        d, g = visible_depth(surface, x, e, t, lam, d, g, bound)
+        d, g = visible_depth(surface, x, e, t, lam, d, g, bound, contact_offset(p, e, t, lam, q, x, v, dt,
+            tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity))  # fmt: skip
     if status == 1 or status == 2:
         store_contact(
             p, c, cells[c], mu, d, g, v, point_velocity, dt, found_out, late,
@@ -488,13 +468,11 @@ def walk_tree(
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
 
-    Depth first, left to right, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box
-    that holds the point are tested together (one round trip to memory instead of one per node), the bits of
-    those that hold it kept on a stack packed 8 to a level in an int64; the first step down takes the 1 to 3
-    levels that leave the rest a multiple of three. A leaf's four tets are tested together, then those that
-    hold the point in leaf order; the first that answers (:func:`depth_in_tet` gives a positive depth, or
-    status 2 or 3) ends the walk. Returns that tet (-1 if none), the point's weights in it and the answer, for
-    :func:`answer_pending` to record after the walk, which keeps the walk's registers few.
+    Depth first, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box that holds the
+    point are tested together (one round trip to memory), the bits of those that hold it kept 8 to a level in
+    an int64 stack (the first step down takes 1 to 3 levels). A leaf's four tets are tested together; the
+    first that answers (:func:`depth_in_tet`: a positive depth, or status 2 or 3) ends the walk. Returns that
+    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk.
     """
     ns = node_start[body]
     ls = leaf_start[body]

@@ -101,6 +101,51 @@ def face_query(x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), fa
     return n, plane, depth, wp.length(q - (a + w[0] * e1 + w[1] * e2))
 
 
+@wp.func
+def exit_face(
+    x: wp.array(dtype=wp.vec3),
+    face_depth: wp.array(dtype=float),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    f0: int,
+    f1: int,
+    q: wp.vec3,
+    step: wp.vec3,
+):
+    """Of a tet's surface faces ``f0`` to ``f1``, the one ``q`` leaves through.
+
+    That is the nearest whose plane ``q`` would cross moving by ``step`` (m, its motion relative to the tet over
+    a step), else the nearest. Returns that face's depth and outward normal (:func:`face_query`), the cage's
+    margin there over the visible surface (m, zero where the face is the visible surface) and the nearest
+    face's index.
+    """
+    entered = float(1.0e30)
+    nearest = float(1.0e30)
+    d = float(0.0)
+    g = wp.vec3()
+    margin = float(0.0)
+    d_near = float(0.0)
+    g_near = wp.vec3()
+    margin_near = float(0.0)
+    f_near = f0
+    for f in range(f0, f1):
+        n_f, plane, depth_f, dist = face_query(x, face_depth, tet_face_ids[f], tet_faces[f], q)
+        if plane > 0.0 and plane - wp.dot(n_f, step) <= 0.0 and dist < entered:
+            entered = dist
+            d = depth_f
+            g = n_f
+            margin = plane - depth_f
+        if dist < nearest:
+            nearest = dist
+            d_near = depth_f
+            g_near = n_f
+            margin_near = plane - depth_f
+            f_near = f
+    if entered == 1.0e30:
+        return d_near, g_near, margin_near, f_near
+    return d, g, margin, f_near
+
+
 @wp.struct
 class VisibleSurface:
     """Each body's dense surface at rest, for the exact depth of a point found inside one of its tets.
@@ -120,40 +165,80 @@ class VisibleSurface:
     mesh_origin: wp.array(dtype=wp.vec3)  # per body
     mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
     reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
+    offset: float  # how far outside a body's dense surface a contact with it starts (m): bodies with one
 
 
 @wp.func
 def visible_depth(
-    s: VisibleSurface, x: wp.array(dtype=wp.vec3), e: int, t: wp.vec4i, w: wp.vec4, d: float, g: wp.vec3, bound: float
+    s: VisibleSurface,
+    x: wp.array(dtype=wp.vec3),
+    e: int,
+    t: wp.vec4i,
+    w: wp.vec4,
+    d: float,
+    g: wp.vec3,
+    bound: float,
+    offset: float,
 ):
-    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``.
+    """Depth (m, negative outside) and way out below its body's dense surface of a point in tet ``e``, plus ``offset``.
 
     The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
     :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
-    the query looks no farther, and a point with no surface that near lies outside (depth 0 returned).
-    ``d``, ``g`` are returned where the body has no dense surface or, beyond the bound, none lies within
-    its reach of the point.
+    the query looks no farther than that and ``offset`` (m, a contact's start outside the surface) outside it,
+    and a point with no surface that near lies outside (0 returned). ``d`` (plus the offset), ``g`` are returned
+    where the body has no dense surface or, beyond the bound, none lies within its reach of the point.
     """
     b = s.tet_body[e]
     mesh = s.mesh[b]
     if mesh == wp.uint64(0):
-        return d, g
+        return d + offset, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
-    near = bound / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack on the bound
+    near = (wp.max(bound, 0.0) + offset) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))
     if not hit.result:
         if near < s.reach[b]:
             return 0.0, g
-        return d, g
-    offset = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
-    dist = wp.length(offset)
+        return d + offset, g
+    to_surface = wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - q
+    dist = wp.length(to_surface)
     out = wp.mesh_eval_face_normal(mesh, hit.face)
     if dist > 1.0e-6 * s.reach[b]:
-        out = -hit.sign * offset / dist
-    depth = -hit.sign * dist * s.mesh_scale[b]
+        out = -hit.sign * to_surface / dist
+    depth = offset - hit.sign * dist * s.mesh_scale[b]
     shape = deformation_gradient(x, t, s.dm_inv[e])
     if wp.determinant(shape) <= 0.0:
         return depth, g
     return depth, wp.normalize(wp.transpose(wp.inverse(shape)) * (wp.transpose(s.to_mesh[b]) * out))
+
+
+@wp.func
+def contact_offset(
+    p: int,
+    e: int,
+    t: wp.vec4i,
+    w: wp.vec4,
+    q: wp.vec3,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
+    s: VisibleSurface,
+    point_velocity: wp.array(dtype=wp.vec3),
+) -> float:
+    """How far outside the dense surface a contact of point p (at q, weights w in surface tet e) starts (m).
+
+    The body's offset, capped by the cage's margin over the visible surface at the face the point leaves
+    through (:func:`exit_face`): it fades to none where that face is the visible surface, since no tet holds
+    a point in a gap beyond it, and a contact there would come and go.
+    """
+    if s.offset == 0.0:
+        return 0.0
+    step = dt * (point_velocity[p] - interpolate(v, t, w))
+    f0 = tet_face_start[e]
+    _d, _g, margin, _f = exit_face(x, face_depth, tet_face_ids, tet_faces, f0, tet_face_start[e + 1], q, step)
+    return wp.min(s.offset, wp.max(margin, 0.0))

@@ -87,6 +87,12 @@ def peer_runs(env: dict) -> tuple[dict[int, dict], list[Path], tuple[Path, dict]
     return newton, used, peers[0] if peers else None
 
 
+def settings_text(data: dict) -> str:
+    """The scene settings a run was given on the command line (``bench.py --set``), as a clause; none: empty."""
+    settings = data.get("settings") or []
+    return f", with `--set {' '.join(settings)}`" if settings else ""
+
+
 def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dict] | None) -> list[str]:
     """The title, where the figures come from (ours and the peer's) and how they are taken."""
     env = data["environment"]
@@ -97,7 +103,7 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
         "`scripts/bench.py` (ours) and `scripts/bench_newton.py` (the peer) on the GPU machine. Do not edit by hand.",
         "",
         f"- ours: `{path.name}` — {env['device']}, driver {env['driver']}, Warp {env['warp']}, "
-        f"commit `{env['commit'][:10]}`",
+        f"commit `{env['commit'][:10]}`{settings_text(data)}",
     ]
     if peer:
         penv = peer[1]["environment"]
@@ -175,9 +181,9 @@ def large_pile_lines(found: tuple[Path, dict] | None) -> list[str]:
         "",
         "## The pile of 1,024",
         "",
-        f"`{path.name}` (commit `{env['commit'][:10]}`, {env['device']}): 64 layers of 16, the upper ones still"
-        " falling at the end of the timed frames; dense penetration at that end only (inside another body / below"
-        " the ground, relative to the body's size).",
+        f"`{path.name}` (commit `{env['commit'][:10]}`{settings_text(data)}, {env['device']}): 64 layers of 16,"
+        " the upper ones still falling at the end of the timed frames; dense penetration at that end only"
+        " (inside another body / below the ground, relative to the body's size).",
         "",
         "| scene | substeps | tets | dense triangles | ms/frame | CG it/step | at the end |",
         "| --- | --- | --- | --- | --- | --- | --- |",

@@ -528,3 +528,13 @@ def test_points_in_space_order_are_the_same_points_near_each_other(elements, mon
         assert step_b < 0.25 * step_a, (prefix, step_a, step_b)
     found = inside(plain)
     assert len(found) > 10 and np.array_equal(found, inside(ordered))
+
+
+BAD_SETTINGS = [("stiffness", 0.0), ("friction", -0.1), ("offset", -0.001), ("offset", 0.05), ("offset", float("nan"))]
+
+
+@pytest.mark.parametrize("field, value", BAD_SETTINGS)
+def test_collision_settings_refuse_values_out_of_range(field, value):
+    """A bad setting is refused where it is made, naming the field, before any solver is built on it."""
+    with pytest.raises(ValueError, match=f"CollisionSettings.{field} must be"):
+        CollisionSettings(**{field: value})

@@ -64,10 +64,11 @@ def test_a_block_sticks_on_a_body_below_the_friction_angle(device, stiffness):
     assert abs(along[-1] - along[0]) < 1e-3  # under 1 mm in 0.6 s
 
 
-def _bunny_stack(youngs, cap: int = 100, offset: float = 0.0):
+def _bunny_stack(youngs, cap: int = 100, offset: float = 0.0, contact_offset: float = 0.0):
     """Half-size bunnies stacked on the ground, one per Young's modulus (Pa), bottom first; CG to the default
     1e-4 but capped at 100 iterations, which these stacks' friction ties used to exhaust; the ground's penalty
-    from its surface (offset 0), as when the friction rule was chosen on these stacks; scene defaults otherwise.
+    and the contacts between the bodies from their surfaces (offsets 0), as when the friction rule was chosen
+    on these stacks; scene defaults otherwise.
     At cap 100 the outcome depends on the landing: the soft-under-stiff stack dropped 0.5 or 1.1 mm higher or
     lower, or onto the default offset, stops 2-6 of its 45 frames' solves short (docs/decisions.md, "Static
     contacts from an offset"); at the default cap, 400, none stops short (the test below)."""
@@ -87,6 +88,7 @@ def _bunny_stack(youngs, cap: int = 100, offset: float = 0.0):
         "scene": {"frames": 45, "substeps": 4},
         "solver": {"cg_iterations": cap},
         "ground": {"offset": offset},
+        "collision": {"offset": contact_offset},
         "object": objects,
     }
     return warpfem.Scene.from_dict(doc, name="contrast")
@@ -108,11 +110,12 @@ def test_solves_converge_where_a_soft_body_rests_on_a_stiff_one(youngs):
 
 @pytest.mark.slow
 def test_solves_converge_in_a_contrast_stack_with_scene_defaults():
-    """The soft-under-stiff stack with the scene's defaults (the ground's offset, CG capped at 400): every solve
-    reaches CG's tolerance, measured on the system rebuilt with SciPy."""
-    from warpfem.presets import STATIC_OFFSET
+    """The soft-under-stiff stack with the scene's defaults (the ground's and the bodies' contact offsets, CG
+    capped at 400): every solve reaches CG's tolerance, measured on the system rebuilt with SciPy."""
+    from warpfem.presets import CONTACT_OFFSET, STATIC_OFFSET
 
-    sim = warpfem.Simulation(_bunny_stack((3e5, 1e7), cap=400, offset=STATIC_OFFSET), device="cpu")
+    scene = _bunny_stack((3e5, 1e7), cap=400, offset=STATIC_OFFSET, contact_offset=CONTACT_OFFSET)
+    sim = warpfem.Simulation(scene, device="cpu")
     solves = record_solves(sim)
     for _ in range(45):
         sim.step_frame()

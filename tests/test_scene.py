@@ -181,6 +181,8 @@ ERRORS = [
     ("static_lift 1", "[solver]\nstatic_lift = 1\n" + OBJ, "solver.static_lift", "true or false, got 1"),
     ("approach_limit < 0", "[collision]\napproach_limit = -0.01\n" + OBJ, "collision.approach_limit", ">= 0"),
     ("approach_limit 1", "[collision]\napproach_limit = 1.0\n" + OBJ, "collision.approach_limit", "< 1"),
+    ("contact offset < 0", "[collision]\noffset = -0.001\n" + OBJ, "collision.offset", ">= 0"),
+    ("contact offset 0.05", "[collision]\noffset = 0.05\n" + OBJ, "collision.offset", "< 0.05"),
     ("ground stiffness 0", "[ground]\nstiffness = 0\n" + OBJ, "ground.stiffness", "> 0 1/s^2"),
     ("ground friction < 0", "[ground]\nfriction = -0.1\n" + OBJ, "ground.friction", ">= 0"),
     ("ground offset < 0", "[ground]\noffset = -0.001\n" + OBJ, "ground.offset", ">= 0 and <= 0.05"),

@@ -5,6 +5,7 @@ import pytest
 import warp as wp
 
 import warpfem
+from warpfem.presets import CONTACT_OFFSET
 
 
 def _thrown(speed: float, obstacle: dict | None = None) -> dict:
@@ -240,6 +241,7 @@ def _head_on(
     contact_passes: int | None = None,
     rotation_updates: int | None = None,
     elements: str = "linear",
+    offset: float | None = None,
 ) -> float:
     """Two bunnies (0.8 m) thrown at each other at ``speed`` each, no gravity: the deepest a dense vertex of
     one gets inside the other's dense surface over 30 frames (libigl's winding number on the dense meshes
@@ -264,6 +266,7 @@ def _head_on(
         | ({"contact_passes": contact_passes} if contact_passes is not None else {})
         | ({"rotation_updates": rotation_updates} if rotation_updates is not None else {}),
         "ground": {"enabled": False},
+        "collision": {} if offset is None else {"offset": offset},
         "object": [thrown("left", -0.55, speed, 90.0), thrown("right", 0.55, -speed, -90.0)],
     }
     sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="head_on"), device=device)
@@ -279,10 +282,11 @@ def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
     overlap by less than 1 % of the size. At 30 m/s too in this meeting (turned otherwise, such an impact
     can overlap more: docs/decisions.md), since contacts the step's own motion makes are answered within the
     step; found only at the start of the next step, and with each step linearised about the rotations at its
-    start (which stretches the deforming surfaces along their tangents), they overlap by more than 1.5 %."""
+    start (which stretches the deforming surfaces along their tangents), they overlap by more than 1.5 % when
+    contacts start at the surface (no ``[collision] offset``, whose gap absorbs part of that overlap)."""
     assert _head_on(device, 5.0) < 0.01
     assert _head_on(device, 15.0, contact_passes=2) < 0.01
-    assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0) > 0.015
+    assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0, offset=0.0) > 0.015
 
 
 def test_quadratic_bodies_meeting_head_on_do_not_sink_into_each_other(device):
@@ -397,7 +401,9 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     """Two rounded boxes (superellipsoids, 0.4 x 0.2 x 0.4 m, 20k dense faces: their dense surfaces bulge
     out of the coarse ones at every edge) stacked on a third whose base is pinned, scene defaults otherwise:
     after 2 s the stack stands where it was put, at rest, and no dense vertex is deeper than 0.3 % of the size
-    inside another body (winding numbers on the dense meshes)."""
+    inside another body (winding numbers on the dense meshes). Each body rests on the one below within twice
+    the contacts' offset of its dense surface (libigl's signed distance between the dense meshes)."""
+    import igl
     import trimesh
 
     sphere = trimesh.creation.icosphere(subdivisions=5)
@@ -425,6 +431,12 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     assert np.allclose(centres[1:, [0, 2]], [[0.03, 0.0], [-0.03, 0.02]], atol=0.01)  # not slid off
     assert np.all(np.diff(centres[:, 1]) > 0.19)  # each on the one below
     assert warpfem.frame_penetration(sim).relative < 0.003
+    faces = [np.asarray(b.dense_faces, np.int64).reshape(-1, 3) for b in sim.model.bodies]
+    size = float(np.linalg.norm(np.ptp(after[0], axis=0)))
+    points = [p.astype(np.float64) for p in after]
+    for upper in (1, 2):
+        gap = float(igl.signed_distance(points[upper], points[upper - 1], faces[upper - 1])[0].min())
+        assert gap < 2.0 * CONTACT_OFFSET * size, gap / size
 
 
 @pytest.mark.parametrize("elements", ["linear", "quadratic"])
@@ -597,12 +609,13 @@ def test_a_horse_dropped_onto_another_lands_within_one_percent(device, asset, pr
 def test_only_the_frames_of_a_fast_impact_run_twice_the_substeps(device, asset, prep_cache):
     """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run twice the
     substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
-    which a step then carries deeper than they are thick, sink past 1 % of the size into the other horse."""
+    which a step then carries deeper than they are thick, sink past 1 % of the size into the other horse where
+    contacts start at its surface (``offset = 0``: the default offset's gap holds this drop without them)."""
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5)
     refined = sim.totals.refined_frames
     assert 1 <= refined <= 12, refined
     assert sim.totals.steps == sim.substeps * (72 + refined)
     assert inside < 0.01
-    inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0)
+    inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0, offset=0.0)
     assert sim.approach is None and sim.totals.steps == sim.substeps * 72
     assert inside > 0.01

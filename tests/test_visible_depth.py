@@ -22,7 +22,7 @@ def _depths(
 ):
     i = wp.tid()
     e = tet_ids[i]
-    d, g = visible_depth(s, x, e, tets[e], weights[i], -1.0e30, wp.vec3(), bounds[i])
+    d, g = visible_depth(s, x, e, tets[e], weights[i], -1.0e30, wp.vec3(), bounds[i], 0.0)  # no contact offset
     depth_out[i] = d
     direction_out[i] = g
 

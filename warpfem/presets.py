@@ -56,6 +56,11 @@ APPROACH_LIMIT = 0.02
 before a frame runs twice the substeps (``[collision] approach_limit``). Chosen by measurement
 (docs/decisions.md, "Frames of fast approach at twice the substeps")."""
 
+CONTACT_OFFSET = 2.0e-3
+"""How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
+smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.
+Chosen by measurement (docs/decisions.md, "Body-body contacts from an offset")."""
+
 STATIC_OFFSET = 8.0e-4
 """How far above a static collider's surface (the ground, an obstacle) its penalty starts by default, as a share of
 the touching body's size (its tet mesh's rest bounding-box diagonal): a penalty holds a load at some depth, and

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
-from warpfem.presets import APPROACH_LIMIT, PRESETS, STATIC_OFFSET, apply_mode_default
+from warpfem.presets import APPROACH_LIMIT, CONTACT_OFFSET, PRESETS, STATIC_OFFSET, apply_mode_default
 from warpfem.scene_checks import (
     _NAME_RE,
     _check_choice,
@@ -160,12 +160,17 @@ class CollisionConfig:
         approach_limit: The most two bodies may close on each other in one step, as a share of the smaller
             one's size (0 <= limit < 1): a frame in which two bodies near each other would close faster runs
             twice the substeps, so that thin parts do not pass through each other in a fast impact; 0: never.
+        offset: How far outside another body's visible surface a contact with it starts, as a share of the
+            scene's smallest colliding body's size (0 <= offset < 0.05): the give a penalty needs to hold a
+            load goes into that gap instead of into the other body, and bodies resting on each other stand up
+            to that far apart; 0: at the surface.
     """
 
     enabled: bool = True
     stiffness: float = 1e7
     friction: float = 0.5
     approach_limit: float = APPROACH_LIMIT
+    offset: float = CONTACT_OFFSET
 
     def validate(self, origin: str = "<scene>") -> None:
         """Raise :class:`InputError` naming ``origin`` (the scene file) on the first bad value."""
@@ -175,6 +180,7 @@ class CollisionConfig:
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
         _check_range(err, "approach_limit", self.approach_limit, ge=0.0, lt=1.0)
+        _check_range(err, "offset", self.offset, ge=0.0, lt=0.05)
 
 
 KEY_COLUMNS = "[t, tx, ty, tz, rx, ry, rz]"

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import collision as K
+from warpfem.presets import CONTACT_OFFSET
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
@@ -33,12 +34,26 @@ class CollisionSettings:
             the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
             behaves like the ground's penalty (resting depth about g / stiffness).
         friction: Coulomb friction coefficient between bodies.
+        offset: How far outside another body's dense surface a contact with it starts, as a share of the
+            scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
+            rather than inside the visible surface, and resting bodies stand up to that far apart.
         contacts_per_point: Contact buffer capacity per collision point.
     """
 
     stiffness: float = 1.0e7
     friction: float = 0.5
+    offset: float = CONTACT_OFFSET
     contacts_per_point: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not self.stiffness > 0.0:
+            raise ValueError(f"CollisionSettings.stiffness must be > 0 1/s^2, got {self.stiffness}")
+        if not self.friction >= 0.0:
+            raise ValueError(f"CollisionSettings.friction must be >= 0, got {self.friction}")
+        if not 0.0 <= self.offset < 0.05:
+            raise ValueError(f"CollisionSettings.offset must be in [0, 0.05) of the size, got {self.offset}")
+        if not self.contacts_per_point > 0.0:
+            raise ValueError(f"CollisionSettings.contacts_per_point must be > 0, got {self.contacts_per_point}")
 
 
 DEFAULT_COLLISION = CollisionSettings()
@@ -140,7 +155,8 @@ class Collider:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
-        self.visible, self._dense_meshes = visible_surface(model)
+        offset = settings.offset * min(b.size for b in model.bodies)
+        self.visible, self._dense_meshes = visible_surface(model, offset)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""

@@ -23,8 +23,11 @@ COPY_TOLERANCE = 1.0e-6
 """Largest rest-position mismatch, as a fraction of the body's size, for two bodies to share one mesh."""
 
 
-def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
-    """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it)."""
+def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, list[wp.Mesh]]:
+    """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it).
+
+    ``offset`` (m): how far outside a body's dense surface a contact with it starts (bodies with one only).
+    """
     dev = model.device
     rest, tets = model.rest_x.numpy().astype(np.float64), model.tets.numpy()
     cells, dense_cell = model.cells.numpy(), model.dense_cell.numpy()
@@ -64,6 +67,7 @@ def visible_surface(model: Model) -> tuple[VisibleSurface, list[wp.Mesh]]:
     s.mesh_origin = wp.array(np.array(origin, np.float32), dtype=wp.vec3, device=dev)
     s.mesh_scale = wp.array(np.array(scale, np.float32), dtype=float, device=dev)
     s.reach = wp.array(np.array(reach, np.float32), dtype=float, device=dev)
+    s.offset = float(offset)  # none for a body without a dense surface: no cage around it finds points in the gap
     return s, meshes
 
 
