@@ -1,0 +1,33 @@
+"""scripts/kernel_registers.py: registers a thread of each CUDA kernel, counted by ptxas on Warp's PTX (no GPU)."""
+
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import warp as wp
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import kernel_registers  # noqa: E402
+
+
+@pytest.mark.skipif(shutil.which("ptxas") is None, reason="ptxas (the CUDA toolkit) is not on PATH")
+def test_every_kernel_of_a_module_gets_its_register_count(capsys):
+    """The kernels listed are exactly those Warp registers in the module, each at 1-255 registers (the most a
+    thread can address on sm_90)."""
+    import warpfem.kernels.approach as approach
+
+    assert kernel_registers.main(["approach"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line.startswith("approach ")]
+    counts = {row[1]: int(row[2]) for row in rows}
+    assert set(counts) == set(wp.get_module(approach.__name__).kernels)
+    assert all(1 <= n <= 255 for n in counts.values()), counts
+
+
+def test_an_unknown_module_is_a_one_line_error(capsys):
+    assert kernel_registers.main(["no_such_stage"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.match(r"kernel_registers: no module 'no_such_stage' in kernels/", err[0])
