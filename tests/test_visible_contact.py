@@ -401,8 +401,8 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     """Two rounded boxes (superellipsoids, 0.4 x 0.2 x 0.4 m, 20k dense faces: their dense surfaces bulge
     out of the coarse ones at every edge) stacked on a third whose base is pinned, scene defaults otherwise:
     after 2 s the stack stands where it was put, at rest, and no dense vertex is deeper than 0.3 % of the size
-    inside another body (winding numbers on the dense meshes). Each body rests on the one below within twice
-    the contacts' offset of its dense surface (libigl's signed distance between the dense meshes)."""
+    inside another body (winding numbers on the dense meshes). Each body rests on the one below: its dense
+    surface within 0.1 % of the size plus twice the contacts' offset of the other's (libigl's signed distance)."""
     import igl
     import trimesh
 
@@ -436,7 +436,7 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     points = [p.astype(np.float64) for p in after]
     for upper in (1, 2):
         gap = float(igl.signed_distance(points[upper], points[upper - 1], faces[upper - 1])[0].min())
-        assert gap < 2.0 * CONTACT_OFFSET * size, gap / size
+        assert gap < (0.001 + 2.0 * CONTACT_OFFSET) * size, gap / size
 
 
 @pytest.mark.parametrize("elements", ["linear", "quadratic"])
