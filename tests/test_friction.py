@@ -111,7 +111,9 @@ def test_solves_converge_where_a_soft_body_rests_on_a_stiff_one(youngs):
 @pytest.mark.slow
 def test_solves_converge_in_a_contrast_stack_with_scene_defaults():
     """The soft-under-stiff stack with the scene's defaults (the ground's and the bodies' contact offsets, CG
-    capped at 400): every solve reaches CG's tolerance, measured on the system rebuilt with SciPy."""
+    capped at 400): every solve reaches CG's tolerance, measured on the system rebuilt with SciPy, and the
+    bodies, placed 3 % inside each other, come apart rather than tangle: at the end no dense vertex of one lies
+    deeper than 1 % of the size inside the other (winding numbers on the dense meshes)."""
     from warpfem.presets import CONTACT_OFFSET, STATIC_OFFSET
 
     scene = _bunny_stack((3e5, 1e7), cap=400, offset=STATIC_OFFSET, contact_offset=CONTACT_OFFSET)
@@ -121,3 +123,4 @@ def test_solves_converge_in_a_contrast_stack_with_scene_defaults():
         sim.step_frame()
     assert len(solves) > 100
     assert worst_residual(sim, solves) < 2.0 * sim.scene.solver.cg_tolerance
+    assert warpfem.frame_penetration(sim).relative < 0.01
