@@ -187,13 +187,14 @@ def visible_depth(
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
     :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
     the query looks no farther than that and ``offset`` (m, a contact's start outside the surface) outside it,
-    and a point with no surface that near lies outside (0 returned). ``d`` (plus the offset), ``g`` are returned
-    where the body has no dense surface or, beyond the bound, none lies within its reach of the point.
+    and a point with no surface that near lies outside (0 returned). ``d``, ``g`` are returned where the body has
+    no dense surface (and so no offset), and ``d`` plus the offset where, beyond the bound, no surface lies
+    within its reach of the point.
     """
     b = s.tet_body[e]
     mesh = s.mesh[b]
     if mesh == wp.uint64(0):
-        return d + offset, g
+        return d, g
     q = s.to_mesh[b] * interpolate(s.rest_x, t, w) + s.mesh_origin[b]
     near = (wp.max(bound, 0.0) + offset) / s.mesh_scale[b] * 1.0001 + 1.0e-5 * s.reach[b]  # float slack
     hit = wp.mesh_query_point_sign_normal(mesh, q, wp.min(near, s.reach[b]))

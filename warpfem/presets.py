@@ -60,7 +60,10 @@ CONTACT_OFFSET = 0.0
 """How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
 smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.
 None by default: bodies that start inside one another can tangle with it (docs/decisions.md, "Body-body
-contacts from an offset"); 0.002 halves a pile's overlap where they do not."""
+contacts from an offset")."""
+
+CONTACT_OFFSET_LIMIT = 0.05
+"""The contact offset must lie below this share of the size (``[collision] offset``, ``CollisionSettings``)."""
 
 STATIC_OFFSET = 8.0e-4
 """How far above a static collider's surface (the ground, an obstacle) its penalty starts by default, as a share of

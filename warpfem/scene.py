@@ -19,7 +19,14 @@ from pathlib import Path
 from typing import Any
 
 from warpfem.errors import InputError
-from warpfem.presets import APPROACH_LIMIT, CONTACT_OFFSET, PRESETS, STATIC_OFFSET, apply_mode_default
+from warpfem.presets import (
+    APPROACH_LIMIT,
+    CONTACT_OFFSET,
+    CONTACT_OFFSET_LIMIT,
+    PRESETS,
+    STATIC_OFFSET,
+    apply_mode_default,
+)
 from warpfem.scene_checks import (
     _NAME_RE,
     _check_choice,
@@ -180,7 +187,7 @@ class CollisionConfig:
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
         _check_range(err, "approach_limit", self.approach_limit, ge=0.0, lt=1.0)
-        _check_range(err, "offset", self.offset, ge=0.0, lt=0.05)
+        _check_range(err, "offset", self.offset, ge=0.0, lt=CONTACT_OFFSET_LIMIT)
 
 
 KEY_COLUMNS = "[t, tx, ty, tz, rx, ry, rz]"

@@ -19,7 +19,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import collision as K
-from warpfem.presets import CONTACT_OFFSET
+from warpfem.presets import CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
@@ -50,8 +50,10 @@ class CollisionSettings:
             raise ValueError(f"CollisionSettings.stiffness must be > 0 1/s^2, got {self.stiffness}")
         if not self.friction >= 0.0:
             raise ValueError(f"CollisionSettings.friction must be >= 0, got {self.friction}")
-        if not 0.0 <= self.offset < 0.05:
-            raise ValueError(f"CollisionSettings.offset must be in [0, 0.05) of the size, got {self.offset}")
+        if not 0.0 <= self.offset < CONTACT_OFFSET_LIMIT:
+            raise ValueError(
+                f"CollisionSettings.offset must be in [0, {CONTACT_OFFSET_LIMIT}) of the size, got {self.offset}"
+            )
         if not self.contacts_per_point > 0.0:
             raise ValueError(f"CollisionSettings.contacts_per_point must be > 0, got {self.contacts_per_point}")
 

@@ -67,7 +67,7 @@ def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, 
     s.mesh_origin = wp.array(np.array(origin, np.float32), dtype=wp.vec3, device=dev)
     s.mesh_scale = wp.array(np.array(scale, np.float32), dtype=float, device=dev)
     s.reach = wp.array(np.array(reach, np.float32), dtype=float, device=dev)
-    s.offset = float(offset)  # none for a body without a dense surface: no cage around it finds points in the gap
+    s.offset = float(offset)  # applied to bodies with a dense surface only (kernels.surface.visible_depth)
     return s, meshes
 
 
