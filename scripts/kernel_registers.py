@@ -31,8 +31,11 @@ def ptx_of(module: str, arch: int, work: Path) -> str:
 
     wp.config.quiet = True
     wp.init()
-    paths = wp.compile_aot_module(importlib.import_module(f"warpfem.kernels.{module}"), arch=arch, module_dir=work,
-                                  use_ptx=True)  # fmt: skip
+    try:
+        paths = wp.compile_aot_module(importlib.import_module(f"warpfem.kernels.{module}"), arch=arch,
+                                      module_dir=work, use_ptx=True)  # fmt: skip
+    except Exception as err:  # Warp's NVRTC build raises a bare Exception
+        raise RuntimeError(f"NVRTC could not build it for sm_{arch}: {err}") from None
     return Path(paths[0]).read_bytes().replace(b"\x00", b"").decode()
 
 
@@ -48,7 +51,7 @@ def assemble(ptx: str, arch: int, work: Path) -> str:
             break
         ptx = re.sub(r"^\.version \d+\.\d+", f".version {newest.group(1)}", ptx, count=1, flags=re.M)
     if run.returncode != 0:
-        raise RuntimeError(run.stderr.strip().splitlines()[-1])
+        raise RuntimeError(f"ptxas could not assemble it: {run.stderr.strip().splitlines()[-1]}")
     return run.stderr
 
 
@@ -75,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--arch", type=int, default=90, help="SM architecture (default 90: H100, H200)")
     parser.add_argument("--match", default="", help="only kernels whose name contains this")
     args = parser.parse_args(argv)
+    if not 50 <= args.arch <= 130:
+        parser.error(f"--arch must be an SM version such as 80 or 90, got {args.arch}")
     known = sorted(p.stem for p in (ROOT / "kernels").glob("*.py") if p.stem != "__init__")
     for module in args.modules:
         if module not in known:
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 counts = usage(assemble(ptx_of(module, args.arch, Path(tmp)), args.arch, Path(tmp)))
             except RuntimeError as err:
-                print(f"kernel_registers: ptxas could not assemble {module}: {err}", file=sys.stderr)
+                print(f"kernel_registers: {module}: {err}", file=sys.stderr)
                 return 1
         for name, (registers, spill) in sorted(counts.items()):
             if args.match in name:

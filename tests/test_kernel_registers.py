@@ -31,3 +31,12 @@ def test_an_unknown_module_is_a_one_line_error(capsys):
     assert kernel_registers.main(["no_such_stage"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.match(r"kernel_registers: no module 'no_such_stage' in kernels/", err[0])
+
+
+@pytest.mark.parametrize("arch", ["1", "900", "ninety"])
+def test_a_bad_arch_is_a_one_line_error(capsys, arch):
+    with pytest.raises(SystemExit) as stop:
+        kernel_registers.main(["approach", "--arch", arch])
+    assert stop.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "--arch" in err[0]
