@@ -726,7 +726,8 @@ def contact_forces(
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
-    friction across it, c from :func:`kernels.integrate.tie_friction` at the step's start velocity. C goes to
+    friction across it, c from :func:`kernels.integrate.tie_friction` at the step's start velocity and a depth
+    of at most ``friction[1]`` (m; ``friction[0]``: the coefficient). C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
     (:class:`warpfem.sim.contacts.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
     contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
@@ -754,7 +755,7 @@ def contact_forces(
     w_t = contact_bary[i]
     u = relative(v, tp, w_p, tt, w_t)
     ut = u - wp.dot(u, g) * g
-    c = tie_friction(friction[0], a, contact_depth[i], wp.length(ut), dt)
+    c = tie_friction(friction[0], a, wp.min(contact_depth[i], friction[1]), wp.length(ut), dt)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
     contact_matrix_out[i] = C

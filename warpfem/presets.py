@@ -56,11 +56,10 @@ APPROACH_LIMIT = 0.02
 before a frame runs twice the substeps (``[collision] approach_limit``). Chosen by measurement
 (docs/decisions.md, "Frames of fast approach at twice the substeps")."""
 
-CONTACT_OFFSET = 0.0
+CONTACT_OFFSET = 0.002
 """How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
 smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.
-None by default: bodies that start inside one another can tangle with it (docs/decisions.md, "Body-body
-contacts from an offset")."""
+Chosen by measurement (docs/decisions.md, "Body-body contacts from an offset")."""
 
 CONTACT_OFFSET_LIMIT = 0.05
 """The contact offset must lie below this share of the size (``[collision] offset``, ``CollisionSettings``)."""

@@ -60,6 +60,12 @@ class CollisionSettings:
 
 DEFAULT_COLLISION = CollisionSettings()
 
+FRICTION_LOAD_DEPTH = 0.002
+"""The deepest a body-body contact carries friction from, beyond the contact offset, as a share of the scene's
+smallest colliding body's size: deeper, the penalty is undoing an overlap rather than carrying a load, and
+friction in proportion to it holds overlapping bodies in place (they tangle instead of coming apart). Chosen
+by measurement (docs/decisions.md, "Friction from the load, not the overlap")."""
+
 DETECT_LANES = 4
 """The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the
 bodies whose boxes hold the point (:func:`detect_lanes`)."""
@@ -133,7 +139,8 @@ class Collider:
             self.contact_matrix,
         )
         """The contacts as CG's matrix-free term (filled each step by :meth:`respond`)."""
-        self.friction = wp.zeros(1, dtype=float, device=dev)
+        self.friction = wp.zeros(2, dtype=float, device=dev)
+        """The friction coefficient and the deepest a contact carries friction from (m)."""
         self.point_stiffness = wp.zeros(n_points, dtype=float, device=dev)
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
@@ -157,8 +164,10 @@ class Collider:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
-        offset = settings.offset * min(b.size for b in model.bodies)
+        size = min(b.size for b in model.bodies)
+        offset = settings.offset * size
         self.visible, self._dense_meshes = visible_surface(model, offset)
+        self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
@@ -166,7 +175,7 @@ class Collider:
 
     def set_response(self, stiffness: float, friction: float) -> None:
         """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays)."""
-        self.friction.fill_(float(friction))
+        self.friction.assign(np.array([friction, self._friction_depth], dtype=np.float32))
         wp.launch(
             K.scale_point_stiffness,
             dim=self.points.shape[0],
