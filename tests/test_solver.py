@@ -6,7 +6,7 @@ import warp as wp
 
 from warpfem.build import add_body
 from warpfem.prep.shapes import box_tet_mesh
-from warpfem.sim.integrate import Box, Sphere
+from warpfem.sim.integrate import Box, MeshCollider, Sphere
 from warpfem.sim.model import ModelBuilder
 from warpfem.sim.solver import DEFAULT_CONTACT_PASSES, Ground, Solver
 
@@ -286,3 +286,32 @@ def test_late_passes_and_rotation_updates_can_be_lowered_after_construction_not_
             setattr(solver, name, value)
     assert (solver.contact_passes, solver.rotation_updates) == (2, 1)
     assert np.isfinite(_run(solver, model, 4, 1 / 240).x.numpy()).all()  # the lowered counts still step
+
+
+_TRI = (np.eye(3), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda: Ground(stiffness=0.0), "Ground.stiffness must be > 0"),
+        (lambda: Ground(friction=-0.1), "Ground.friction must be >= 0"),
+        (lambda: Ground(offset=0.06), r"Ground.offset must be in \[0, 0.05\]"),
+        (lambda: Ground(up=(0.0, 2.0, 0.0)), "Ground.up must be a unit vector"),
+        (lambda: Ground(height=float("nan")), "Ground.height must be a finite number"),
+        (lambda: Sphere((0.0, 0.0, 0.0), 0.0), "Sphere.radius must be > 0"),
+        (lambda: Sphere((0.0, float("inf"), 0.0), 1.0), "Sphere.center must be three finite numbers"),
+        (lambda: Box((0.0, 0.0, 0.0), (1.0, -1.0, 1.0)), "Box.half_extents must be three finite numbers > 0"),
+        (lambda: Box((0.0, 0.0), (1.0, 1.0, 1.0)), "Box.center must be three finite numbers"),
+        (lambda: MeshCollider(_TRI[0], np.array([[0, 1, 3]])), "MeshCollider.faces index vertices 0..2"),
+        (lambda: MeshCollider(_TRI[0], np.array([[0.0, 1.0, 2.0]])), "MeshCollider.faces must be"),
+        (lambda: MeshCollider(np.zeros((3, 2)), _TRI[1]), "MeshCollider.vertices must be"),
+        (lambda: MeshCollider(*_TRI, rotation=2.0 * np.eye(3)), "MeshCollider.rotation must be a 3 x 3 rotation"),
+        (lambda: MeshCollider(*_TRI, stiffness=-1.0), "MeshCollider.stiffness must be > 0"),
+    ],
+)
+def test_colliders_refuse_values_out_of_range(make, message):
+    """A collider built through the API with a bad value is refused where it is made, naming the field, as a
+    scene file's is, before any solver is built on it."""
+    with pytest.raises(ValueError, match=message):
+        make()

@@ -71,6 +71,9 @@ this gap takes that depth instead of the visible surface; a body that gives noth
 visible size above the collider. Chosen by measurement (docs/decisions.md, "Static contacts from an
 offset")."""
 
+STATIC_OFFSET_LIMIT = 0.05
+"""A static collider's offset must not exceed this share of the size (``[ground] offset``, obstacles, ``Ground``)."""
+
 
 def apply_mode_default(doc: dict[str, Any]) -> None:
     """Give a scene document's fixed-mode solver without ``cg_iterations`` :data:`FIXED_CG_ITERATIONS`."""

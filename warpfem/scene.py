@@ -25,6 +25,7 @@ from warpfem.presets import (
     CONTACT_OFFSET_LIMIT,
     PRESETS,
     STATIC_OFFSET,
+    STATIC_OFFSET_LIMIT,
     apply_mode_default,
 )
 from warpfem.scene_checks import (
@@ -151,7 +152,7 @@ class GroundConfig:
         _check_float(err, "height", self.height)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
-        _check_range(err, "offset", self.offset, ge=0.0, le=0.05)
+        _check_range(err, "offset", self.offset, ge=0.0, le=STATIC_OFFSET_LIMIT)
 
 
 @dataclass
@@ -292,7 +293,7 @@ class ObstacleConfig:
             _check_keys(err, "keys", self.keys)
         _check_range(err, "stiffness", self.stiffness, "1/s^2", gt=0.0)
         _check_range(err, "friction", self.friction, ge=0.0)
-        _check_range(err, "offset", self.offset, ge=0.0, le=0.05)
+        _check_range(err, "offset", self.offset, ge=0.0, le=STATIC_OFFSET_LIMIT)
 
     def _validate_mesh(self, err: _Problem) -> None:
         for key in ("center", "radius", "half_extents"):

@@ -10,10 +10,28 @@ import warp as wp
 
 from warpfem.kernels import integrate as K
 from warpfem.kernels.product import Pairs
-from warpfem.presets import STATIC_OFFSET
+from warpfem.presets import STATIC_OFFSET, STATIC_OFFSET_LIMIT
 from warpfem.sim.drive import Motion, quat_of_matrix
 from warpfem.sim.launch import spread_block_dim
 from warpfem.sim.model import Model, State
+
+
+def check_response(owner: str, stiffness: float, friction: float, offset: float) -> None:
+    """Raise ValueError naming ``owner``'s field where a collider's penalty, friction or offset is out of range."""
+    if not stiffness > 0.0:
+        raise ValueError(f"{owner}.stiffness must be > 0 1/s^2, got {stiffness}")
+    if not friction >= 0.0:
+        raise ValueError(f"{owner}.friction must be >= 0, got {friction}")
+    if not 0.0 <= offset <= STATIC_OFFSET_LIMIT:
+        raise ValueError(f"{owner}.offset must be in [0, {STATIC_OFFSET_LIMIT}] of the size, got {offset}")
+
+
+def check_vector(owner: str, name: str, value, positive: bool = False) -> None:
+    """Raise ValueError unless ``value`` is three finite numbers (each > 0 where ``positive``)."""
+    v = np.asarray(value, dtype=np.float64) if np.ndim(value) == 1 and len(value) == 3 else None
+    if v is None or not np.isfinite(v).all() or (positive and not (v > 0.0).all()):
+        kind = "three finite numbers > 0" if positive else "three finite numbers"
+        raise ValueError(f"{owner}.{name} must be {kind}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -34,6 +52,14 @@ class Ground:
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     offset: float = STATIC_OFFSET
 
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.height):
+            raise ValueError(f"Ground.height must be a finite number of m, got {self.height}")
+        check_vector("Ground", "up", self.up)
+        if abs(np.linalg.norm(self.up) - 1.0) > 1.0e-6:
+            raise ValueError(f"Ground.up must be a unit vector, got {self.up!r}")
+        check_response("Ground", self.stiffness, self.friction, self.offset)
+
 
 @dataclass(frozen=True)
 class Sphere:
@@ -50,6 +76,12 @@ class Sphere:
     motion: Motion | None = None
     offset: float = STATIC_OFFSET
 
+    def __post_init__(self) -> None:
+        check_vector("Sphere", "center", self.center)
+        if not (np.isfinite(self.radius) and self.radius > 0.0):
+            raise ValueError(f"Sphere.radius must be > 0 m, got {self.radius}")
+        check_response("Sphere", self.stiffness, self.friction, self.offset)
+
 
 @dataclass(frozen=True)
 class Box:
@@ -64,6 +96,11 @@ class Box:
     friction: float = 0.5
     motion: Motion | None = None
     offset: float = STATIC_OFFSET
+
+    def __post_init__(self) -> None:
+        check_vector("Box", "center", self.center)
+        check_vector("Box", "half_extents", self.half_extents, positive=True)
+        check_response("Box", self.stiffness, self.friction, self.offset)
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +133,20 @@ class MeshCollider:
     motion: Motion | None = None
     closed: bool = True
     offset: float = STATIC_OFFSET
+
+    def __post_init__(self) -> None:
+        v, f = np.asarray(self.vertices), np.asarray(self.faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v.astype(np.float64)).all():
+            raise ValueError(f"MeshCollider.vertices must be (n >= 3, 3) finite positions, got shape {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"MeshCollider.faces must be (m >= 1, 3) integer triangles, got {f.dtype} {f.shape}")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"MeshCollider.faces index vertices 0..{len(v) - 1}, got {f.min()}..{f.max()}")
+        r = np.asarray(self.rotation, np.float64)
+        if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1.0e-5) or np.linalg.det(r) <= 0.0:
+            raise ValueError("MeshCollider.rotation must be a 3 x 3 rotation matrix")
+        check_vector("MeshCollider", "translation", self.translation)
+        check_response("MeshCollider", self.stiffness, self.friction, self.offset)
 
 
 Collider = Ground | Sphere | Box | MeshCollider
