@@ -33,7 +33,8 @@ class CollisionSettings:
         stiffness: Penalty stiffness per unit point mass (1/s^2): a = stiffness * m_point, where m_point is
             the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
             behaves like the ground's penalty (resting depth about g / stiffness).
-        friction: Coulomb friction coefficient between bodies.
+        friction: Coulomb friction coefficient between bodies, on a contact's depth up to the offset plus
+            :data:`FRICTION_LOAD_DEPTH` of the size.
         offset: How far outside another body's dense surface a contact with it starts, as a share of the
             scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
             rather than inside the visible surface, and resting bodies stand up to that far apart.
