@@ -168,14 +168,18 @@ class Collider:
         size = min(b.size for b in model.bodies)
         offset = settings.offset * size
         self.visible, self._dense_meshes = visible_surface(model, offset)
-        self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
+        self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
+        """The deepest a contact carries friction from (m)."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
-        """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays)."""
+        """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays).
+
+        The depth friction is read up to stays the scene's.
+        """
         self.friction.assign(np.array([friction, self._friction_depth], dtype=np.float32))
         wp.launch(
             K.scale_point_stiffness,
