@@ -40,3 +40,22 @@ def test_a_bad_arch_is_a_one_line_error(capsys, arch):
     assert stop.value.code == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(err) == 1 and "--arch" in err[0]
+
+
+@pytest.mark.parametrize(
+    "registers, block, warps",
+    [(32, 256, 64), (64, 256, 32), (128, 256, 16), (255, 256, 8), (152, 32, 13), (153, 32, 12), (40, 32, 32)],
+)
+def test_resident_warps_follow_cudas_occupancy_tables(registers, block, warps):
+    """The warps an H100/H200 SM keeps at a register count, as CUDA's occupancy calculator gives them (65,536
+    registers given out 256 to a warp, at most 64 warps and 32 blocks an SM): 153 registers cost blocks of one
+    warp a warp against 152."""
+    assert kernel_registers.resident_warps(registers, block, 90) == warps
+
+
+def test_a_bad_block_is_a_one_line_error(capsys):
+    with pytest.raises(SystemExit) as stop:
+        kernel_registers.main(["approach", "--block", "0"])
+    assert stop.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "--block" in err[0]
