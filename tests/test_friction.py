@@ -95,6 +95,29 @@ def _bunny_stack(youngs, cap: int = 100, offset: float = 0.0, contact_offset: fl
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="friction between bodies placed inside one another holds the soft one in the stiff one's head, "
+    "2.2 % deep (docs/decisions.md, 'Friction from the load, not the overlap')",
+)
+def test_a_soft_body_placed_into_a_stiff_ones_head_comes_apart():
+    """A soft bunny (3e5 Pa) placed straight above a stiff one (1e7 Pa), its underside partly inside the stiff
+    one's head and ears, with the scene's defaults: after 45 frames no dense vertex of one lies deeper than 1 % of
+    the size inside the other (winding numbers on the dense meshes). Without friction between them it parts and
+    slides off; with it, the soft body stays where it was put."""
+    import dataclasses
+
+    from warpfem.presets import CONTACT_OFFSET, STATIC_OFFSET
+
+    scene = _bunny_stack((1e7, 3e5), cap=400, offset=STATIC_OFFSET, contact_offset=CONTACT_OFFSET)
+    objects = [dataclasses.replace(o, translate=(0.0, *o.translate[1:])) for o in scene.objects]
+    sim = warpfem.Simulation(dataclasses.replace(scene, objects=objects), device="cpu")
+    for _ in range(45):
+        sim.step_frame()
+    assert warpfem.frame_penetration(sim).relative < 0.01
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("youngs", [(3e5, 1e7), (1e7, 3e5)], ids=["soft-under-stiff", "stiff-under-soft"])
 def test_solves_converge_where_a_soft_body_rests_on_a_stiff_one(youngs):
     """Bodies 30x apart in stiffness, resting on each other with friction: every solve reaches CG's tolerance,
