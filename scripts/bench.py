@@ -287,8 +287,9 @@ CHECKS_OVER_RUN = 12
 
 CHECK_MAX_BODIES = 256
 """Scenes of more bodies are checked at the end only by default (the check of a frame grows with the bodies in
-contact): ``--check-bodies``. The pile of 256's replay and checks add about 12 s on an H200, and its landing is
-where the overlap over a run peaks, so it is checked over its run; the pile of 1,024 at the end only."""
+contact): ``--check-bodies``. The pile of 256's landing is where the overlap over a run peaks, so it is checked
+over its run; the pile of 1,024 at the end only (docs/decisions.md, "Friction from the load, not the
+overlap")."""
 
 
 def time_scene(
