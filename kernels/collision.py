@@ -17,7 +17,6 @@ system matrix, applied matrix-free in CG's product (pairs of embedded points).
 
 import warp as wp
 
-from .distance import LATTICE, LATTICE_POINTS
 from .embedding import in_cell, interpolate, tet_weights
 from .grid import warp_max_at
 from .integrate import tie_friction
@@ -25,11 +24,9 @@ from .surface import (
     VisibleSurface,
     add_rotated_gradients,
     contact_offset,
+    depth_above,
     exit_face,
-    face_weights,
     interpolate_directions,
-    lattice_cell,
-    lattice_index,
     visible_depth,
 )
 
@@ -234,28 +231,6 @@ class Found:
     normal: wp.array(dtype=wp.vec3)
     depth: wp.array(dtype=float)
     deepest: wp.array(dtype=float)
-
-
-@wp.func
-def depth_above(
-    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
-):
-    """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
-
-    The face's lattice holds the signed distance to the dense rest surface, which changes by at most the
-    distance moved: below it by at most ``q``'s distance from a corner of the face's cell nearest ``q``, all
-    at rest (``rest_x``). Negative: ``q`` surely lies outside the visible surface.
-    """
-    a = rest_x[face[0]]
-    e1 = rest_x[face[1]] - a
-    e2 = rest_x[face[2]] - a
-    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
-    i, j, fu, fv = lattice_cell(w[0], w[1])
-    r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
-    base = face_id * LATTICE_POINTS
-    bound = face_depth[base + lattice_index(i, j)] + wp.length(r)
-    bound = wp.min(bound, face_depth[base + lattice_index(i + 1, j)] + wp.length(r - e1 / float(LATTICE)))
-    return wp.min(bound, face_depth[base + lattice_index(i, j + 1)] + wp.length(r - e2 / float(LATTICE)))
 
 
 @wp.func
@@ -716,6 +691,7 @@ def contact_forces(
     totals_out: wp.array(dtype=wp.int32),
     point_contact_out: wp.array(dtype=wp.int32),
     late_count_out: wp.array(dtype=wp.int32),
+    placed_out: wp.array(dtype=wp.int32),
 ):
     """Penalty force a d g on the point's cell nodes (by its weights), the reaction on the contact cell's.
 
@@ -727,7 +703,8 @@ def contact_forces(
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
     friction across it, c from :func:`kernels.integrate.tie_friction` at the step's start velocity and a depth
-    of at most ``friction[1]`` (m; ``friction[0]``: the coefficient). C goes to
+    of at most ``friction[1]`` (m; ``friction[0]``: the coefficient), none for a point ``placed_out`` marks
+    while its contact is deeper than that (it clears the mark once one is not: :func:`mark_placed`). C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
     (:class:`warpfem.sim.contacts.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
     contacts found to ``totals_out[0]`` and keeps the most in one step in ``totals_out[1]``.
@@ -755,7 +732,13 @@ def contact_forces(
     w_t = contact_bary[i]
     u = relative(v, tp, w_p, tt, w_t)
     ut = u - wp.dot(u, g) * g
-    c = tie_friction(friction[0], a, wp.min(contact_depth[i], friction[1]), wp.length(ut), dt)
+    loaded = wp.min(contact_depth[i], friction[1])
+    if placed_out[p] != 0:
+        if contact_depth[i] > friction[1]:
+            loaded = 0.0
+        else:
+            placed_out[p] = 0
+    c = tie_friction(friction[0], a, loaded, wp.length(ut), dt)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
     contact_matrix_out[i] = C
@@ -768,6 +751,32 @@ def contact_forces(
         wp.atomic_add(force_out, tt[k], -w_t[k] * f)
         wp.atomic_add(matrix_out, diag_slot[tp[k]], w_p[k] * w_p[k] * C)
         wp.atomic_add(matrix_out, diag_slot[tt[k]], w_t[k] * w_t[k] * C)
+
+
+@wp.kernel
+def mark_placed(
+    count: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.int32),
+    contact_depth: wp.array(dtype=float),
+    friction: wp.array(dtype=float),
+    placed_out: wp.array(dtype=wp.int32),
+):
+    """Marks the point of each contact deeper than friction's load depth ``friction[1]`` (m) as placed inside.
+
+    Run on the contacts of the state a run starts from: such a point lies in an overlap the bodies were put in,
+    whose penalties squeeze a body from opposite sides; friction from them would hold it there.
+    """
+    i = wp.tid()
+    if i < wp.min(count[0], contact_point.shape[0]) and contact_depth[i] > friction[1]:
+        placed_out[contact_point[i]] = 1
+
+
+@wp.kernel
+def release_placed(point_contact: wp.array(dtype=wp.int32), placed_out: wp.array(dtype=wp.int32)):
+    """Clears the placed-inside mark of each point the last step found no contact for: it is out of the overlap."""
+    p = wp.tid()
+    if point_contact[p] == 0:
+        placed_out[p] = 0
 
 
 @wp.kernel

@@ -243,3 +243,25 @@ def contact_offset(
     f0 = tet_face_start[e]
     _d, _g, margin, _f = exit_face(x, face_depth, tet_face_ids, tet_faces, f0, tet_face_start[e + 1], q, step)
     return wp.min(s.offset, wp.max(margin, 0.0))
+
+
+@wp.func
+def depth_above(
+    rest_x: wp.array(dtype=wp.vec3), face_depth: wp.array(dtype=float), face: wp.vec3i, face_id: int, q: wp.vec3
+):
+    """An upper bound (m) on the depth of rest position ``q`` below the visible surface, from a surface face.
+
+    The face's lattice holds the signed distance to the dense rest surface, which changes by at most the
+    distance moved: below it by at most ``q``'s distance from a corner of the face's cell nearest ``q``, all
+    at rest (``rest_x``). Negative: ``q`` surely lies outside the visible surface.
+    """
+    a = rest_x[face[0]]
+    e1 = rest_x[face[1]] - a
+    e2 = rest_x[face[2]] - a
+    w = face_weights(q - a, e1, e2, wp.cross(e1, e2))
+    i, j, fu, fv = lattice_cell(w[0], w[1])
+    r = q - (a + (float(i) * e1 + float(j) * e2) / float(LATTICE))  # from the cell's corner (i, j)
+    base = face_id * LATTICE_POINTS
+    bound = face_depth[base + lattice_index(i, j)] + wp.length(r)
+    bound = wp.min(bound, face_depth[base + lattice_index(i + 1, j)] + wp.length(r - e1 / float(LATTICE)))
+    return wp.min(bound, face_depth[base + lattice_index(i, j + 1)] + wp.length(r - e2 / float(LATTICE)))

@@ -275,6 +275,8 @@ class Simulation:
         self._graph = None
         self._rest_x: np.ndarray | None = None
         self._rotation = RotationWatch(model, solver.rotation)
+        if solver.collider is not None:
+            solver.collider.mark_placed(self.states[0].x, self.states[0].v, self.dt)
         self._warned: set[str] = set()
 
     @property

@@ -34,7 +34,8 @@ class CollisionSettings:
             the lumped vertex mass interpolated at the point (a vertex: its own mass), so a point in contact
             behaves like the ground's penalty (resting depth about g / stiffness).
         friction: Coulomb friction coefficient between bodies, on a contact's depth up to the offset plus
-            :data:`FRICTION_LOAD_DEPTH` of the size.
+            :data:`FRICTION_LOAD_DEPTH` of the size; none where bodies were placed deeper than that inside
+            one another, until that overlap is undone (:meth:`Collider.mark_placed`).
         offset: How far outside another body's dense surface a contact with it starts, as a share of the
             scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
             rather than inside the visible surface, and resting bodies stand up to that far apart.
@@ -147,6 +148,11 @@ class Collider:
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
         """Which points have a contact this step (a late pass leaves them be)."""
+        self.placed = wp.zeros(n_points, dtype=wp.int32, device=dev)
+        """Which points lay deeper than friction's load depth inside another body where the run began and have not
+        come out of that depth since: their contacts carry no friction (:meth:`mark_placed`)."""
+        self.placed_any = False
+        """Whether :meth:`mark_placed` marked any point (else a step releases none)."""
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
@@ -246,6 +252,42 @@ class Collider:
         if base_out is not None:
             self._answer(v, dt, *base_out, self._late_again)
 
+    def mark_placed(self, x: wp.array, v: wp.array, dt: float) -> None:
+        """Mark the points lying deeper than friction's load depth inside another body at positions ``x``.
+
+        Bodies placed inside one another are pressed apart by their penalties, which squeeze a body from
+        opposite sides; friction from those contacts would hold it where it was put. A marked point's contacts
+        carry no friction until one is no deeper than the load depth. For the state a run starts from (at its
+        rest pose: no rotation), before the first step; it leaves no contact behind.
+        """
+        m = self.model
+        self.rotate_gradients(wp.full(m.tet_count, wp.mat33(np.eye(3, dtype=np.float32)), device=m.device))
+        self.prepare(x, v)
+        self.point_contact.zero_()
+        self.counts.zero_()
+        self._detect(x, v, dt)
+        wp.launch(
+            K.mark_placed,
+            dim=self.capacity,
+            inputs=[self.count, self.contact_point, self.contact_depth, self.friction],
+            outputs=[self.placed],
+            device=m.device,
+        )
+        wp.copy(self.point_contact, self.placed)  # the first step's release keeps them
+        self.counts.zero_()
+        self.depth_max.zero_()
+        self.placed_any = bool(self.placed.numpy().any())
+
+    def release_placed(self) -> None:
+        """Clear the placed-inside mark of the points the last step found no contact for (before the step's clear).
+
+        Nothing where no point was placed inside another body.
+        """
+        if self.placed_any:
+            m = self.model
+            n = self.placed.shape[0]
+            wp.launch(K.release_placed, dim=n, inputs=[self.point_contact], outputs=[self.placed], device=m.device)
+
     def _answer(
         self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
     ) -> None:
@@ -284,6 +326,7 @@ class Collider:
                 self.contacts_total,
                 self.point_contact,
                 self.first if late_count_out is None else late_count_out,
+                self.placed,
             ],
             device=dev,
         )

@@ -242,6 +242,8 @@ class Solver:
                 side.wait_stream(wp.get_stream(model.device))
                 with wp.ScopedStream(side, sync_enter=False):
                     self.collider.prepare(state_in.x, state_in.v)
+            if self.collider is not None:
+                self.collider.release_placed()
             integrate.clear_step(self._cleared, self._cleared_dim, model.device)
             fem.elastic_forces_and_stiffness(
                 model, state_in.x, dt, self.rotation, self.elastic_force, self.elastic_matrix, self.grad,
