@@ -1,5 +1,5 @@
 """Friction between bodies: the Coulomb law against the analytic incline, and solves that converge where a soft
-body rests on a stiff one.
+body lands on a stiff one.
 
 References are independent of the simulator: the analytic acceleration of a block on an incline, and each
 linear system the step solves rebuilt with SciPy from the solver's inputs (its stored blocks and contact pairs)
@@ -115,9 +115,10 @@ def test_a_soft_body_placed_into_a_stiff_ones_head_comes_apart():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("youngs", [(3e5, 1e7), (1e7, 3e5)], ids=["soft-under-stiff", "stiff-under-soft"])
-def test_solves_converge_where_a_soft_body_rests_on_a_stiff_one(youngs):
-    """Bodies 30x apart in stiffness, resting on each other with friction: every solve reaches CG's tolerance,
-    measured on the system rebuilt with SciPy (block-Jacobi norm, as CG's stopping rule)."""
+def test_solves_converge_where_a_soft_body_lands_on_a_stiff_one(youngs):
+    """Bodies 30x apart in stiffness, pressed on each other with friction (the upper one lands on the lower
+    one's head, then slides off it onto the ground): every solve reaches CG's tolerance, measured on the system
+    rebuilt with SciPy (block-Jacobi norm, as CG's stopping rule)."""
     sim = warpfem.Simulation(_bunny_stack(youngs), device="cpu")
     solves = record_solves(sim)
     for _ in range(45):

@@ -424,6 +424,41 @@ class BodyArrays(Protocol):
     face_depth: np.ndarray
 
 
+_FLAT_FIELDS = {
+    "rest_x": ("x", wp.vec3, np.float32),
+    "initial_v": ("v", wp.vec3, np.float32),
+    "dm_inv": ("dm_inv", wp.mat33, np.float32),
+    "rest_volume": ("volume", float, np.float32),
+    "tet_mu": ("mu", float, np.float32),
+    "tet_lambda": ("lam", float, np.float32),
+    "tet_beta": ("beta", float, np.float32),
+    "mass": ("mass", float, np.float32),
+    "alpha": ("alpha", float, np.float32),
+    "free": ("free", wp.int32, np.int32),
+    "dense_cell": ("embed_cell", wp.int32, np.int32),
+    "dense_bary": ("embed_bary", wp.vec4, np.float32),
+    "vertex_depth": ("depth", float, np.float32),
+    "vertex_grad": ("grad", wp.vec3, np.float32),
+    "vertex_body": ("vertex_body", wp.int32, np.int32),
+    "tet_face_start": ("tet_face_start", wp.int32, np.int32),
+    "tet_faces": ("tet_faces", wp.vec3i, np.int32),
+    "tet_face_ids": ("tet_face_ids", wp.int32, np.int32),
+    "face_depth": ("face_depth", float, np.float32),
+    "point_cell": ("point_cell", wp.int32, np.int32),
+    "point_bary": ("point_bary", wp.vec4, np.float32),
+    "point_anchor": ("point_anchor", wp.vec3i, np.int32),
+    "point_body": ("point_body", wp.int32, np.int32),
+    "point_mass": ("point_mass", float, np.float32),
+    "skin_cell": ("skin_cell", wp.int32, np.int32),
+    "skin_bary": ("skin_bary", wp.vec4, np.float32),
+    "skin_mass": ("skin_mass", float, np.float32),
+    "tree_node_start": ("node_start", wp.int32, np.int32),
+    "tree_leaf_start": ("leaf_start", wp.int32, np.int32),
+    "tree_leaf_tets": ("leaf_tets", wp.vec4i, np.int32),
+}
+"""The :class:`Model` fields copied as they are from the builder's flat arrays: (flat key, Warp dtype, NumPy dtype)."""
+
+
 class ModelBuilder:
     """Collects bodies, then builds one flat :class:`Model` on a device."""
 
@@ -560,21 +595,13 @@ class ModelBuilder:
             cell_body = arr_of(owner.astype(np.int32), wp.int32)
         if (device.is_cuda and len(bodies) > DIRECT_BODIES) if ordered is None else ordered:
             _spatially_ordered(flat, corners)
-        i32 = np.int32
+        per_body = [(b["mass"].sum(), b["size"], b["volume"].sum(), b["self_collision"]) for b in self._bodies]
+        mass, size, volume, self_collision = (np.array(column) for column in zip(*per_body, strict=True))
         return Model(
             device=device,
             bodies=bodies,
-            rest_x=arr("x", wp.vec3),
-            initial_v=arr("v", wp.vec3),
+            **{field: arr(key, dtype, np_type) for field, (key, dtype, np_type) in _FLAT_FIELDS.items()},
             tets=tets,
-            dm_inv=arr("dm_inv", wp.mat33),
-            rest_volume=arr("volume", float),
-            tet_mu=arr("mu", float),
-            tet_lambda=arr("lam", float),
-            tet_beta=arr("beta", float),
-            mass=arr("mass", float),
-            alpha=arr("alpha", float),
-            free=arr("free", wp.int32, i32),
             row_start=arr_of(pattern["row_start"], wp.int32),
             cols=arr_of(pattern["cols"], wp.int32),
             diag_slot=arr_of(pattern["diag_slot"], wp.int32),
@@ -584,31 +611,11 @@ class ModelBuilder:
             cells=cells,
             cell_slots=cell_slots,
             cell_body=cell_body,
-            dense_cell=arr("embed_cell", wp.int32, i32),
-            dense_bary=arr("embed_bary", wp.vec4),
-            vertex_depth=arr("depth", float),
-            vertex_grad=arr("grad", wp.vec3),
             tet_body=tet_body,
-            vertex_body=arr("vertex_body", wp.int32, i32),
-            body_mass=arr_of(np.array([b["mass"].sum() for b in self._bodies], np.float32), float),
-            body_size=arr_of(np.array([b["size"] for b in self._bodies], np.float32), float),
-            body_volume=arr_of(np.array([b["volume"].sum() for b in self._bodies], np.float32), float),
-            tet_face_start=arr("tet_face_start", wp.int32, i32),
-            tet_faces=arr("tet_faces", wp.vec3i, i32),
-            tet_face_ids=arr("tet_face_ids", wp.int32, i32),
-            face_depth=arr("face_depth", float),
-            body_self=arr_of(np.array([b["self_collision"] for b in self._bodies], i32), wp.int32),
-            point_cell=arr("point_cell", wp.int32, i32),
-            point_bary=arr("point_bary", wp.vec4),
-            point_anchor=arr("point_anchor", wp.vec3i, i32),
-            point_body=arr("point_body", wp.int32, i32),
-            point_mass=arr("point_mass", float),
-            skin_cell=arr("skin_cell", wp.int32, i32),
-            skin_bary=arr("skin_bary", wp.vec4),
-            skin_mass=arr("skin_mass", float),
-            tree_node_start=arr("node_start", wp.int32, i32),
-            tree_leaf_start=arr("leaf_start", wp.int32, i32),
-            tree_leaf_tets=arr("leaf_tets", wp.vec4i, i32),
+            body_mass=arr_of(mass.astype(np.float32), float),
+            body_size=arr_of(size.astype(np.float32), float),
+            body_volume=arr_of(volume.astype(np.float32), float),
+            body_self=arr_of(self_collision.astype(np.int32), wp.int32),
             tet_size=float(np.median(flat["tet_extent"])),
         )
 
