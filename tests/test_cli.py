@@ -247,16 +247,33 @@ def test_prepare_options_reach_the_pipeline(scene_dir, capsys):
         _one_line_error(capsys, needle)
 
 
+def _warnings(scene_dir, text: str, capsys, needle: str, frames: int) -> list[str]:
+    """The stderr lines holding ``needle`` of a CPU run of scene ``text`` for ``frames`` frames."""
+    (scene_dir / "w.toml").write_text(text)
+    args = ["run", scene_dir / "w.toml", "--out", scene_dir / "w.usdc", "--device", "cpu", "--no-cache"]
+    assert _run([*args, "--frames", str(frames)]) == 0
+    return [line for line in capsys.readouterr().err.splitlines() if needle in line]
+
+
 def test_fast_bodies_warn_once_about_tunnelling(scene_dir, capsys):
     text = SCENE.replace("substeps = 2", "substeps = 1") + (
         '[[object]]\nname = "other"\nmesh = "ball.obj"\nfaces = 120\nscale = 0.5\ntranslate = [0.0, 0.6, 3.0]\n'
         "velocity = [0.0, 0.0, -90.0]\n"
     )
-    (scene_dir / "fast.toml").write_text(text)
-    out = scene_dir / "fast.usdc"
-    assert _run(["run", scene_dir / "fast.toml", "--out", out, "--device", "cpu", "--no-cache", "--frames", "3"]) == 0
-    warnings = [line for line in capsys.readouterr().err.splitlines() if "may pass through" in line]
+    warnings = _warnings(scene_dir, text, capsys, "may pass through", frames=3)
     assert len(warnings) == 1 and "'other'" in warnings[0] and "raise substeps" in warnings[0]
+
+
+def test_bodies_placed_inside_one_another_are_named_once(scene_dir, capsys):
+    """Two balls placed a tenth of their diameter into each other (and one clear of both): one warning naming the
+    two, and not the third."""
+    text = SCENE + (
+        '[[object]]\nname = "into"\nmesh = "ball.obj"\nfaces = 120\nscale = 0.5\ntranslate = [0.0, 1.5, 0.0]\n'
+        '[[object]]\nname = "clear"\nmesh = "ball.obj"\nfaces = 120\nscale = 0.5\ntranslate = [3.0, 0.6, 0.0]\n'
+    )
+    warnings = _warnings(scene_dir, text, capsys, "start inside", frames=2)
+    assert len(warnings) == 1 and "'ball'" in warnings[0] and "'into'" in warnings[0]
+    assert "'clear'" not in warnings[0]
 
 
 def test_fast_rotation_warns_once(scene_dir, capsys, monkeypatch):

@@ -275,9 +275,10 @@ class Simulation:
         self._graph = None
         self._rest_x: np.ndarray | None = None
         self._rotation = RotationWatch(model, solver.rotation)
+        self._warned: set[str] = set()
         if solver.collider is not None:
             solver.collider.mark_placed(self.states[0].x, self.states[0].v, self.dt)
-        self._warned: set[str] = set()
+            self._say_placed()
 
     @property
     def device(self) -> wp.context.Device:
@@ -550,6 +551,18 @@ class Simulation:
         # implicit Euler keeps about 1 / (1 + (omega dt)^2) of a spin's energy per step
         lost = 1.0 - (1.0 + per_step**2) ** -(self.fps * self.substeps)
         return f"implicit Euler takes about {100 * lost:.0f} % of a spin's energy per second this fast"
+
+    def _say_placed(self) -> None:
+        """Warn where bodies start inside one another (:meth:`~warpfem.sim.collision.Collider.mark_placed`)."""
+        collider = self.solver.collider
+        if collider.placed_any:
+            bodies = np.unique(self.model.point_body.numpy()[collider.placed.numpy() != 0])
+            names = ", ".join(f"'{self.model.bodies[b].name}'" for b in bodies)
+            self._warn_once(
+                "placed",
+                f"warning: {names} start inside other bodies: their contacts push them apart, without friction "
+                "until they are out",
+            )
 
     def _warn_once(self, kind: str, message: str) -> None:
         if self.warn is not None and kind not in self._warned:
