@@ -583,10 +583,17 @@ def late_skin_contacts(
             wp.atomic_add(count_out, 0, 1)
 
 
+LIFT_GIVE = wp.constant(1.0e-4)
+"""How far (a share of the body's size) a point may lie below a still collider before :func:`lift_points` moves
+it: the penalty holds a resting point a little below the surface where the collider's offset is 0, and lifting
+that depth out every step, against the penalty, kept a soft body moving."""
+
+
 @wp.kernel
 def lift_points(
     x: wp.array(dtype=wp.vec3),
     cells: wp.array(dtype=wp.vec4i),
+    cell_body: wp.array(dtype=wp.int32),
     free: wp.array(dtype=wp.int32),
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
@@ -596,11 +603,12 @@ def lift_points(
 ):
     """How far each free node must move so that no embedded point lies below a still collider's surface.
 
-    A point (skin point or dense vertex, at weights ``point_bary`` in cell ``point_cell``) at depth ``d``
-    below a collider that does not move (normal ``n``) asks each free node of its cell with a positive weight
-    to move by ``d n``: moved so, the nodes carry the point out by at least ``d``. A node takes the largest
-    such move per axis, the positive parts in ``up_out`` and the negative in ``down_out`` (both zero where none
-    asks; :func:`apply_lift` zeroes them again).
+    Below it by more than :data:`LIFT_GIVE` of its body's size, that is: a point (skin point or dense vertex,
+    at weights ``point_bary`` in cell ``point_cell``) at depth ``d`` past that give below a collider that does
+    not move (normal ``n``) asks each free node of its cell with a positive weight to move by ``d n``: moved
+    so, the nodes carry the point up by at least ``d``. A node takes the largest such move per axis, the
+    positive parts in ``up_out`` and the negative in ``down_out`` (both zero where none asks;
+    :func:`apply_lift` zeroes them again).
     """
     i = wp.tid()
     e = point_cell[i]
@@ -610,8 +618,9 @@ def lift_points(
     for o in range(colliders.kind.shape[0]):
         if colliders.moving[o] == 0:
             dn = collider_distance(colliders, o, p)
-            if dn[0] < 0.0:
-                move = -dn[0] * wp.vec3(dn[1], dn[2], dn[3])
+            give = LIFT_GIVE * colliders.body_size[cell_body[e]]
+            if dn[0] < -give:
+                move = (-dn[0] - give) * wp.vec3(dn[1], dn[2], dn[3])
                 for c in range(4):
                     if w[c] > 0.0 and free[t[c]] != 0:
                         wp.atomic_max(up_out, t[c], move)

@@ -450,7 +450,8 @@ def lift_points(
 ) -> None:
     """Move the tet nodes so that no point embedded at ``bary`` in ``cell`` lies below a still collider's surface.
 
-    Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the per-node
+    Below it by more than ``kernels.integrate.LIFT_GIVE`` of its body's size, that is: the give a resting
+    penalty needs. Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the per-node
     requests, zero between calls. A node moved against its velocity stops along the move
     (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
     """
@@ -458,7 +459,7 @@ def lift_points(
     wp.launch(
         K.lift_points,
         dim=cell.shape[0],
-        inputs=[state.x, model.cells, model.free, cell, bary, colliders.arrays],
+        inputs=[state.x, model.cells, model.cell_body, model.free, cell, bary, colliders.arrays],
         outputs=[up, down],
         device=dev,
     )

@@ -401,7 +401,8 @@ class Solver:
 
         Between skin points a deformed tet can carry a dense vertex a little lower than its neighbours; a
         frame's last state goes through this so that what is written never shows below the ground or inside
-        a still obstacle. Nothing without ``static_lift``.
+        a still obstacle by more than ``kernels.integrate.LIFT_GIVE`` of its body's size. Nothing without
+        ``static_lift``.
         """
         if self.static_lift:
             m = self.model
