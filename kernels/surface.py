@@ -185,7 +185,7 @@ def visible_depth(
     The point lies at weights ``w`` in the tet; the way out is the way to the nearest surface point at rest,
     carried to the tet's current shape at positions ``x`` as a normal is (by the inverse transpose of its
     deformation gradient). ``bound`` (m) bounds the point's depth from above (the face lattice's
-    :func:`kernels.collision.depth_above`): a point inside lies no farther than that from the surface, so
+    :func:`depth_above`): a point inside lies no farther than that from the surface, so
     the query looks no farther than that and ``offset`` (m, a contact's start outside the surface) outside it,
     and a point with no surface that near lies outside (0 returned). ``d``, ``g`` are returned where the body has
     no dense surface (and so no offset), and ``d`` plus the offset where, beyond the bound, no surface lies

@@ -277,8 +277,7 @@ class Simulation:
         self._rotation = RotationWatch(model, solver.rotation)
         self._warned: set[str] = set()
         if solver.collider is not None:
-            solver.collider.mark_placed(self.states[0].x, self.states[0].v, self.dt)
-            self._say_placed()
+            self._say_placed(solver.collider.mark_placed(self.states[0].x, self.states[0].v, self.dt))
 
     @property
     def device(self) -> wp.context.Device:
@@ -552,11 +551,13 @@ class Simulation:
         lost = 1.0 - (1.0 + per_step**2) ** -(self.fps * self.substeps)
         return f"implicit Euler takes about {100 * lost:.0f} % of a spin's energy per second this fast"
 
-    def _say_placed(self) -> None:
-        """Warn where bodies start inside one another (:meth:`~warpfem.sim.collision.Collider.mark_placed`)."""
-        collider = self.solver.collider
-        if collider.placed_any:
-            bodies = np.unique(self.model.point_body.numpy()[collider.placed.numpy() != 0])
+    def _say_placed(self, marked: np.ndarray) -> None:
+        """Warn where bodies start inside one another.
+
+        ``marked``: per collision point, as :meth:`~warpfem.sim.collision.Collider.mark_placed` returns it.
+        """
+        if marked.any():
+            bodies = np.unique(self.model.point_body.numpy()[marked])
             names = ", ".join(f"'{self.model.bodies[b].name}'" for b in bodies)
             self._warn_once(
                 "placed",

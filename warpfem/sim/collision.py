@@ -252,13 +252,14 @@ class Collider:
         if base_out is not None:
             self._answer(v, dt, *base_out, self._late_again)
 
-    def mark_placed(self, x: wp.array, v: wp.array, dt: float) -> None:
+    def mark_placed(self, x: wp.array, v: wp.array, dt: float) -> np.ndarray:
         """Mark the points lying deeper than friction's load depth inside another body at positions ``x``.
 
         Bodies placed inside one another are pressed apart by their penalties, which squeeze a body from
         opposite sides; friction from those contacts would hold it where it was put. A marked point's contacts
         carry no friction until one is no deeper than the load depth. For the state a run starts from (at its
-        rest pose: no rotation), before the first step; it leaves no contact behind.
+        rest pose: no rotation), before the first step; it leaves no contact behind. Returns the marks per
+        collision point (bool, on the host).
         """
         m = self.model
         self.rotate_gradients(wp.full(m.tet_count, wp.mat33(np.eye(3, dtype=np.float32)), device=m.device))
@@ -276,7 +277,9 @@ class Collider:
         wp.copy(self.point_contact, self.placed)  # the first step's release keeps them
         self.counts.zero_()
         self.depth_max.zero_()
-        self.placed_any = bool(self.placed.numpy().any())
+        marked = self.placed.numpy() != 0
+        self.placed_any = bool(marked.any())
+        return marked
 
     def release_placed(self) -> None:
         """Clear the placed-inside mark of the points the last step found no contact for (before the step's clear).

@@ -451,8 +451,8 @@ def lift_points(
     """Move the tet nodes so that no point embedded at ``bary`` in ``cell`` lies below a still collider's surface.
 
     Below it by more than ``kernels.integrate.LIFT_GIVE`` of its body's size, that is: the give a resting
-    penalty needs. Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the per-node
-    requests, zero between calls. A node moved against its velocity stops along the move
+    penalty needs. Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the
+    per-node requests, zero between calls. A node moved against its velocity stops along the move
     (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
     """
     dev = model.device
