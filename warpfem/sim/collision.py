@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import collision as K
+from warpfem.kernels import contacts as KC
 from warpfem.presets import CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
@@ -188,7 +189,7 @@ class Collider:
         """
         self.friction.assign(np.array([friction, self._friction_depth], dtype=np.float32))
         wp.launch(
-            K.scale_point_stiffness,
+            KC.scale_point_stiffness,
             dim=self.points.shape[0],
             inputs=[self.model.point_mass, float(stiffness)],
             outputs=[self.point_stiffness],
@@ -268,7 +269,7 @@ class Collider:
         self.counts.zero_()
         self._detect(x, v, dt)
         wp.launch(
-            K.mark_placed,
+            KC.mark_placed,
             dim=self.capacity,
             inputs=[self.count, self.contact_point, self.contact_depth, self.friction],
             outputs=[self.placed],
@@ -289,7 +290,7 @@ class Collider:
         if self.placed_any:
             m = self.model
             n = self.placed.shape[0]
-            wp.launch(K.release_placed, dim=n, inputs=[self.point_contact], outputs=[self.placed], device=m.device)
+            wp.launch(KC.release_placed, dim=n, inputs=[self.point_contact], outputs=[self.placed], device=m.device)
 
     def _answer(
         self, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, late_count_out: wp.array | None = None
@@ -298,7 +299,7 @@ class Collider:
         m = self.model
         dev = m.device
         wp.launch(
-            K.contact_forces,
+            KC.contact_forces,
             dim=self.capacity,
             inputs=[
                 self.count,

@@ -24,6 +24,7 @@ STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.approach": (WIDE_BLOCK,),
     "warpfem.kernels.cg": (WIDE_BLOCK,),
     "warpfem.kernels.collision": SPREAD_BLOCKS,
+    "warpfem.kernels.contacts": (WIDE_BLOCK,),
     "warpfem.kernels.deflation": (WIDE_BLOCK,),
     "warpfem.kernels.drive": (WIDE_BLOCK,),
     "warpfem.kernels.embedding": (WIDE_BLOCK,),
