@@ -436,6 +436,67 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
     assert np.any((tet_body[contact_tets] == 2) & (point_body[contact_points] == 2))  # self contacts were tested
 
 
+def _inside_other_body(model, x, points):
+    """Per point (at ``points``), whether a tet of another body (vertices ``x``) holds it: NumPy barycentrics."""
+    tets, tet_body, point_body = model.tets.numpy(), model.tet_body.numpy(), model.point_body.numpy()
+    A = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    bary = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - x[tets[:, 0]][None])
+    inside = (bary >= -1e-6).all(axis=2) & (bary.sum(axis=2) <= 1 + 1e-6)
+    return (inside & (tet_body[None, :] != point_body[:, None])).any(axis=1)
+
+
+@pytest.mark.parametrize("bodies", ["direct", "bvh"])
+@pytest.mark.parametrize("speed, gap", [(0.2, 0.0005), (8.0, 0.01)])
+def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device, bodies, speed, gap, monkeypatch):
+    """Against NumPy: a late pass at a step's end positions finds exactly the collision points then inside another
+    body's tets that had no contact at the step's start, though it leaves out the points the start found out of
+    its reach of a body whose and whose own speeds could not have carried them in.
+
+    Two boxes overlapping at the start (contacts there), a third closing on the first at ``speed`` (m/s) from
+    ``gap`` (m) away: at 0.2 m/s from within the start's reach (0.5 % of 0.3 m), at 8 m/s from well beyond it.
+    Each vertex's velocity carries a little noise of its own.
+    """
+    monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
+    dt = 1 / 240
+    b = ModelBuilder()
+    for k, lo in enumerate([(0.0, 0.0, 0.0), (0.0, 0.29, 0.02), (0.3 + gap, 0.01, 0.03)]):
+        add_body(b, f"b{k}", *_box(lo, (0.3, 0.3, 0.3), (3, 3, 3)), 1e5, 0.3, 1000.0, collision_spacing=0.03)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None)
+    c = solver.collider
+    assert c.direct == (bodies == "direct")
+    x0 = model.rest_x.numpy()
+    body = model.vertex_body.numpy()
+    v = np.random.default_rng(5).normal(scale=0.01 * speed, size=x0.shape)
+    v[body == 2, 0] -= speed
+    v = v.astype(np.float32)
+    x1 = (x0 + dt * v).astype(np.float32)
+    xs0, xs1, vs = (wp.array(a, dtype=wp.vec3, device=device) for a in (x0, x1, v))
+    c.rotate_gradients(wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device))
+    c.prepare(xs0, vs)
+    c.respond(xs0, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix))
+    start = int(c.count.numpy()[0])
+    at_start = set(c.contact_point.numpy()[:start].tolist())
+    assert at_start  # the first two boxes overlap
+    body_speed = np.array([np.linalg.norm(v[body == k], axis=1).max() for k in range(3)], np.float32)
+    count = wp.zeros(1, dtype=wp.int32, device=device)
+    c.respond_late(
+        xs1, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix), count,
+        body_speed=wp.array(body_speed, dtype=float, device=device),
+    )  # fmt: skip
+    end = int(c.count.numpy()[0])
+    late = c.contact_point.numpy()[start:end]
+    pairs = set(zip(late.tolist(), model.tet_body.numpy()[c.contact_cell.numpy()[start:end]].tolist(), strict=True))
+    assert len(pairs) == len(late) == int(count.numpy()[0])  # at most one contact per point and body
+
+    cells, bary = model.cells.numpy()[model.point_cell.numpy()], model.point_bary.numpy()
+    points = np.einsum("pk,pkj->pj", bary, x1[cells])
+    inside = _inside_other_body(model, x1, points)
+    expected = set(np.flatnonzero(inside).tolist()) - at_start
+    assert expected  # the third box's face crossed into the first
+    assert set(late.tolist()) == expected
+
+
 def test_top_speed_per_body_matches_numpy(device):
     """``read_speeds``: per body, the fastest collision point (its velocity interpolated like its position),
     against NumPy. Three bodies of a few hundred points each (whole warps of one body, and warps that straddle
