@@ -17,7 +17,6 @@ system matrix, applied matrix-free in CG's product (pairs of embedded points).
 
 import warp as wp
 
-from .contacts import POINT_CONTACT, POINT_NEAR
 from .embedding import in_cell, interpolate, tet_weights
 from .grid import warp_max_at
 from .surface import (
@@ -378,42 +377,23 @@ def answer_pending(
 
 
 @wp.func
-def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3, r: float) -> bool:
-    """Whether point q lies in the box [lo, hi] grown by ``r`` on every side."""
-    return (
-        q[0] >= lo[0] - r and q[1] >= lo[1] - r and q[2] >= lo[2] - r
-        and q[0] <= hi[0] + r and q[1] <= hi[1] + r and q[2] <= hi[2] + r
-    )  # fmt: skip
-
-
-@wp.func
-def box_overlaps(lo_a: wp.vec3, hi_a: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
-    """Whether the box [lo_a, hi_a] meets the box [lo, hi]."""
-    return (
-        hi_a[0] >= lo[0] and hi_a[1] >= lo[1] and hi_a[2] >= lo[2]
-        and lo_a[0] <= hi[0] and lo_a[1] <= hi[1] and lo_a[2] <= hi[2]
-    )  # fmt: skip
+def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
+    """Whether point q lies in the box [lo, hi]."""
+    return q[0] >= lo[0] and q[1] >= lo[1] and q[2] >= lo[2] and q[0] <= hi[0] and q[1] <= hi[1] and q[2] <= hi[2]
 
 
 @wp.func
 def group_holds(
-    q: wp.vec3,
-    r: float,
-    node_lower: wp.array(dtype=wp.vec3),
-    node_upper: wp.array(dtype=wp.vec3),
-    base: int,
-    size: int,
+    q: wp.vec3, node_lower: wp.array(dtype=wp.vec3), node_upper: wp.array(dtype=wp.vec3), base: int, size: int
 ) -> int:
-    """Bit j set if box ``base + j``, grown by ``r``, holds ``q``, for the ``size`` (at most 8) boxes from ``base``.
+    """Bit j set if box ``base + j`` holds ``q``, for the ``size`` (at most 8) consecutive boxes from ``base``.
 
     The boxes' loads do not depend on one another, so they are in flight together.
     """
     mask = int(0)
-    lo_q = q - wp.vec3(r)
-    hi_q = q + wp.vec3(r)
     for j in range(8):
         k = base + wp.min(j, size - 1)
-        if j < size and box_overlaps(lo_q, hi_q, node_lower[k], node_upper[k]):
+        if j < size and overlaps(q, node_lower[k], node_upper[k]):
             mask = mask | (1 << j)
     return mask
 
@@ -435,7 +415,6 @@ WALK_STRIDE = wp.constant(3)
 def walk_tree(
     p: int,
     q: wp.vec3,
-    r: float,
     body: int,
     same: bool,
     node_start: wp.array(dtype=wp.int32),
@@ -467,9 +446,7 @@ def walk_tree(
     point are tested together (one round trip to memory), the bits of those that hold it kept 8 to a level in
     an int64 stack (the first step down takes 1 to 3 levels). A leaf's four tets are tested together; the
     first that answers (:func:`depth_in_tet`: a positive depth, or status 2 or 3) ends the walk. Returns that
-    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk. The boxes
-    are grown by ``r`` (m): where one of the leaves' holds the point but none of its tets answers, the tet
-    returned is -2 (the point is within ``r`` of the body's tets).
+    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -480,7 +457,7 @@ def walk_tree(
     top = wp.where(leaf_level == 0, 0, leaf_level - WALK_STRIDE * ((leaf_level - 1) // WALK_STRIDE))
     level = top  # tree level of the group of boxes being walked
     base = (1 << top) - 1  # its first node
-    mask = group_holds(q, r, node_lower, node_upper, ns + base, 1 << top)
+    mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
     stack = wp.int64(0)
     found = bool(False)
     pending = int(-1)
@@ -523,47 +500,12 @@ def walk_tree(
                         pending_d = d
                         pending_g = g
                         pending_bound = bound
-                if not found:
-                    pending = -2
             else:
                 stack = (stack << wp.int64(8)) | wp.int64(mask)
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
-                mask = group_holds(q, r, node_lower, node_upper, ns + base, 8)
+                mask = group_holds(q, node_lower, node_upper, ns + base, 8)
     return pending, pending_w, pending_status, pending_d, pending_g, pending_bound
-
-
-LATE_DONE = wp.constant(-2.0)
-""":func:`late_slack`'s answer for a point a late pass leaves be: it has a contact this step."""
-
-
-@wp.func
-def late_slack(
-    p: int,
-    late: int,
-    budget: float,
-    dt: float,
-    point_contact: wp.array(dtype=wp.int32),
-    point_velocity: wp.array(dtype=wp.vec3),
-    body_speed: wp.array(dtype=float),
-) -> float:
-    """How fast (times dt, m) a body's nodes may have moved this step and still be apart from point p, for a late pass.
-
-    A point the step-start detection found farther than its reach from every other body's tets (no mark in
-    ``point_contact``) moved ``dt |u_p|`` in the step (``point_velocity``: its velocity in the step's answer),
-    and a body's nodes at most ``dt body_speed[body]`` (its fastest node in the step's answers): a tet of that
-    body holds it at the step's end only if the two came within the reach, ``budget`` (m) of which is relied
-    on. -1 where any body may hold it (marked near, no speeds, or not a late pass); :data:`LATE_DONE` where it
-    has a contact.
-    """
-    slack = float(-1.0)
-    if late != 0:
-        mark = point_contact[p]
-        if mark == POINT_CONTACT:
-            return LATE_DONE
-        if mark == 0 and body_speed.shape[0] > 0:
-            slack = wp.max(budget - dt * wp.length(point_velocity[p]), -1.0)
-    return slack
 
 
 @wp.kernel
@@ -599,9 +541,6 @@ def detect_contacts(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    grow: float,
-    budget: float,
-    body_speed: wp.array(dtype=float),
     # outputs
     found_out: Found,
 ):
@@ -612,23 +551,16 @@ def detect_contacts(
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
     each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
     Each contact goes to ``found_out`` (:class:`Found`).
-
-    The boxes are grown by ``grow`` (m; the step's start: the reach, a late pass: 0), and at the step's start a
-    point found within that of another body's tets is marked near in ``point_contact``
-    (:data:`kernels.contacts.POINT_NEAR`). A late pass walks a point that is neither in contact nor near only
-    for the bodies that its and their speeds this step (``body_speed``, m/s) could have carried it into
-    (:func:`late_slack`).
     """
     tid = wp.tid()
     p = tid // lanes
     lane = tid - p * lanes
-    slack = late_slack(p, late, budget, dt, point_contact, point_velocity, body_speed)
-    if slack == LATE_DONE:
+    if late != 0 and point_contact[p] != 0:
         return
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    bodies = wp.bvh_query_aabb(body_bvh, q - wp.vec3(grow), q + wp.vec3(grow))
+    bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
     candidate = int(-1)
     while wp.bvh_query_next(bodies, body):
@@ -636,15 +568,11 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        if slack >= 0.0 and dt * body_speed[body] <= slack:
-            continue
         e, w, status, d, g, bound = walk_tree(
-            p, q, grow, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
             point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
-        if e != -1 and late == 0:
-            point_contact[p] = POINT_NEAR
         if e >= 0:
             answer_pending(
                 p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
@@ -687,42 +615,33 @@ def detect_contacts_direct(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    grow: float,
-    budget: float,
-    body_speed: wp.array(dtype=float),
     # outputs
     found_out: Found,
 ):
     """:func:`detect_contacts` for a scene of few bodies: each point tests every body's box itself.
 
     No body BVH to refit or query (whose traversal stack takes shared memory in every block); the candidates
-    are the bodies in index order, shared among ``lanes`` threads as there; ``reach`` and the marks as there.
+    are the bodies in index order, shared among ``lanes`` threads as there.
     """
     tid = wp.tid()
     p = tid // lanes
     lane = tid - p * lanes
-    slack = late_slack(p, late, budget, dt, point_contact, point_velocity, body_speed)
-    if slack == LATE_DONE:
+    if late != 0 and point_contact[p] != 0:
         return
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
     candidate = int(-1)
     for body in range(body_lower.shape[0]):
-        if overlaps(q, body_lower[body], body_upper[body], grow):
+        if overlaps(q, body_lower[body], body_upper[body]):
             candidate += 1
             same = body == body_p
-            walk = candidate % lanes == lane and (self_ok or not same)
-            if walk and slack >= 0.0:
-                walk = dt * body_speed[body] > slack
-            if walk:
+            if candidate % lanes == lane and (self_ok or not same):
                 e, w, status, d, g, bound = walk_tree(
-                    p, q, grow, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+                    p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
                     tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad,
                 )  # fmt: skip
-                if e != -1 and late == 0:
-                    point_contact[p] = POINT_NEAR
                 if e >= 0:
                     answer_pending(
                         p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,

@@ -9,12 +9,6 @@ import warp as wp
 
 from .integrate import tie_friction
 
-POINT_CONTACT = wp.constant(1)
-"""A collision point's mark in ``point_contact``: it has a contact this step."""
-POINT_NEAR = wp.constant(2)
-"""A collision point's mark in ``point_contact``: no contact, but within the step-start detection's reach of
-another body's tets (``kernels.collision.detect_contacts``)."""
-
 
 @wp.func
 def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.vec4i, w_t: wp.vec4) -> wp.vec3:
@@ -85,7 +79,7 @@ def contact_forces(
     if i >= last:
         return
     p = contact_point[i]
-    point_contact_out[p] = POINT_CONTACT
+    point_contact_out[p] = 1
     a = point_stiffness[p]
     g = contact_normal[i]
     f = a * contact_depth[i] * g
@@ -140,7 +134,7 @@ def mark_placed(
 def release_placed(point_contact: wp.array(dtype=wp.int32), placed_out: wp.array(dtype=wp.int32)):
     """Clears the placed-inside mark of each point the last step found no contact for: it is out of the overlap."""
     p = wp.tid()
-    if point_contact[p] != POINT_CONTACT:
+    if point_contact[p] == 0:
         placed_out[p] = 0
 
 

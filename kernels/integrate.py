@@ -488,13 +488,17 @@ def late_vertex_contacts(
     rhs_out: wp.array(dtype=wp.vec3),
     matrix_base_out: wp.array(dtype=wp.mat33),
     rhs_base_out: wp.array(dtype=wp.vec3),
+    body_speed_out: wp.array(dtype=float),
 ):
     """:func:`late_contact` on each free tet vertex inside the visible surface not yet given one this step.
 
     Adds to its right-hand side and diagonal block (and to the system without elasticity, where
-    ``rhs_base_out`` is not empty), marks it in ``late_out`` and counts it in ``count_out[0]``.
+    ``rhs_base_out`` is not empty), marks it in ``late_out`` and counts it in ``count_out[0]``. Every vertex's
+    speed in ``v_new`` goes into its body's maximum in ``body_speed_out`` (where not empty).
     """
     i = wp.tid()
+    if body_speed_out.shape[0] > 0:
+        warp_max_at(wp.length(v_new[i]), vertex_body[i], body_speed_out)
     if free[i] == 0 or vertex_depth[i] < 0.0 or late_out[i] != 0:
         return
     b = vertex_body[i]
@@ -734,20 +738,13 @@ def advance_positions(
     v: wp.array(dtype=wp.vec3),
     v_new: wp.array(dtype=wp.vec3),
     dt: float,
-    vertex_body: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     bad_vertex_out: wp.array(dtype=wp.int32),
-    body_speed_out: wp.array(dtype=float),
 ):
-    """x+ = x + dt v+ and dv = v+ - v; records the lowest vertex index whose position or velocity is not finite.
-
-    Each vertex's speed goes into its body's maximum in ``body_speed_out`` (where not empty).
-    """
+    """x+ = x + dt v+ and dv = v+ - v; records the lowest vertex index whose position or velocity is not finite."""
     i = wp.tid()
     vi = v_new[i]
-    if body_speed_out.shape[0] > 0:
-        warp_max_at(wp.length(vi), vertex_body[i], body_speed_out)
     xi = x[i] + dt * vi
     x_out[i] = xi
     dv_out[i] = vi - v[i]

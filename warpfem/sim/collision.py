@@ -69,14 +69,6 @@ smallest colliding body's size: deeper, the penalty is undoing an overlap rather
 friction in proportion to it holds overlapping bodies in place (they tangle instead of coming apart). Chosen
 by measurement (docs/decisions.md, "Friction from the load, not the overlap")."""
 
-REACH = 0.005
-"""How far around each collision point (a share of the scene's smallest colliding body's size) the step-start
-detection looks for other bodies' tets: a late pass leaves out, per body, the points found farther than that
-whose and whose body's speeds in the step could not have carried them in (``kernels.collision.late_slack``)."""
-
-REACH_USE = 0.9
-"""The share of :data:`REACH` a late pass relies on: the rest covers the boxes' float32 rounding."""
-
 DETECT_LANES = 4
 """The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the
 bodies whose boxes hold the point (:func:`detect_lanes`)."""
@@ -186,9 +178,6 @@ class Collider:
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
         """The deepest a contact carries friction from (m)."""
-        self.reach = REACH * size
-        """How far around each point the step-start detection looks (m; see :data:`REACH`)."""
-        self._no_float = wp.zeros(0, dtype=float, device=dev)
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
@@ -250,7 +239,6 @@ class Collider:
         matrix_out: wp.array,
         count_out: wp.array,
         base_out: tuple[wp.array, wp.array] | None = None,
-        body_speed: wp.array | None = None,
     ) -> None:
         """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
 
@@ -258,12 +246,9 @@ class Collider:
         depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added. With ``base_out`` (the
         right-hand side and matrix without elasticity, which the rigid correction reads), there too.
-        ``body_speed``: per body its fastest node in the step's answers (m/s); with it, the points the step-start
-        detection found out of reach of a body are not tested against it again where those speeds could not
-        have carried them in.
         """
         self.prepare(x, v, late=True)
-        self._detect(x, v, dt, late=True, body_speed=body_speed)
+        self._detect(x, v, dt, late=True)
         self._answer(v, dt, rhs_out, matrix_out, count_out)
         if base_out is not None:
             self._answer(v, dt, *base_out, self._late_again)
@@ -387,9 +372,7 @@ class Collider:
             device=m.device,
         )
 
-    def _detect(
-        self, x: wp.array, v: wp.array, dt: float, late: bool = False, body_speed: wp.array | None = None
-    ) -> None:
+    def _detect(self, x: wp.array, v: wp.array, dt: float, late: bool = False) -> None:
         """Contacts of the collision points, as :meth:`prepare` placed them, at positions ``x`` (``late``: appended)."""
         m = self.model
         lanes = self.lanes
@@ -428,9 +411,6 @@ class Collider:
                 lanes,
                 self.point_contact,
                 int(late),
-                0.0 if late else self.reach,
-                REACH_USE * self.reach if late else 0.0,
-                self._no_float if body_speed is None else body_speed,
             ],
             outputs=[self.found],
             device=m.device,

@@ -413,9 +413,9 @@ def late_contacts(
 
     ``late`` marks the tet vertices and skin points already given one this step (zero them at its start);
     ``count_out[0]`` counts those added. ``clear``: the skin points' clearances from this step's
-    :func:`skin_colliders`, and ``body_speed`` each body's fastest vertex in the step's answers so far (m/s;
-    :func:`advance_positions`): the skin points those speeds cannot carry to a collider are left out (none where
-    ``clear`` is empty).
+    :func:`skin_colliders`, and ``body_speed`` each body's fastest vertex in the step's answers so far (zero it
+    at the step's start; the vertex launch raises it): the skin points those speeds cannot carry to a collider
+    are left out (none where ``clear`` is empty).
     """
     c = colliders
     wp.launch(
@@ -423,7 +423,7 @@ def late_contacts(
         dim=model.vertex_count,
         inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.arrays,
                 model.vertex_body, momentum, model.body_mass, dt],
-        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
+        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out, body_speed],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )  # fmt: skip
@@ -547,18 +547,16 @@ def advance_positions(
     x_out: wp.array,
     dv_out: wp.array,
     bad_vertex_out: wp.array,
-    body_speed_out: wp.array,
 ) -> None:
     """x_out = x + dt v_new and dv_out = v_new - v (the direction the next step's CG start moves along).
 
-    The lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min); each vertex's speed in
-    ``v_new`` to its body's maximum in ``body_speed_out`` (m/s, where not empty; zero it at the step's start).
+    The lowest index of a non-finite vertex goes to ``bad_vertex_out[0]`` (atomic min).
     """
     wp.launch(
         K.advance_positions,
         dim=model.vertex_count,
-        inputs=[x, v, v_new, dt, model.vertex_body],
-        outputs=[x_out, dv_out, bad_vertex_out, body_speed_out],
+        inputs=[x, v, v_new, dt],
+        outputs=[x_out, dv_out, bad_vertex_out],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )

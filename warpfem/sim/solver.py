@@ -197,8 +197,7 @@ class Solver:
         self.skin_clear = wp.zeros(skin if passes else 0, dtype=float, device=dev)
         """Per skin point, how far its cell's nodes may move in the step without carrying it to a static collider
         (what lets a late pass leave it out: ``kernels.integrate.skin_colliders``)."""
-        reach = passes and (skin or self.collider is not None)
-        self.body_speed = wp.zeros(bodies if reach else 0, dtype=float, device=dev)
+        self.body_speed = wp.zeros(bodies if skin and passes else 0, dtype=float, device=dev)
         """Per body, its fastest vertex in the step's answers so far (the late passes' reach)."""
 
     def _list_cleared(self) -> None:
@@ -333,9 +332,8 @@ class Solver:
 
     def _advance(self, state_in: State, state_out: State, dt: float) -> None:
         integrate.advance_positions(
-            self.model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex,
-            self.body_speed,
-        )  # fmt: skip
+            self.model, state_in.x, state_in.v, state_out.v, dt, state_out.x, state_out.dv, self.bad_vertex
+        )
 
     def _update_rotations(self, state_in: State, state_out: State, dt: float, k: int) -> None:
         """The k-th look at the tets' rotations; a solve, and the next look, only where some turned."""
@@ -382,9 +380,7 @@ class Solver:
             )  # fmt: skip
         if self.collider is not None and k < LATE_BODY_PASSES:
             bases = (self.rhs_base, self.matrix_base) if base else None
-            self.collider.respond_late(
-                state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases, self.body_speed
-            )
+            self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases)
         wp.capture_if(count, on_true=lambda: self._solve_again(state_in, state_out, dt, k))
 
     def _solve_again(self, state_in: State, state_out: State, dt: float, k: int) -> None:
