@@ -39,6 +39,7 @@ def contact_forces(
     dt: float,
     first: wp.array(dtype=wp.int32),
     late: int,
+    solve_depth: float,
     # outputs
     pair_verts_a_out: wp.array(dtype=wp.vec4i),
     pair_weights_a_out: wp.array(dtype=wp.vec4),
@@ -56,7 +57,9 @@ def contact_forces(
 
     The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`store_contact`),
     after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
-    totals are left alone and thread 0 adds how many there are to ``late_count_out[0]``. Each contact's
+    totals are left alone and ``late_count_out[0]`` counts those that end the step deeper than ``solve_depth`` (m;
+    shallower ones stay outside the visible surface, or within a share of the offset of it, and the next step
+    answers them from its start; they ask no second solve). Each contact's
     point is marked in ``point_contact_out``, so a late pass does not answer it twice.
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
@@ -74,8 +77,6 @@ def contact_forces(
         if late == 0:
             totals_out[0] = totals_out[0] + count[0]
             totals_out[1] = wp.max(totals_out[1], count[0])
-        elif last > i:
-            wp.atomic_add(late_count_out, 0, last - i)
     if i >= last:
         return
     p = contact_point[i]
@@ -90,6 +91,8 @@ def contact_forces(
     tt = cells[contact_cell[i]]
     w_t = contact_bary[i]
     u = relative(v, tp, w_p, tt, w_t)
+    if late != 0 and contact_depth[i] - dt * wp.dot(g, u) > solve_depth:
+        wp.atomic_add(late_count_out, 0, 1)  # its depth at the end of the step, with the answer's velocities
     ut = u - wp.dot(u, g) * g
     loaded = wp.min(contact_depth[i], friction[1])
     if placed_out[p] != 0:

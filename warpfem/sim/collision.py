@@ -69,6 +69,13 @@ smallest colliding body's size: deeper, the penalty is undoing an overlap rather
 friction in proportion to it holds overlapping bodies in place (they tangle instead of coming apart). Chosen
 by measurement (docs/decisions.md, "Friction from the load, not the overlap")."""
 
+LATE_SOLVE_SHARE = 0.5
+"""A late contact asks for a second solve only where the step's answer ends it deeper than this share of the
+contact offset (counted from where the offset starts): a shallower one has not reached the visible surface, or
+is within half the offset of it where the cage caps the offset (``kernels.surface.contact_offset``), and the
+next step answers it from its start. In a pile at rest most steps found a few such grazing contacts, each of
+which re-solved the whole scene."""
+
 DETECT_LANES = 4
 """The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the
 bodies whose boxes hold the point (:func:`detect_lanes`)."""
@@ -177,6 +184,9 @@ class Collider:
         self.visible, self._dense_meshes = visible_surface(model, offset)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
+        self.solve_depth = LATE_SOLVE_SHARE * offset
+        """How deep (m, counted from the offset's start) a late contact must end its step to ask for a second solve:
+        see :data:`LATE_SOLVE_SHARE`."""
         """The deepest a contact carries friction from (m)."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
@@ -318,6 +328,7 @@ class Collider:
                 dt,
                 self.first,
                 int(late_count_out is not None),
+                self.solve_depth,
             ],
             outputs=[
                 self.coupling.verts_a,
