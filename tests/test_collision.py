@@ -449,16 +449,18 @@ def _inside_other_body(model, x, points):
 @pytest.mark.parametrize("speed, gap", [(0.2, 0.0005), (8.0, 0.01)])
 def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device, bodies, speed, gap, monkeypatch):
     """Against NumPy: a late pass at a step's end positions finds exactly the collision points then inside another
-    body's tets that had no contact at the step's start.
+    body's tets that had no contact at the step's start, and asks for a second solve for those that end the step
+    deeper than the collider's ``solve_depth`` (half the contact offset) alone.
 
-    Two boxes overlapping at the start (contacts there), a third closing on the first at ``speed`` (m/s) from
-    ``gap`` (m) away, within the step's travel: slowly from half a millimetre, fast from a centimetre. Each
-    vertex's velocity carries a little noise of its own.
+    Two boxes overlapping at the start (contacts there), a third closing on both at ``speed`` (m/s) from ``gap``
+    (m) away, within the step's travel: slowly from half a millimetre (it grazes them, 0.33 mm deep), fast from a
+    centimetre (23 mm). Each of its vertices' velocities carries a little noise of its own, least along the
+    approach. A late contact's depth is how far its point passed the face it came in through.
     """
     monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
     dt = 1 / 240
     b = ModelBuilder()
-    for k, lo in enumerate([(0.0, 0.0, 0.0), (0.0, 0.29, 0.02), (0.3 + gap, 0.01, 0.03)]):
+    for k, lo in enumerate([(0.0, 0.0, 0.0), (-0.005, 0.29, 0.02), (0.3 + gap, 0.01, 0.03)]):
         add_body(b, f"b{k}", *_box(lo, (0.3, 0.3, 0.3), (3, 3, 3)), 1e5, 0.3, 1000.0, collision_spacing=0.03)
     model = b.finalize(device)
     solver = Solver(model, ground=None)
@@ -466,9 +468,9 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     assert c.direct == (bodies == "direct")
     x0 = model.rest_x.numpy()
     body = model.vertex_body.numpy()
-    v = np.random.default_rng(5).normal(scale=0.01 * speed, size=x0.shape)
-    v[body == 2, 0] -= speed
-    v = v.astype(np.float32)
+    v = np.random.default_rng(5).normal(scale=0.01 * speed, size=x0.shape)  # no point on another's tet face
+    v[:, 0] = 0.001 * v[:, 0] - speed  # along x: 0.03 mm of noise at most over the step
+    v = np.where((body == 2)[:, None], v, 0.0).astype(np.float32)  # the first two keep still
     x1 = (x0 + dt * v).astype(np.float32)
     xs0, xs1, vs = (wp.array(a, dtype=wp.vec3, device=device) for a in (x0, x1, v))
     c.rotate_gradients(wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device))
@@ -481,8 +483,9 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     c.respond_late(xs1, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix), count)
     end = int(c.count.numpy()[0])
     late = c.contact_point.numpy()[start:end]
-    pairs = set(zip(late.tolist(), model.tet_body.numpy()[c.contact_cell.numpy()[start:end]].tolist(), strict=True))
-    assert len(pairs) == len(late) == int(count.numpy()[0])  # at most one contact per point and body
+    other = model.tet_body.numpy()[c.contact_cell.numpy()[start:end]]
+    pairs = set(zip(late.tolist(), other.tolist(), strict=True))
+    assert len(pairs) == len(late)  # at most one contact per point and body
 
     cells, bary = model.cells.numpy()[model.point_cell.numpy()], model.point_bary.numpy()
     points = np.einsum("pk,pkj->pj", bary, x1[cells])
@@ -490,6 +493,13 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     expected = set(np.flatnonzero(inside).tolist()) - at_start
     assert expected  # the third box's face crossed into the first
     assert set(late.tolist()) == expected
+    point_body = model.point_body.numpy()[late]
+    front = 0.3 + gap - speed * dt  # the third box's face that closes on the others, at the step's end
+    depth = np.where(point_body == 2, np.where(other == 0, 0.3, 0.295) - points[late, 0], points[late, 0] - front)
+    solves = int(count.numpy()[0])
+    tol = 5e-5  # the noise along x
+    assert int((depth > c.solve_depth + tol).sum()) <= solves <= int((depth > c.solve_depth - tol).sum())
+    assert (solves > 0) == (speed > 1.0)  # the grazing contacts ask for no second solve
 
 
 def test_top_speed_per_body_matches_numpy(device):
