@@ -254,8 +254,9 @@ class Collider:
 
         Points already in contact this step are left be; each new contact enters the built system with the
         depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
-        force times dt on ``rhs_out``; ``count_out[0]`` grows by how many were added. With ``base_out`` (the
-        right-hand side and matrix without elasticity, which the rigid correction reads), there too.
+        force times dt on ``rhs_out``; ``count_out[0]`` grows by how many of them ask for a second solve (those
+        ending the step deeper than :attr:`solve_depth`). With ``base_out`` (the right-hand side and matrix
+        without elasticity, which the rigid correction reads), there too.
         """
         self.prepare(x, v, late=True)
         self._detect(x, v, dt, late=True)

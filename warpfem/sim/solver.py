@@ -363,10 +363,11 @@ class Solver:
             self._update_rotations(state_in, state_out, dt, k + 1)
 
     def _late_passes(self, state_in: State, state_out: State, dt: float, k: int = 0) -> None:
-        """The k-th contact pass: contacts the answer makes that the step did not count, and a solve where any.
+        """The k-th contact pass: contacts the answer makes that the step did not count, and a solve where any asks.
 
-        The next pass runs only after such a solve: an answer a pass found nothing in would show the next
-        pass nothing either.
+        Every static contact found asks; one between bodies where it ends the step deeper than half the contact
+        offset (``Collider.solve_depth``). The next pass runs only after such a solve: an answer a pass found
+        nothing in would show the next pass nothing either.
         """
         if k >= self.contact_passes:
             return
