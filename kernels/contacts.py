@@ -55,12 +55,12 @@ def contact_forces(
 ):
     """Penalty force a d g on the point's cell nodes (by its weights), the reaction on the contact cell's.
 
-    The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see :func:`store_contact`),
-    after the system was built: ``force_out`` is then the right-hand side (the force enters times dt), the
-    totals are left alone and ``late_count_out[0]`` counts those that end the step deeper than ``solve_depth`` (m;
-    shallower ones stay outside the visible surface, or within a share of the offset of it, and the next step
-    answers them from its start; they ask no second solve). Each contact's
-    point is marked in ``point_contact_out``, so a late pass does not answer it twice.
+    The contacts from ``first[0]`` on. ``late``: contacts a late pass found (see
+    :func:`kernels.collision.store_contact`), after the system was built: ``force_out`` is then the right-hand
+    side (the force enters times dt), the totals are left alone and ``late_count_out[0]`` counts the contacts
+    that end the step deeper than ``solve_depth`` (m), which ask for a second solve; shallower ones stay outside
+    the visible surface, or within a share of the offset of it, and the next step answers them from its start.
+    Each contact's point is marked in ``point_contact_out``, so a late pass does not answer it twice.
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
