@@ -73,10 +73,9 @@ def contact_forces(
     """
     i = wp.tid() + first[0]
     last = wp.min(count[0], contact_point.shape[0])
-    if i == first[0]:
-        if late == 0:
-            totals_out[0] = totals_out[0] + count[0]
-            totals_out[1] = wp.max(totals_out[1], count[0])
+    if i == first[0] and late == 0:
+        totals_out[0] = totals_out[0] + count[0]
+        totals_out[1] = wp.max(totals_out[1], count[0])
     if i >= last:
         return
     p = contact_point[i]

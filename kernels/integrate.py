@@ -615,10 +615,10 @@ def lift_points(
     t = cells[e]
     w = point_bary[i]
     p = interpolate(x, t, w)
+    give = LIFT_GIVE * colliders.body_size[cell_body[e]]
     for o in range(colliders.kind.shape[0]):
         if colliders.moving[o] == 0:
             dn = collider_distance(colliders, o, p)
-            give = LIFT_GIVE * colliders.body_size[cell_body[e]]
             if dn[0] < -give:
                 move = (-dn[0] - give) * wp.vec3(dn[1], dn[2], dn[3])
                 for c in range(4):

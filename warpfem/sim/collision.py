@@ -184,10 +184,10 @@ class Collider:
         self.visible, self._dense_meshes = visible_surface(model, offset)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
         self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
+        """The deepest a contact carries friction from (m)."""
         self.solve_depth = LATE_SOLVE_SHARE * offset
         """How deep (m, counted from the offset's start) a late contact must end its step to ask for a second solve:
         see :data:`LATE_SOLVE_SHARE`."""
-        """The deepest a contact carries friction from (m)."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.set_response(settings.stiffness, settings.friction)
