@@ -98,9 +98,9 @@ def _bunny_stack(youngs, cap: int = 100, offset: float = 0.0, contact_offset: fl
 def test_a_soft_body_placed_into_a_stiff_ones_head_comes_apart():
     """A soft bunny (3e5 Pa) placed straight above a stiff one (1e7 Pa), its underside partly inside the stiff
     one's head and ears, with the scene's defaults: after 45 frames no dense vertex of one lies deeper than 1 % of
-    the size inside the other (winding numbers on the dense meshes). Friction through the contacts that squeeze
-    the soft body from opposite sides held it where it was put, over 2 % deep, until an overlap a run starts
-    with carried none (docs/decisions.md, "Friction released from placed overlaps")."""
+    the size inside the other (winding numbers on the dense meshes). The contacts squeeze the soft body from
+    opposite sides, so friction from an overlap the run starts with would hold it where it was put
+    (docs/decisions.md, "Friction released from placed overlaps")."""
     import dataclasses
 
     from warpfem.presets import CONTACT_OFFSET, STATIC_OFFSET
