@@ -33,14 +33,20 @@ def _run(solver, model, steps, dt, each=None):
     return s0
 
 
+def inside_tets(points, vertices, tets, tol=0.0):
+    """(points, tets) bool: whether each tet (vertices, tets) holds each point, by NumPy barycentrics, each
+    weight allowed down to ``-tol``."""
+    A = np.stack([vertices[tets[:, k]] - vertices[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    b = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - vertices[tets[:, 0]][None])
+    return (b >= -tol).all(axis=2) & (b.sum(axis=2) <= 1 + tol)
+
+
 def penetration(points, vertices, tets):
     """Deepest of ``points`` inside the deformed tet mesh (vertices, tets): 0 if none is inside.
 
     Inside: a barycentric test against every tet (NumPy); depth: the distance to the mesh's boundary.
     """
-    A = np.stack([vertices[tets[:, k]] - vertices[tets[:, 0]] for k in (1, 2, 3)], axis=2)
-    b = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - vertices[tets[:, 0]][None])
-    inside = np.any((b >= 0).all(axis=2) & (b.sum(axis=2) <= 1), axis=1)
+    inside = inside_tets(points, vertices, tets).any(axis=1)
     if not inside.any():
         return 0.0
     depth, _ = distance_field(points[inside], vertices, boundary_faces(tets))
@@ -414,9 +420,7 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
     anchors = model.point_anchor.numpy()
     tets = model.tets.numpy()
     tet_body = model.tet_body.numpy()
-    A = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=2)
-    bary = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - x[tets[:, 0]][None])
-    inside = (bary >= 0).all(axis=2) & (bary.sum(axis=2) <= 1)  # (points, tets)
+    inside = inside_tets(points, x, tets)  # (points, tets)
     row_start, cols = model.row_start.numpy(), model.cols.numpy()
     neighbours = [set(cols[row_start[i] : row_start[i + 1]]) for i in range(len(row_start) - 1)]
 
@@ -438,10 +442,8 @@ def test_detection_finds_exactly_the_points_inside_other_bodies(device, lanes, c
 
 def _inside_other_body(model, x, points):
     """Per point (at ``points``), whether a tet of another body (vertices ``x``) holds it: NumPy barycentrics."""
-    tets, tet_body, point_body = model.tets.numpy(), model.tet_body.numpy(), model.point_body.numpy()
-    A = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=2)
-    bary = np.einsum("tij,ptj->pti", np.linalg.inv(A), points[:, None, :] - x[tets[:, 0]][None])
-    inside = (bary >= -1e-6).all(axis=2) & (bary.sum(axis=2) <= 1 + 1e-6)
+    tet_body, point_body = model.tet_body.numpy(), model.point_body.numpy()
+    inside = inside_tets(points, x, model.tets.numpy(), tol=1e-6)
     return (inside & (tet_body[None, :] != point_body[:, None])).any(axis=1)
 
 
