@@ -798,3 +798,16 @@ def cg_solve_held(
         x_out[row] = x
     if lane == 0:
         record_solve(k, gamma, bz, tolerance[0], counts_out, residual_max_out)
+
+
+HELD_WIDE_BLOCK = 384
+"""Threads per block of :data:`cg_solve_held_wide`."""
+
+cg_solve_held_wide = wp.kernel(
+    cg_solve_held.func,
+    name="cg_solve_held_wide",
+    launch_bounds=(HELD_WIDE_BLOCK, 1),
+    enable_cuda_smem_spilling=True,
+)
+"""``cg_solve_held`` in blocks of :data:`HELD_WIDE_BLOCK` threads, one block an SM: the registers it cannot keep at
+that size spill to the SM's shared memory, so half as many chunks again as at 256 threads keep a thread each."""

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 import warp as wp
+from warpfem.kernels.cg import HELD_WIDE_BLOCK, cg_solve_held_wide
 from warpfem.kernels.product import PAIR_LANES
 
 from warpfem.prep.shapes import box_tet_mesh
 from warpfem.sim import cg as cg_module
-from warpfem.sim.cg import CGSolver
+from warpfem.sim.cg import BLOCK, CGSolver
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.model import block_pattern
 
@@ -31,10 +32,10 @@ def path(request):
     return request.param
 
 
-def _system(device, seed=0, pinned=()):
+def _system(device, seed=0, pinned=(), cells=(2, 2, 2)):
     """A random SPD 3x3-block system on a tet mesh's sparsity pattern; returns solver inputs and dense A."""
     rng = np.random.default_rng(seed)
-    V, T = box_tet_mesh((0, 0, 0), (1, 1, 1), (2, 2, 2))
+    V, T = box_tet_mesh((0, 0, 0), (1, 1, 1), cells)
     n = len(V)
     row_start, cols, diag_slot, tet_slots = block_pattern(T, n)
     A = np.zeros((3 * n, 3 * n))
@@ -160,9 +161,34 @@ def test_pairs_beyond_one_per_thread(device):
     assert not _check_coupled_solve(device, 300, 320, dict(mode="grid", grid_blocks=1)).held  # no room for pairs
 
 
-def _check_coupled_solve(device, pairs: int, capacity: int, options: dict) -> CGSolver:
+def test_more_chunks_than_a_block_of_256_held_in_wider_blocks(device):
+    """Where the grid's blocks of 256 threads cannot give every chunk a thread (here one or two blocks for 294
+    chunks), blocks of ``HELD_WIDE_BLOCK`` threads hold them (``cg_solve_held_wide``, registers spilling to
+    shared memory on CUDA); the answer is NumPy's dense solve, with and without coupling pairs."""
+    on_cuda = wp.get_device(device).is_cuda
+    a, A, _, rng = _system(device, seed=4, cells=(3, 4, 4))
+    n = A.shape[0] // 3
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, mode="grid", grid_blocks=1)
+    assert cg.held == on_cuda
+    if on_cuda:
+        assert BLOCK < cg.chunk_row.shape[0] <= HELD_WIDE_BLOCK == cg.grid_threads
+        assert cg.held_kernel is cg_solve_held_wide
+    b = rng.normal(size=(n, 3))
+    cg.configure(500, 1e-6)
+    x = wp.zeros(n, dtype=wp.vec3, device=device)
+    cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
+    reference = np.linalg.solve(A, b.ravel())
+    assert cg.read_stats().residual_max <= 1e-6
+    np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
+    coupled = _check_coupled_solve(device, 5, 8, dict(mode="grid", grid_blocks=2), cells=(3, 4, 4))
+    assert coupled.held == on_cuda
+    if on_cuda:  # one block of chunks, one of pairs
+        assert coupled.held_kernel is cg_solve_held_wide and coupled.pair_lanes == HELD_WIDE_BLOCK
+
+
+def _check_coupled_solve(device, pairs: int, capacity: int, options: dict, cells=(2, 2, 2)) -> CGSolver:
     """Solve a random system with ``pairs`` coupling pairs; check it against NumPy's dense solve."""
-    a, A, _, rng = _system(device, seed=3)
+    a, A, _, rng = _system(device, seed=3, cells=cells)
     n = A.shape[0] // 3
     verts = np.stack([rng.permutation(n)[:8] for _ in range(pairs)]).astype(np.int32)  # distinct per pair
     weights = rng.dirichlet(np.ones(4), size=(pairs, 2))

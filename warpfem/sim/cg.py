@@ -239,19 +239,31 @@ class CGSolver:
             and self.product == "gather"
             and self.chunk <= OWN_CHUNK_ENTRIES
         )
+        self.grid_block = BLOCK
+        """Threads per block of the grid solve's launch."""
+        self.held_kernel = None
+        """The held solve's kernel (``cg_solve_held`` or, for more chunks, ``cg_solve_held_wide``), or None."""
+        if not self.device.is_cuda:
+            self.grid_blocks, self.grid_threads, self.held, self.pair_lanes = 1, 1, False, 0
+            return
         # the held solve's coupling pairs take blocks of their own at the end of the grid, PAIR_LANES lanes a pair
-        pair_blocks = min(HELD_PAIR_BLOCKS, -(-pairs_capacity * PAIR_LANES // BLOCK)) if holdable else 0
-        if self.device.is_cuda:
-            # a thread per row or chunk, and the pair blocks (else one block more, the pairs start past the chunks)
-            chunk_blocks = -(-max(n, chunks, 1) // BLOCK)
-            extra = pair_blocks if holdable else int(pairs_capacity > 0)
-            wanted = grid_blocks if grid_blocks is not None else chunk_blocks + extra
-            self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
+        for block, kernel in ((BLOCK, K.cg_solve_held), (K.HELD_WIDE_BLOCK, K.cg_solve_held_wide)):
+            pair_blocks = min(HELD_PAIR_BLOCKS, -(-pairs_capacity * PAIR_LANES // block))
+            wanted = grid_blocks if grid_blocks is not None else -(-max(n, chunks, 1) // block) + pair_blocks
+            blocks = max(1, min(int(wanted), self.device.sm_count))
+            if holdable and (blocks - pair_blocks) * block >= chunks:
+                self.grid_block, self.held_kernel, self.grid_blocks = block, kernel, blocks
+                self.pair_lanes = pair_blocks * block
+                break
         else:
-            self.grid_blocks = 1
-        self.grid_threads = self.grid_blocks * BLOCK if self.device.is_cuda else 1
-        self.held = bool(holdable and (self.grid_blocks - pair_blocks) * BLOCK >= chunks)
-        self.pair_lanes = pair_blocks * BLOCK if self.held else 0
+            # a thread per row or chunk, and a block more for the pairs (they start past the chunks)
+            wanted = (
+                grid_blocks if grid_blocks is not None else -(-max(n, chunks, 1) // BLOCK) + int(pairs_capacity > 0)
+            )
+            self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
+            self.pair_lanes = 0
+        self.grid_threads = self.grid_blocks * self.grid_block
+        self.held = self.held_kernel is not None
         if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
             self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
@@ -385,7 +397,7 @@ class CGSolver:
         limits = [self.tolerance, self.max_iterations, self.words, self.totals]
         stats = [self.counts, self.residual_max, self.stalled]
         if self.held:
-            kernel = K.cg_solve_held
+            kernel = self.held_kernel
             shape.append(self.pair_lanes)
             outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
         else:
@@ -394,7 +406,7 @@ class CGSolver:
         solve = wp.launch(
             kernel,
             dim=threads,
-            block_dim=BLOCK if dev.is_cuda else 1,
+            block_dim=self.grid_block if dev.is_cuda else 1,
             inputs=[*shape, *system, *limits],
             outputs=outputs,
             device=dev,

@@ -18,11 +18,12 @@ from dataclasses import dataclass
 
 import warp as wp
 
+from warpfem.kernels.cg import HELD_WIDE_BLOCK
 from warpfem.sim.launch import SPREAD_BLOCKS, WIDE_BLOCK
 
 STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.approach": (WIDE_BLOCK,),
-    "warpfem.kernels.cg": (WIDE_BLOCK,),
+    "warpfem.kernels.cg": (WIDE_BLOCK, HELD_WIDE_BLOCK),
     "warpfem.kernels.collision": SPREAD_BLOCKS,
     "warpfem.kernels.contacts": (WIDE_BLOCK,),
     "warpfem.kernels.deflation": (WIDE_BLOCK,),
