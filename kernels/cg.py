@@ -28,18 +28,22 @@ kernel runs as a single thread.
 Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones),
 ``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks (or a corner of its first
 contact pair) in registers for the whole solve, and the iteration meets at one barrier instead of two (the
-threads advance the rows they read themselves; see its docstring).
+threads advance the rows they read themselves; see its docstring). Where blocks of 256 threads, one an SM, are
+too few for the chunks, ``cg_solve_held_wide`` runs the same kernel in wider blocks.
 """
 
 import warp as wp
 
-from .grid import grid_total, load_coherent, quad_sum, warp_sum_add
+from .grid import grid_total, load_coherent, warp_sum_add
 from .product import (
     PAIR_LANES,
     BlockMatrix,
     OwnChunk,
     Pairs,
+    advanced,
+    advanced_u,
     chunk_product,
+    held_corner_phase,
     held_terms,
     live_pairs,
     own_chunk,
@@ -589,78 +593,6 @@ def cg_solve(
         k += 1
     if lane == 0:
         record_solve(k, gamma, bz, tolerance[0], counts_out, residual_max_out)
-
-
-@wp.func
-def advanced(
-    c: int,
-    n: int,
-    j: int,
-    a: float,
-    beta: float,
-    m3: wp.array(dtype=wp.vec3),
-    q2: wp.array(dtype=wp.vec3),
-    u2: wp.array(dtype=wp.vec3),
-):
-    """Row c at phase j of :func:`cg_solve_held`: (u_{j}, q_{j-1}, u_{j-1}) from the buffers.
-
-    q_{j-1} = m_{j-1} + beta q_{j-2} and u_j = u_{j-1} - a q_{j-1}, with m = M^-1 A u; every thread that
-    needs row c computes it the same way, so no barrier separates the update from the product.
-    """
-    m = m3[((j + 2) % 3) * n + c]
-    q_old = q2[(j % 2) * n + c]
-    u_old = u2[(j % 2) * n + c]
-    q = m + beta * q_old
-    return u_old - a * q, q, u_old
-
-
-@wp.func
-def advanced_u(
-    c: int,
-    n: int,
-    j: int,
-    a: float,
-    beta: float,
-    m3: wp.array(dtype=wp.vec3),
-    q2: wp.array(dtype=wp.vec3),
-    u2: wp.array(dtype=wp.vec3),
-) -> wp.vec3:
-    """u_j of row c (see :func:`advanced`)."""
-    u, q, u_old = advanced(c, n, j, a, beta, m3, q2, u2)
-    return u
-
-
-@wp.func
-def held_corner_phase(
-    vert_a: int,
-    weight_a: float,
-    vert_b: int,
-    weight_b: float,
-    C: wp.mat33,
-    n: int,
-    j: int,
-    a: float,
-    beta: float,
-    diag_inv: wp.array(dtype=wp.mat33),
-    m3: wp.array(dtype=wp.vec3),
-    q2: wp.array(dtype=wp.vec3),
-    u2: wp.array(dtype=wp.vec3),
-) -> float:
-    """One corner of a coupling pair at phase j (see :class:`kernels.product.PairCorner`), by its group's lane.
-
-    The four lanes sum the pair's relative value s = J u_j (:func:`kernels.grid.quad_sum`); each adds
-    M^-1 (J^T C J less its diagonal blocks) u_j at its two vertices into m_j, as ``kernels.product.pair_terms``
-    does for a whole pair, and returns its share of u.A u.
-    """
-    ua = advanced_u(vert_a, n, j, a, beta, m3, q2, u2)
-    ub = advanced_u(vert_b, n, j, a, beta, m3, q2, u2)
-    s = quad_sum(weight_a * ua + weight_b * ub)
-    da = weight_a * (C * (s - weight_a * ua))
-    db = weight_b * (C * (s - weight_b * ub))
-    out = (j % 3) * n
-    wp.atomic_add(m3, out + vert_a, diag_inv[vert_a] * da)
-    wp.atomic_add(m3, out + vert_b, diag_inv[vert_b] * db)
-    return wp.dot(ua, da) + wp.dot(ub, db)
 
 
 @wp.kernel

@@ -36,9 +36,15 @@ PRODUCTS = ("gather", "scatter")
 each stored block also scatters its transpose into another row with an atomic add (half the reads)."""
 
 HELD_PAIR_BLOCKS = 4
-"""The most blocks the held solve gives its coupling pairs (:data:`kernels.product.PAIR_LANES` lanes a pair:
-256 pairs at once; more take turns). Chosen by measurement on an H100 (see docs/decisions.md): one block
-is too few for a contact-heavy scene, and more blocks than four gain nothing measurable."""
+"""The fewest blocks the held solve gives its coupling pairs where they have that many
+(:data:`kernels.product.PAIR_LANES` lanes a pair: 256 pairs at once in blocks of 256; more take turns). Chosen by
+measurement on an H100 (see docs/decisions.md): one block is too few for a contact-heavy scene, and more gain
+nothing measurable in the paper's scenes."""
+
+HELD_PAIR_SHARE = 8
+"""Blocks of chunks per block of pairs above :data:`HELD_PAIR_BLOCKS`, within the SMs the chunks leave: contacts
+grow with the bodies, and a pair group that takes turns over several pairs holds every block up at each barrier.
+Chosen by measurement on an H200 (see docs/decisions.md)."""
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU
@@ -248,8 +254,10 @@ class CGSolver:
             return
         # the held solve's coupling pairs take blocks of their own at the end of the grid, PAIR_LANES lanes a pair
         for block, kernel in ((BLOCK, K.cg_solve_held), (K.HELD_WIDE_BLOCK, K.cg_solve_held_wide)):
-            pair_blocks = min(HELD_PAIR_BLOCKS, -(-pairs_capacity * PAIR_LANES // block))
-            wanted = grid_blocks if grid_blocks is not None else -(-max(n, chunks, 1) // block) + pair_blocks
+            chunk_blocks = -(-max(n, chunks, 1) // block)
+            share = min(-(-chunk_blocks // HELD_PAIR_SHARE), self.device.sm_count - chunk_blocks)
+            pair_blocks = min(max(HELD_PAIR_BLOCKS, share), -(-pairs_capacity * PAIR_LANES // block))
+            wanted = grid_blocks if grid_blocks is not None else chunk_blocks + pair_blocks
             blocks = max(1, min(int(wanted), self.device.sm_count))
             if holdable and (blocks - pair_blocks) * block >= chunks:
                 self.grid_block, self.held_kernel, self.grid_blocks = block, kernel, blocks
