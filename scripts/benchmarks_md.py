@@ -199,8 +199,9 @@ def large_pile_lines(found: tuple[Path, dict] | None) -> list[str]:
 
 
 def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
-    """The same scenes at an earlier commit on the same device within PEER_HOURS (``before-*.json``): speed and
-    the dense check side by side, before and after."""
+    """The same scenes at an earlier commit on the same device (the newest ``before-*.json``): speed and the
+    dense check side by side, before and after; the header says how far apart the runs were where not within
+    PEER_HOURS."""
     env = data["environment"]
     ours_at = datetime.fromisoformat(env["date"])
     found = None
@@ -208,18 +209,19 @@ def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
         before = json.loads(candidate.read_text())
         benv = before["environment"]
         gap = abs((datetime.fromisoformat(benv["date"]) - ours_at).total_seconds())
-        if benv["device"] == env["device"] and gap <= PEER_HOURS * 3600:
-            found = (candidate, before)
+        if benv["device"] == env["device"] and benv.get("driver") == env.get("driver"):
+            found = (candidate, before, gap)
     if found is None:
         return []
-    path, before = found
+    path, before, gap = found
+    when = "the same day" if gap <= PEER_HOURS * 3600 else f"{gap / 3600:.0f} hours apart, in another lease of it"
     old = {(r["kind"], r["n"]): r for r in before["runs"]}
     lines = [
         "",
         "## Before and after",
         "",
-        f"`{path.name}`: commit `{before['environment']['commit'][:10]}` on the same device and driver, the same"
-        " day, each commit with its own scene defaults and its own preprocessing; dense penetration worst over the"
+        f"`{path.name}`: commit `{before['environment']['commit'][:10]}` on the same device and driver, {when},"
+        " each commit with its own scene defaults and its own preprocessing; dense penetration worst over the"
         " timed frames / at their end, inside another body and below the ground, relative to the body's size, as"
         " above.",
         "",
