@@ -237,6 +237,9 @@ class CGSolver:
 
         Where every chunk has a thread, the grid solve keeps each thread's chunk in registers for the whole
         solve (``cg_solve_held``): an iteration loads only the vector and meets at one barrier instead of two.
+        It tries blocks of :data:`BLOCK` threads, then of ``HELD_WIDE_BLOCK`` (``cg_solve_held_wide``); the
+        coupling pairs get :data:`HELD_PAIR_BLOCKS` blocks, or one per :data:`HELD_PAIR_SHARE` blocks of chunks
+        where the SMs the chunks leave allow, and no more than their capacity fills.
         """
         holdable = (
             hold_chunks
