@@ -253,16 +253,17 @@ class CGSolver:
         self.held_kernel = None
         """The held solve's kernel (``cg_solve_held`` or, for more chunks, ``cg_solve_held_wide``), or None."""
         if not self.device.is_cuda:
-            self.grid_blocks, self.grid_threads, self.held, self.pair_lanes = 1, 1, False, 0
+            self.grid_blocks, self.grid_threads, self.pair_lanes = 1, 1, 0
             return
         # the held solve's coupling pairs take blocks of their own at the end of the grid, PAIR_LANES lanes a pair
-        for block, kernel in ((BLOCK, K.cg_solve_held), (K.HELD_WIDE_BLOCK, K.cg_solve_held_wide)):
+        held = ((BLOCK, K.cg_solve_held), (K.HELD_WIDE_BLOCK, K.cg_solve_held_wide)) if holdable else ()
+        for block, kernel in held:
             chunk_blocks = -(-max(n, chunks, 1) // block)
             share = min(-(-chunk_blocks // HELD_PAIR_SHARE), self.device.sm_count - chunk_blocks)
             pair_blocks = min(max(HELD_PAIR_BLOCKS, share), -(-pairs_capacity * PAIR_LANES // block))
             wanted = grid_blocks if grid_blocks is not None else chunk_blocks + pair_blocks
             blocks = max(1, min(int(wanted), self.device.sm_count))
-            if holdable and (blocks - pair_blocks) * block >= chunks:
+            if (blocks - pair_blocks) * block >= chunks:
                 self.grid_block, self.held_kernel, self.grid_blocks = block, kernel, blocks
                 self.pair_lanes = pair_blocks * block
                 break
@@ -274,11 +275,15 @@ class CGSolver:
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
             self.pair_lanes = 0
         self.grid_threads = self.grid_blocks * self.grid_block
-        self.held = self.held_kernel is not None
         if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
             self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.q2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
             self.m3 = wp.zeros(3 * n, dtype=wp.vec3, device=self.device)
+
+    @property
+    def held(self) -> bool:
+        """Whether the grid solve holds each thread's chunk in registers (:attr:`held_kernel` runs it)."""
+        return self.held_kernel is not None
 
     def configure(self, max_iterations: int, tolerance: float) -> None:
         """Set the iteration cap and relative tolerance (0: always run ``max_iterations``).
