@@ -1,10 +1,9 @@
-"""Fast approach between bodies: whether the step about to run would carry two bodies too far into each other.
+"""Fast approach between bodies: whether a frame's steps would carry two bodies too far into each other.
 
-From the state before a step, two ways to close fast: bodies not yet touching whose mean velocities
-(momentum over mass) close on each other and whose boxes lie within their travel over a reach time
-(:func:`approach`), and the contacts of the last step whose points close on their images
-(:func:`contacts_closing`). Either, by more than ``limit`` times the smaller body's size in one step, raises
-the step's flag.
+From the state at a frame's start, two ways to close fast: bodies not yet touching whose mean velocities
+(momentum over mass) close on each other and whose boxes lie within a frame's travel (:func:`approach`), and
+the contacts of the last step whose points close on their images (:func:`contacts_closing`). Either, by more
+than ``limit`` times the smaller body's size in one step, raises the frame's flag.
 """
 
 import warp as wp
@@ -20,7 +19,7 @@ def clear_bodies(
     upper_out: wp.array(dtype=wp.vec3),
     flag_out: wp.array(dtype=wp.int32),
 ):
-    """Per body: zero momentum, an empty box; thread 0 lowers the step's flag."""
+    """Per body: zero momentum, an empty box; thread 0 lowers the frame's flag."""
     b = wp.tid()
     momentum_out[b] = wp.vec3(0.0)
     lower_out[b] = wp.vec3(1.0e30)
@@ -65,21 +64,21 @@ def approach(
     lower: wp.array(dtype=wp.vec3),
     upper: wp.array(dtype=wp.vec3),
     size: wp.array(dtype=float),
-    reach_dt: float,
+    frame_dt: float,
     step_dt: float,
     limit: float,
     flag_out: wp.array(dtype=wp.int32),
 ):
     """Per body i, against every later body j: raise the flag where the two are near and close fast.
 
-    Near: i's and j's boxes lie within the distance their mean velocities carry them in ``reach_dt`` (s).
+    Near: i's and j's boxes lie within the distance their mean velocities carry them in ``frame_dt`` (s).
     Fast: their mean velocities differ by more than ``limit`` times the smaller size (m) per ``step_dt`` (s).
     """
     i = wp.tid()
     v_i = mean_velocity(momentum, body_mass, i)
     for j in range(i + 1, size.shape[0]):
         v_j = mean_velocity(momentum, body_mass, j)
-        reach = (wp.length(v_i) + wp.length(v_j)) * reach_dt
+        reach = (wp.length(v_i) + wp.length(v_j)) * frame_dt
         gap = wp.max(lower[j] - upper[i], lower[i] - upper[j])  # per axis, how far apart the boxes are
         near = wp.max(gap[0], wp.max(gap[1], gap[2])) <= reach
         if near and wp.length(v_i - v_j) * step_dt > limit * wp.min(size[i], size[j]):
@@ -120,6 +119,6 @@ def contacts_closing(
 
 
 @wp.kernel
-def count_step(count_out: wp.array(dtype=wp.int32)):
-    """One more step run as two half steps."""
+def count_frame(count_out: wp.array(dtype=wp.int32)):
+    """One more frame run at twice the substeps."""
     count_out[0] = count_out[0] + 1

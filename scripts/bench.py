@@ -319,7 +319,7 @@ def time_scene(
         frame()  # captures the graph on CUDA
     start = snapshot(sim)
     sim.read_stats()  # from here on: the timed frames
-    halved = sim.totals.halved_steps
+    refined = sim.totals.refined_frames
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(frames):
@@ -349,7 +349,7 @@ def time_scene(
         **({"frame_error": error} if error else {}),
         "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
-        "halved_steps": sim.totals.halved_steps - halved,
+        "refined_frames": sim.totals.refined_frames - refined,
         "bodies": len(model.bodies),
         "tets": model.tet_count,
         "tet_vertices": model.vertex_count,

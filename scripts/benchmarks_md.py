@@ -123,21 +123,15 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
         "alone (warpfem.io.penetration), the worst over a replay of the timed frames, a vertex inside another",
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
         "collider's own estimate at the end, in mm); lowest point: ours the lowest dense vertex at the end,",
-        "Newton's its lowest tet vertex (ground at 0). Substeps: the scene's; \"4 (30 of 480 halved)\": 30 of the",
-        "timed steps ran as two half steps (`[collision] approach_limit`: bodies closing fast on each other; runs",
-        'before that counted whole frames, "4 (x2 in 12 of 120)"); the phase split runs every step whole, so',
-        "there its parts add up to less than the whole.",
+        "Newton's its lowest tet vertex (ground at 0). Substeps: the scene's; \"4 (x2 in 12 of 120)\": 12 of the",
+        "timed frames ran twice that many (`[collision] approach_limit`: bodies closing fast on each other); the",
+        "phase split runs every frame at the scene's substeps, so there its parts add up to less than the whole.",
     ]
 
 
 def substeps_text(run: dict) -> str:
-    """The run's substeps, and how many timed steps were halved (bodies closing fast on each other).
-
-    Runs before steps were halved one at a time give the frames run at twice the substeps.
-    """
-    halved, refined = run.get("halved_steps", 0), run.get("refined_frames", 0)
-    if halved:
-        return f"{run['substeps']} ({halved} of {run['substeps'] * run['frames_timed']} halved)"
+    """The run's substeps, and in how many timed frames twice that many (bodies closing fast on each other)."""
+    refined = run.get("refined_frames", 0)
     return f"{run['substeps']} (x2 in {refined} of {run['frames_timed']})" if refined else str(run["substeps"])
 
 

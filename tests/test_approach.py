@@ -1,4 +1,4 @@
-"""Which steps run as two half steps: the approach watch against hand-worked cases."""
+"""Which frames run at twice the substeps: the approach watch against hand-worked cases."""
 
 from pathlib import Path
 
@@ -35,17 +35,8 @@ def _two_balls(device: str, cache, gap: float, left_v: tuple, right_v: tuple) ->
 
 
 def _flag(sim: warpfem.Simulation) -> bool:
-    sim.approach.decide(sim.states[0], sim.dt)
+    sim.approach.decide(sim.states[0], 1.0 / sim.fps, sim.dt)
     return bool(sim.approach.flag.numpy()[0])
-
-
-def _centre(sim: warpfem.Simulation, name: str) -> np.ndarray:
-    """Body ``name``'s centre of mass (m)."""
-    mass = sim.model.mass.numpy().astype(np.float64)
-    b = sim.body(name)
-    span = slice(b.vertex_start, b.vertex_start + b.vertex_count)
-    x = sim.states[0].x.numpy()[span].astype(np.float64)
-    return (x * mass[span, None]).sum(0) / mass[span].sum()
 
 
 @pytest.mark.parametrize(
@@ -54,43 +45,37 @@ def _centre(sim: warpfem.Simulation, name: str) -> np.ndarray:
         (0.01, (5, 0, 0), (-5, 0, 0), True),  # near, closing at 10 m/s: 42 mm a step
         (0.01, (5, 0, 0), (5, 0, 0), False),  # near, moving together
         (0.01, (0.5, 0, 0), (-0.5, 0, 0), False),  # near, closing at 1 m/s: 4 mm a step
-        (1.0, (5, 0, 0), (-5, 0, 0), False),  # closing at 10 m/s but 1 m apart
-        (0.07, (5, 0, 0), (-5, 0, 0), True),  # 0.07 m apart: within two steps' 0.083 m
-        (0.1, (5, 0, 0), (-5, 0, 0), False),  # 0.1 m apart: beyond two steps' 0.083 m
+        (1.0, (5, 0, 0), (-5, 0, 0), False),  # closing at 10 m/s but 1 m apart: 0.17 m a frame
+        (0.1, (5, 0, 0), (-5, 0, 0), True),  # 0.1 m apart: within the frame's 0.17 m
     ],
 )
-def test_a_step_is_halved_where_two_near_bodies_close_fast(device, prep_cache, gap, left_v, right_v, expected):
+def test_a_frame_is_refined_where_two_near_bodies_close_fast(device, prep_cache, gap, left_v, right_v, expected):
     """The flag against the criterion worked by hand: near (the boxes' gap within what the two bodies' speeds
-    cover in two steps) and fast (their closing speed times the step above ``LIMIT`` times the smaller size)."""
+    cover in a frame) and fast (their closing speed times the step above ``LIMIT`` times the smaller size)."""
     sim = _two_balls(device, prep_cache, gap, left_v, right_v)
     size = min(b.size for b in sim.model.bodies)
     closing = np.linalg.norm(np.subtract(left_v, right_v)) * sim.dt
-    reach = (np.linalg.norm(left_v) + np.linalg.norm(right_v)) * 2.0 * sim.dt
+    reach = (np.linalg.norm(left_v) + np.linalg.norm(right_v)) / sim.fps
     assert (gap <= reach and closing > LIMIT * size) == expected  # the case is what it says
     assert _flag(sim) == expected
 
 
-def test_a_halved_step_takes_two_steps_and_the_same_time(device, prep_cache):
-    """A ball passing 0.05 m beside another at 10 m/s, across the gap between them: each of the frame's 4 steps
-    runs as two of 1/480 s, and the ball moves as far as the frame's 1/60 s at its speed carries it (they do not
-    touch)."""
-    sim = _two_balls(device, prep_cache, 0.05, (0, 10, 0), (0, 0, 0))
-    start = _centre(sim, "left")
-    sim.step_frame()
-    assert sim.totals.halved_steps == 4 and sim.totals.steps == 8
-    assert np.allclose(_centre(sim, "left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
+def test_a_refined_frame_takes_twice_the_steps_and_the_same_time(device, prep_cache):
+    """A ball passing 0.1 m beside another at 10 m/s, across the gap between them: the frame runs 8 steps of
+    1/480 s, and the ball moves as far as the frame's 1/60 s at its speed carries it (they do not touch)."""
+    sim = _two_balls(device, prep_cache, 0.1, (0, 10, 0), (0, 0, 0))
+    mass = sim.model.mass.numpy().astype(np.float64)
 
+    def centre(name: str) -> np.ndarray:
+        b = sim.body(name)
+        span = slice(b.vertex_start, b.vertex_start + b.vertex_count)
+        x = sim.states[0].x.numpy()[span].astype(np.float64)
+        return (x * mass[span, None]).sum(0) / mass[span].sum()
 
-def test_only_the_steps_that_come_near_are_halved(device, prep_cache):
-    """Two balls closing head-on at 10 m/s from 0.2 m apart (42 mm a step): the gap is 0.2, 0.158 and 0.117 m
-    before the first three steps, beyond two steps' 0.083 m, and 0.075 m before the fourth, which alone is
-    halved; the frame covers 1/60 s all the same (they do not touch)."""
-    sim = _two_balls(device, prep_cache, 0.2, (5, 0, 0), (-5, 0, 0))
-    start = _centre(sim, "left"), _centre(sim, "right")
+    start = centre("left")
     sim.step_frame()
-    assert sim.totals.halved_steps == 1 and sim.totals.steps == 5
-    assert np.allclose(_centre(sim, "left") - start[0], [5.0 / 60.0, 0.0, 0.0], atol=1e-4)
-    assert np.allclose(_centre(sim, "right") - start[1], [-5.0 / 60.0, 0.0, 0.0], atol=1e-4)
+    assert sim.totals.refined_frames == 1 and sim.totals.steps == 8
+    assert np.allclose(centre("left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
 
 
 @pytest.mark.parametrize("limit", [-0.01, 1.0, float("nan")])

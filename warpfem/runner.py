@@ -41,8 +41,8 @@ class RunSummary:
         cg_solves_per_step: Mean CG solves per step.
         cg_residual_max: Largest final relative CG residual.
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
-        halved_steps: Steps run as two of half the length, their bodies closing fast on each other
-            (``[collision] approach_limit``).
+        refined_frames: Frames run at twice the substeps, their bodies closing fast on each other (``[collision]
+            approach_limit``).
         cg_short_solves: Solves (of all frames' steps) that stopped at the cap above the tolerance.
         cg_float32_floor: The relative residual float32 resolves in the run's systems (an estimate); where it
             is above the tolerance the run warned, and ``cg_residual_max`` understates the systems' residual.
@@ -87,7 +87,7 @@ class RunSummary:
     cg_capped_frames: int
     cg_short_solves: int
     cg_float32_floor: float = 0.0
-    halved_steps: int = 0
+    refined_frames: int = 0
     seconds: dict[str, float] = field(default_factory=dict)
     step_ms: dict[str, float] = field(default_factory=dict)
     contacts_per_step: float = 0.0
@@ -457,7 +457,7 @@ def _summary(sim: Simulation, out: Path, seconds: dict[str, float], check: _Chec
         cg_capped_frames=totals.cg_capped_frames,
         cg_short_solves=totals.cg_short_solves,
         cg_float32_floor=totals.cg_float32_floor,
-        halved_steps=totals.halved_steps,
+        refined_frames=totals.refined_frames,
         seconds=seconds,
         step_ms={k: 1000.0 * v / max(timer.frames, 1) for k, v in timer.seconds.items()},
         contacts_per_step=totals.contacts / max(totals.steps, 1),

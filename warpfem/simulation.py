@@ -98,8 +98,7 @@ class RunTotals:
 
     Attributes:
         steps: Steps taken.
-        halved_steps: Steps run as two of half the length, their bodies closing fast on each other (each counts
-            once in ``steps`` and adds one there).
+        refined_frames: Frames run at twice the substeps, their bodies closing fast on each other.
         cg_solves: CG solves (one per step).
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
@@ -114,7 +113,7 @@ class RunTotals:
     """
 
     steps: int = 0
-    halved_steps: int = 0
+    refined_frames: int = 0
     cg_solves: int = 0
     cg_iterations: int = 0
     cg_residual_max: float = 0.0
@@ -181,9 +180,9 @@ class Simulation:
             every kernel module the step can use, compiled where Warp's kernel cache lacks it: a first run)
             and ``build``.
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
-        approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a step in which bodies would close
-            on each other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's
-            size runs as two half steps; None where bodies cannot collide or the limit is 0.
+        approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a frame whose bodies close on each
+            other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's size in a
+            step runs twice the substeps; None where bodies cannot collide or the limit is 0.
     """
 
     def __init__(
@@ -346,45 +345,21 @@ class Simulation:
         self.check_finite()
         return self.read_stats()
 
-    def frame_phases(self, overlap: bool = True) -> list[tuple[str, Callable[[], None]]]:
-        """A frame's work in order with no step halved: each substep's phases, as (name, launcher) pairs.
+    def frame_phases(self, overlap: bool = True, refined: bool = False) -> list[tuple[str, Callable[[], None]]]:
+        """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
 
-        ``overlap``: see ``Solver.phases``. What :meth:`advance` runs, less the approach watch's halving
-        (:meth:`step_phases`).
+        The states alternate between substeps; after an odd count the last one is copied back into
+        ``states[0]`` as part of the last "solve", which ends with the dense vertices lifted out of the still
+        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``. ``refined``: twice the substeps
+        of half the step (what :attr:`approach` asks for).
         """
         a, b = self.states
         out = []
-        for i in range(self.substeps):
+        substeps, dt = (2 * self.substeps, 0.5 * self.dt) if refined else (self.substeps, self.dt)
+        for i in range(substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            out += self.step_phases(src, dst, overlap)
-        return out + self._frame_end()
-
-    def step_phases(
-        self, src: State, dst: State, overlap: bool = True, halved: bool = False
-    ) -> list[tuple[str, Callable[[], None]]]:
-        """One step's phases from ``src`` into ``dst`` (see ``Solver.phases``).
-
-        ``halved``: two steps of half the length (what :attr:`approach` asks for), into ``dst`` and back into
-        ``src``, which is then copied into ``dst``.
-        """
-        if not halved:
-            return self.solver.phases(src, dst, self.dt, overlap)
-        half = 0.5 * self.dt
-        return [
-            *self.solver.phases(src, dst, half, overlap),
-            *self.solver.phases(dst, src, half, overlap),
-            ("solve", lambda: dst.assign(src)),
-        ]
-
-    def _frame_end(self) -> list[tuple[str, Callable[[], None]]]:
-        """What follows a frame's steps.
-
-        An odd count's last state copied back into ``states[0]`` (in the last "solve"), then the dense vertices
-        lifted out of the still colliders (``Solver.lift_dense``).
-        """
-        a, b = self.states
-        out = []
-        if self.substeps % 2 == 1:
+            out += self.solver.phases(src, dst, dt, overlap)
+        if substeps % 2 == 1:
             out.append(("solve", lambda: a.assign(b)))
         if self.solver.static_lift:
             out.append(("solve", lambda: self.solver.lift_dense(a)))
@@ -400,39 +375,33 @@ class Simulation:
             if timer:
                 timer.start()
 
-            def run(phases: list[tuple[str, Callable[[], None]]]) -> None:
-                for name, phase in phases:
+            def run(refined: bool) -> None:
+                for name, phase in self.frame_phases(overlap=timer is None, refined=refined):
                     phase()
                     if timer:
                         timer.lap(name)
 
-            self._run_frame(run, overlap=timer is None)
+            self._branch(run)
             return
         self.capture()
         wp.capture_launch(self._graph)
 
-    def _run_frame(self, run: Callable[[list], None], overlap: bool = True) -> None:
-        """``run(phases)`` for each step of the frame, then for the frame's end.
+    def _branch(self, run: Callable[[bool], None]) -> None:
+        """``run(refined)`` for the frame about to run: refined where :attr:`approach` raises its flag.
 
-        A step is halved where :attr:`approach` raises its flag before it. The flag is set on the device and
-        branched on there (a conditional node per step in a captured graph).
+        The flag is set on the device and branched on there (a conditional node in a captured graph).
         """
-        a, b = self.states
         watch = self.approach
-        for i in range(self.substeps):
-            src, dst = (a, b) if i % 2 == 0 else (b, a)
-            if watch is None:
-                run(self.step_phases(src, dst, overlap))
-                continue
-            watch.decide(src, self.dt)
+        if watch is None:
+            run(False)
+            return
+        watch.decide(self.states[0], 1.0 / self.fps, self.dt)
 
-            def halved(src: State = src, dst: State = dst) -> None:
-                watch.count()
-                run(self.step_phases(src, dst, overlap, halved=True))
+        def refined() -> None:
+            watch.count()
+            run(True)
 
-            whole = lambda src=src, dst=dst: run(self.step_phases(src, dst, overlap))  # noqa: E731
-            wp.capture_if(watch.flag, on_true=halved, on_false=whole)
-        run(self._frame_end())
+        wp.capture_if(watch.flag, on_true=refined, on_false=lambda: run(False))
 
     def capture(self) -> None:
         """Capture the frame's CUDA graph now if it is not yet (nothing runs; nothing on the CPU).
@@ -443,7 +412,7 @@ class Simulation:
         if self.device.is_cuda and self._graph is None:
             # every module the step uses is loaded (see STEP_MODULES): the capture need not load all of Warp's
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                self._run_frame(lambda phases: [phase() for _, phase in phases])
+                self._branch(lambda refined: [phase() for _, phase in self.frame_phases(refined=refined)])
             self._graph = capture.graph
 
     def map_dense(self) -> wp.array:
@@ -485,12 +454,12 @@ class Simulation:
         :meth:`step_frame` reads after every frame; a caller that advances several frames without it reads
         once after them. Updates :attr:`stats` and :attr:`totals` and gives the warnings due.
         """
-        halved = self.approach.read_count() if self.approach is not None else 0
-        substeps = self.substeps * frames + halved
+        refined = self.approach.read_count() if self.approach is not None else 0
+        substeps = self.substeps * (frames + refined)
         cg = self.solver.read_cg_stats()
         t = self.totals
         t.steps += substeps
-        t.halved_steps += halved
+        t.refined_frames += refined
         t.cg_solves += cg.solves
         t.cg_iterations += cg.iterations
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)

@@ -1,12 +1,12 @@
-"""Steps in which bodies close fast on each other run as two half steps.
+"""Frames in which bodies close fast on each other run twice the substeps.
 
 A body–body contact is found at the start of a step and, through the late pass, at the positions the solve
 predicts; a thin part (a leg, an ear) that a step carries deeper than it is thick passes through before either
-sees it. :class:`ApproachWatch` looks at the state before each step (four launches, no host synchronisation)
-and raises a device flag where two bodies near each other, or the points of the last step's contacts, close by
-more than a share of the smaller body's size in one step; that step is then run as two of half its length
-(``warpfem.Simulation`` branches on the flag inside its captured graph). Only the steps of fast impacts pay for
-it, whenever in a frame they come.
+sees it. :class:`ApproachWatch` looks at the state at each frame's start (four launches, no host
+synchronisation) and raises a device flag where two bodies near each other, or the points of the last step's
+contacts, close by more than a share of the smaller body's size in one step; the frame is then run with its
+steps halved (``warpfem.Simulation`` branches on the flag inside its captured graph). Only frames of fast
+impacts pay for it.
 """
 
 from __future__ import annotations
@@ -18,15 +18,11 @@ from warpfem.presets import APPROACH_LIMIT as DEFAULT_APPROACH_LIMIT
 from warpfem.sim.collision import Collider
 from warpfem.sim.model import Model, State
 
-__all__ = ["DEFAULT_APPROACH_LIMIT", "REACH_STEPS", "ApproachWatch"]
-
-REACH_STEPS = 2.0
-"""Two bodies are near where their boxes lie within what their mean speeds cover in this many steps: the step
-about to run, and as much again for the turns and deformations a mean velocity does not show."""
+__all__ = ["DEFAULT_APPROACH_LIMIT", "ApproachWatch"]
 
 
 class ApproachWatch:
-    """The flag that the bodies close on each other too fast for the step about to run.
+    """The flag that a frame's bodies close on each other too fast for its steps.
 
     Args:
         model: A model of two or more bodies.
@@ -43,28 +39,28 @@ class ApproachWatch:
         self._lower = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._upper = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
-        """1 where the step about to run needs halving (the condition :meth:`decide` sets)."""
+        """1 where the frame about to run needs twice the substeps (the condition :meth:`decide` sets)."""
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
 
-    def decide(self, state: State, step_dt: float) -> None:
-        """Set :attr:`flag` from ``state`` for a step of ``step_dt`` seconds from it."""
+    def decide(self, state: State, frame_dt: float, step_dt: float) -> None:
+        """Set :attr:`flag` from ``state`` for a frame of ``frame_dt`` seconds in steps of ``step_dt``."""
         m, n, dev, c = self.model, len(self.model.bodies), self.model.device, self.collider
         boxes = [self._lower, self._upper]
         wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flag], device=dev)
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
-        approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, REACH_STEPS * step_dt, step_dt, self.limit]
+        approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, self.limit]
         wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[self.flag], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]
         closing_in = [*contacts, state.v, m.cells, m.point_cell, m.point_bary, m.vertex_body, m.body_size, step_dt]
         wp.launch(K.contacts_closing, dim=c.capacity, inputs=[*closing_in, self.limit], outputs=[self.flag], device=dev)
 
     def count(self) -> None:
-        """Count one step run as two half steps (launched inside that branch)."""
-        wp.launch(K.count_step, dim=1, outputs=[self._count], device=self.model.device)
+        """Count one frame run at twice the substeps (launched inside that branch)."""
+        wp.launch(K.count_frame, dim=1, outputs=[self._count], device=self.model.device)
 
     def read_count(self) -> int:
-        """Steps run as two half steps since the last call (one host synchronisation)."""
+        """Frames run at twice the substeps since the last call (one host synchronisation)."""
         count = int(self._count.numpy()[0])
         self._count.zero_()
         return count

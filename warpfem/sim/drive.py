@@ -135,7 +135,7 @@ class Handle:
 
 TICKS_PER_STEP = 2
 """The clock counts ticks of the first step's dt over this many, so that a step half as long (a frame that
-``warpfem.Simulation`` halves where bodies close fast) advances it by one tick and the motions keep their time."""
+``warpfem.Simulation`` runs at twice the substeps) advances it by one tick and the motions keep their time."""
 
 
 class Drive:
