@@ -319,7 +319,7 @@ def time_scene(
         frame()  # captures the graph on CUDA
     start = snapshot(sim)
     sim.read_stats()  # from here on: the timed frames
-    refined = sim.totals.refined_frames
+    refined, steps = sim.totals.refined_frames, sim.totals.steps
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(frames):
@@ -350,6 +350,7 @@ def time_scene(
         "cg_grid_blocks": solver.cg.grid_blocks if solver.cg.mode == "grid" else None,
         "substeps": scene.substeps,
         "refined_frames": sim.totals.refined_frames - refined,
+        "steps_timed": sim.totals.steps - steps,
         "bodies": len(model.bodies),
         "tets": model.tet_count,
         "tet_vertices": model.vertex_count,

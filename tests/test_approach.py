@@ -1,4 +1,4 @@
-"""Which frames run at twice the substeps: the approach watch against hand-worked cases."""
+"""Which frames run more substeps, and how many: the approach watch against hand-worked cases."""
 
 from pathlib import Path
 
@@ -34,9 +34,30 @@ def _two_balls(device: str, cache, gap: float, left_v: tuple, right_v: tuple) ->
     return sim
 
 
-def _flag(sim: warpfem.Simulation) -> bool:
+def _flags(sim: warpfem.Simulation) -> list[bool]:
     sim.approach.decide(sim.states[0], 1.0 / sim.fps, sim.dt)
-    return bool(sim.approach.flag.numpy()[0])
+    return [bool(f) for f in sim.approach.flags.numpy()]
+
+
+def _flag(sim: warpfem.Simulation) -> bool:
+    return _flags(sim)[0]
+
+
+def _centre(sim: warpfem.Simulation, name: str) -> np.ndarray:
+    """Body ``name``'s centre of mass (m)."""
+    mass = sim.model.mass.numpy().astype(np.float64)
+    b = sim.body(name)
+    span = slice(b.vertex_start, b.vertex_start + b.vertex_count)
+    x = sim.states[0].x.numpy()[span].astype(np.float64)
+    return (x * mass[span, None]).sum(0) / mass[span].sum()
+
+
+def _set_velocity(sim: warpfem.Simulation, name: str, velocity: np.ndarray) -> None:
+    """Every tet vertex of body ``name`` at ``velocity`` (m/s)."""
+    b = sim.body(name)
+    v = sim.states[0].v.numpy()
+    v[b.vertex_start : b.vertex_start + b.vertex_count] = velocity
+    sim.states[0].v.assign(v)
 
 
 @pytest.mark.parametrize(
@@ -64,18 +85,38 @@ def test_a_refined_frame_takes_twice_the_steps_and_the_same_time(device, prep_ca
     """A ball passing 0.1 m beside another at 10 m/s, across the gap between them: the frame runs 8 steps of
     1/480 s, and the ball moves as far as the frame's 1/60 s at its speed carries it (they do not touch)."""
     sim = _two_balls(device, prep_cache, 0.1, (0, 10, 0), (0, 0, 0))
-    mass = sim.model.mass.numpy().astype(np.float64)
-
-    def centre(name: str) -> np.ndarray:
-        b = sim.body(name)
-        span = slice(b.vertex_start, b.vertex_start + b.vertex_count)
-        x = sim.states[0].x.numpy()[span].astype(np.float64)
-        return (x * mass[span, None]).sum(0) / mass[span].sum()
-
-    start = centre("left")
+    start = _centre(sim, "left")
     sim.step_frame()
     assert sim.totals.refined_frames == 1 and sim.totals.steps == 8
-    assert np.allclose(centre("left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
+    assert np.allclose(_centre(sim, "left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
+
+
+@pytest.mark.parametrize(("ratio", "levels", "steps"), [(1.25, [True, False], 6), (1.75, [True, True], 8)])
+def test_a_frame_runs_the_fewest_substeps_that_keep_the_closing_within_the_limit(
+    device, prep_cache, ratio, levels, steps
+):
+    """A ball passing 0.05 m beside another, closing on it at ``ratio`` times the limit a step (4 steps of 1/240 s):
+    at 1.25 the frame's 6 steps of 1/360 s close by 0.83 times the limit, so it runs 6; at 1.75 those would close
+    by 1.17 times, so it runs 8 of 1/480 s (0.88 times). Either way the ball moves as far as the frame's 1/60 s
+    at its speed carries it."""
+    sim = _two_balls(device, prep_cache, 0.05, (0, 0, 0), (0, 0, 0))
+    assert sim.approach.levels == (6, 8)
+    size = min(b.size for b in sim.model.bodies)
+    speed = ratio * LIMIT * size / sim.dt
+    _set_velocity(sim, "left", np.array([0.0, speed, 0.0]))
+    assert _flags(sim) == levels
+    start = _centre(sim, "left")
+    sim.step_frame()
+    assert sim.totals.refined_frames == 1 and sim.totals.steps == steps
+    assert np.allclose(_centre(sim, "left") - start, [0.0, speed / 60.0, 0.0], atol=1e-4)
+
+
+def test_an_odd_substep_count_refines_to_twice():
+    """1.5 times an odd count is no whole number of steps: such a frame refines straight to twice."""
+    from warpfem.sim.approach import refined_substeps
+
+    assert refined_substeps(3) == (6,) and refined_substeps(1) == (2,)
+    assert refined_substeps(4) == (6, 8) and refined_substeps(8) == (12, 16)
 
 
 @pytest.mark.parametrize("limit", [-0.01, 1.0, float("nan")])

@@ -57,9 +57,12 @@ def test_held_vertices_follow_the_keys_at_every_frame(device):
     assert np.isfinite(sim.tet_points("block")).all()
 
 
-def test_held_vertices_keep_the_keys_time_through_frames_at_twice_the_substeps(device):
-    """A block thrown at 5 m/s at the held one runs its impact's frames at twice the substeps (steps half as
-    long); the handle's clock counts them at their length, so the held vertices stay on the keys at every frame."""
+@pytest.mark.parametrize(("substeps", "speed"), [(3, 5.0), (4, 1.8)])
+def test_held_vertices_keep_the_keys_time_through_refined_frames(device, substeps, speed):
+    """A block thrown at the held one runs its impact's frames at more substeps: at 3 substeps and 5 m/s twice as
+    many (1.5 times 3 is no whole number), at 4 and 1.8 m/s (1.25 times the approach limit a step) some at 1.5
+    times as many, steps two thirds as long. The handle's clock counts them at their length, so the held vertices
+    stay on the keys at every frame."""
     top = 0.5
     builder, v = _block((0, 0.3, 0), (0.2, top, 0.1), (4, 4, 2), pinned=lambda v: v[:, 1] > top - 1e-9, device=device)
     _block((0.25, 0.3, 0), (0.45, top, 0.1), (4, 4, 2), name="thrown", builder=builder)
@@ -67,9 +70,9 @@ def test_held_vertices_keep_the_keys_time_through_frames_at_twice_the_substeps(d
     held = np.flatnonzero(v[:, 1] > top - 1e-9)
     pivot = np.array([0.1, top, 0.05])
     solver = Solver(model, handles=[Handle(held, keyed_motion(KEYS, pivot))])
-    sim = warpfem.Simulation.from_model(model, solver, substeps=3, fps=60.0)
+    sim = warpfem.Simulation.from_model(model, solver, substeps=substeps, fps=60.0)
     velocity = sim.states[0].v.numpy()
-    velocity[len(v) :] = [-5.0, 0.0, 0.0]
+    velocity[len(v) :] = [-speed, 0.0, 0.0]
     sim.states[0].v.assign(velocity)
     size = model.bodies[0].size
     for frame in range(1, 13):
@@ -77,6 +80,11 @@ def test_held_vertices_keep_the_keys_time_through_frames_at_twice_the_substeps(d
         expected = _reference(KEYS, pivot, v[held], frame / 60.0)
         assert np.abs(sim.tet_points("block")[held] - expected).max() < 1e-5 * size, frame
     assert sim.totals.refined_frames >= 1
+    refined, steps = sim.totals.refined_frames, sim.totals.steps
+    if substeps == 3:
+        assert steps == 12 * substeps + substeps * refined
+    else:  # some frames ran 6 steps, the others 8
+        assert 12 * substeps + refined * substeps // 2 <= steps < 12 * substeps + substeps * refined
 
 
 def test_hanging_from_a_still_handle_sags_as_pinned(device):

@@ -602,19 +602,19 @@ def _horse_drop(device: str, asset, prep_cache, drop: float, **collision) -> tup
 def test_a_horse_dropped_onto_another_lands_within_one_percent(device, asset, prep_cache):
     """Dropped from 3.5, 4 and 4.5 m, the horse lands legs first at 8.3-9.4 m/s (a step's travel is 3.5 % of its
     size, more than its legs are thick): no dense vertex gets deeper than 1 % of the size inside the other body.
-    The frames of the impact run at twice the substeps (``[collision] approach_limit``)."""
+    The frames of the impact run more substeps (``[collision] approach_limit``)."""
     assert max(_horse_drop(device, asset, prep_cache, drop)[0] for drop in (3.5, 4.0, 4.5)) < 0.01
 
 
-def test_only_the_frames_of_a_fast_impact_run_twice_the_substeps(device, asset, prep_cache):
-    """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run twice the
-    substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
+def test_only_the_frames_of_a_fast_impact_run_more_substeps(device, asset, prep_cache):
+    """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run 1.5 or 2 times
+    the substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
     which a step then carries deeper than they are thick, sink past 1 % of the size into the other horse where
     contacts start at its surface (``offset = 0``: the default offset's gap holds this drop without them)."""
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5)
-    refined = sim.totals.refined_frames
+    refined, s = sim.totals.refined_frames, sim.substeps
     assert 1 <= refined <= 12, refined
-    assert sim.totals.steps == sim.substeps * (72 + refined)
+    assert s * 72 + refined * s // 2 <= sim.totals.steps <= s * (72 + refined)
     assert inside < 0.01
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0, offset=0.0)
     assert sim.approach is None and sim.totals.steps == sim.substeps * 72

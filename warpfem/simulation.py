@@ -98,7 +98,7 @@ class RunTotals:
 
     Attributes:
         steps: Steps taken.
-        refined_frames: Frames run at twice the substeps, their bodies closing fast on each other.
+        refined_frames: Frames run at more substeps (1.5 or 2 times), their bodies closing fast on each other.
         cg_solves: CG solves (one per step).
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
@@ -182,7 +182,7 @@ class Simulation:
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
         approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a frame whose bodies close on each
             other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's size in a
-            step runs twice the substeps; None where bodies cannot collide or the limit is 0.
+            step runs 1.5 or 2 times the substeps; None where bodies cannot collide or the limit is 0.
     """
 
     def __init__(
@@ -263,8 +263,8 @@ class Simulation:
         """Allocate the states and buffers of ``model`` stepped by ``solver``."""
         self.model, self.solver = model, solver
         watched = approach_limit > 0 and solver.collider is not None and len(model.bodies) > 1
-        self.approach = ApproachWatch(model, solver.collider, approach_limit) if watched else None
         self.substeps, self.fps = int(substeps), float(fps)
+        self.approach = ApproachWatch(model, solver.collider, approach_limit, self.substeps) if watched else None
         self.dt = 1.0 / (self.fps * self.substeps)
         self.states = [model.state(), model.state()]
         self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
@@ -345,17 +345,18 @@ class Simulation:
         self.check_finite()
         return self.read_stats()
 
-    def frame_phases(self, overlap: bool = True, refined: bool = False) -> list[tuple[str, Callable[[], None]]]:
+    def frame_phases(self, overlap: bool = True, substeps: int | None = None) -> list[tuple[str, Callable[[], None]]]:
         """A frame's work in order: each substep's phases (see ``Solver.phases``), as (name, launcher) pairs.
 
         The states alternate between substeps; after an odd count the last one is copied back into
         ``states[0]`` as part of the last "solve", which ends with the dense vertices lifted out of the still
-        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``. ``refined``: twice the substeps
-        of half the step (what :attr:`approach` asks for).
+        colliders (``Solver.lift_dense``). ``overlap``: see ``Solver.phases``. ``substeps``: the frame's steps
+        (None: the scene's; more where :attr:`approach` asks for them), each the frame's time over that many.
         """
         a, b = self.states
         out = []
-        substeps, dt = (2 * self.substeps, 0.5 * self.dt) if refined else (self.substeps, self.dt)
+        substeps = substeps or self.substeps
+        dt = self.dt * self.substeps / substeps
         for i in range(substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
             out += self.solver.phases(src, dst, dt, overlap)
@@ -375,8 +376,8 @@ class Simulation:
             if timer:
                 timer.start()
 
-            def run(refined: bool) -> None:
-                for name, phase in self.frame_phases(overlap=timer is None, refined=refined):
+            def run(substeps: int) -> None:
+                for name, phase in self.frame_phases(overlap=timer is None, substeps=substeps):
                     phase()
                     if timer:
                         timer.lap(name)
@@ -386,22 +387,28 @@ class Simulation:
         self.capture()
         wp.capture_launch(self._graph)
 
-    def _branch(self, run: Callable[[bool], None]) -> None:
-        """``run(refined)`` for the frame about to run: refined where :attr:`approach` raises its flag.
+    def _branch(self, run: Callable[[int], None]) -> None:
+        """``run(substeps)`` for the frame about to run: more substeps where :attr:`approach` raises its flags.
 
-        The flag is set on the device and branched on there (a conditional node in a captured graph).
+        The flags are set on the device and branched on there (conditional nodes in a captured graph): the
+        first refined level where only its flag is up, the next where its flag is up too.
         """
         watch = self.approach
         if watch is None:
-            run(False)
+            run(self.substeps)
             return
         watch.decide(self.states[0], 1.0 / self.fps, self.dt)
 
-        def refined() -> None:
-            watch.count()
-            run(True)
+        def level(k: int) -> Callable[[], None]:
+            def refined() -> None:
+                watch.count(k)
+                run(watch.levels[k])
 
-        wp.capture_if(watch.flag, on_true=refined, on_false=lambda: run(False))
+            if k + 1 == len(watch.levels):
+                return refined
+            return lambda: wp.capture_if(watch.flags[k + 1 : k + 2], on_true=level(k + 1), on_false=refined)
+
+        wp.capture_if(watch.flag, on_true=level(0), on_false=lambda: run(self.substeps))
 
     def capture(self) -> None:
         """Capture the frame's CUDA graph now if it is not yet (nothing runs; nothing on the CPU).
@@ -412,7 +419,7 @@ class Simulation:
         if self.device.is_cuda and self._graph is None:
             # every module the step uses is loaded (see STEP_MODULES): the capture need not load all of Warp's
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                self._branch(lambda refined: [phase() for _, phase in self.frame_phases(refined=refined)])
+                self._branch(lambda substeps: [phase() for _, phase in self.frame_phases(substeps=substeps)])
             self._graph = capture.graph
 
     def map_dense(self) -> wp.array:
@@ -454,12 +461,15 @@ class Simulation:
         :meth:`step_frame` reads after every frame; a caller that advances several frames without it reads
         once after them. Updates :attr:`stats` and :attr:`totals` and gives the warnings due.
         """
-        refined = self.approach.read_count() if self.approach is not None else 0
-        substeps = self.substeps * (frames + refined)
+        refined = self.approach.read_count() if self.approach is not None else []
+        levels = self.approach.levels if self.approach is not None else ()
+        substeps = self.substeps * frames + sum(
+            k * (more - self.substeps) for k, more in zip(refined, levels, strict=True)
+        )
         cg = self.solver.read_cg_stats()
         t = self.totals
         t.steps += substeps
-        t.refined_frames += refined
+        t.refined_frames += sum(refined)
         t.cg_solves += cg.solves
         t.cg_iterations += cg.iterations
         t.cg_residual_max = max(t.cg_residual_max, cg.residual_max)

@@ -263,7 +263,7 @@ def _report(
             f"its tolerance in {summary.cg_short_solves} solves over {summary.cg_capped_frames} of {summary.frames} "
             "frames)",
         ),
-        ("frames at twice the substeps", f"{summary.refined_frames} of {summary.frames} (bodies closing fast)"),
+        ("frames at more substeps", f"{summary.refined_frames} of {summary.frames} (bodies closing fast)"),
         ("step phases per frame", ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a"),
         ("contacts per step", f"{summary.contacts_per_step:.1f} (most {summary.contacts_max})"),
         ("penetration (dense meshes)", _penetration_text(summary)),

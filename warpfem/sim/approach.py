@@ -1,12 +1,12 @@
-"""Frames in which bodies close fast on each other run twice the substeps.
+"""Frames in which bodies close fast on each other run more substeps.
 
 A body–body contact is found at the start of a step and, through the late pass, at the positions the solve
 predicts; a thin part (a leg, an ear) that a step carries deeper than it is thick passes through before either
-sees it. :class:`ApproachWatch` looks at the state at each frame's start (four launches, no host
+sees it. :class:`ApproachWatch` looks at the state at each frame's start (a few launches, no host
 synchronisation) and raises a device flag where two bodies near each other, or the points of the last step's
-contacts, close by more than a share of the smaller body's size in one step; the frame is then run with its
-steps halved (``warpfem.Simulation`` branches on the flag inside its captured graph). Only frames of fast
-impacts pay for it.
+contacts, close by more than a share of the smaller body's size in one step; the frame then runs the fewest of
+1.5 or 2 times its substeps that brings that closing within the share (``warpfem.Simulation`` branches on the
+flags inside its captured graph). Only frames of fast impacts pay for it.
 """
 
 from __future__ import annotations
@@ -18,7 +18,17 @@ from warpfem.presets import APPROACH_LIMIT as DEFAULT_APPROACH_LIMIT
 from warpfem.sim.collision import Collider
 from warpfem.sim.model import Model, State
 
-__all__ = ["DEFAULT_APPROACH_LIMIT", "ApproachWatch"]
+__all__ = ["DEFAULT_APPROACH_LIMIT", "ApproachWatch", "refined_substeps"]
+
+
+def refined_substeps(substeps: int) -> tuple[int, ...]:
+    """The substeps a refined frame may run, fewest first.
+
+    1.5 times ``substeps`` where that is a whole number of steps two thirds as long (an even count), then twice.
+    """
+    if substeps % 2 == 0:
+        return (3 * substeps // 2, 2 * substeps)
+    return (2 * substeps,)
 
 
 class ApproachWatch:
@@ -28,39 +38,53 @@ class ApproachWatch:
         model: A model of two or more bodies.
         collider: Its collision stage, whose last step's contacts are watched too.
         limit: The share of the smaller body's size two bodies may close by in one step (> 0).
+        substeps: The frame's substeps (>= 1); a refined frame runs one of :func:`refined_substeps`.
     """
 
-    def __init__(self, model: Model, collider: Collider, limit: float) -> None:
+    def __init__(self, model: Model, collider: Collider, limit: float, substeps: int = 4) -> None:
         if not limit > 0.0:
             raise ValueError(f"limit must be > 0, got {limit}")
         self.model, self.collider, self.limit = model, collider, float(limit)
+        self.substeps = int(substeps)
+        self.levels = refined_substeps(self.substeps)
+        """The substeps a refined frame runs: the first whose steps close by at most ``limit``, else the last."""
         dev, n = model.device, len(model.bodies)
         self._momentum = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._lower = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._upper = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
-        """1 where the frame about to run needs twice the substeps (the condition :meth:`decide` sets)."""
-        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.flags = wp.zeros(len(self.levels), dtype=wp.int32, device=dev)
+        """Per refined level (:attr:`levels`), 1 where the frame about to run needs at least that many substeps
+        (the conditions :meth:`decide` sets); ``flag`` is the first: the frame needs refining at all."""
+        self.flag = self.flags[0:1]
+        self._count = wp.zeros(len(self.levels), dtype=wp.int32, device=dev)
 
     def decide(self, state: State, frame_dt: float, step_dt: float) -> None:
-        """Set :attr:`flag` from ``state`` for a frame of ``frame_dt`` seconds in steps of ``step_dt``."""
+        """Set :attr:`flags` from ``state`` for a frame of ``frame_dt`` seconds in steps of ``step_dt``.
+
+        Level k's flag rises where the closing in one step exceeds ``limit`` times the ratio of the substeps
+        below that level to the frame's own: its steps would close by more than ``limit``.
+        """
         m, n, dev, c = self.model, len(self.model.bodies), self.model.device, self.collider
         boxes = [self._lower, self._upper]
+        self.flags.zero_()
         wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flag], device=dev)
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
-        approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, self.limit]
-        wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[self.flag], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]
         closing_in = [*contacts, state.v, m.cells, m.point_cell, m.point_bary, m.vertex_body, m.body_size, step_dt]
-        wp.launch(K.contacts_closing, dim=c.capacity, inputs=[*closing_in, self.limit], outputs=[self.flag], device=dev)
+        below = (self.substeps, *self.levels[:-1])
+        for k, fewer in enumerate(below):
+            limit, flag = self.limit * fewer / self.substeps, self.flags[k : k + 1]
+            approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, limit]
+            wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[flag], device=dev)
+            wp.launch(K.contacts_closing, dim=c.capacity, inputs=[*closing_in, limit], outputs=[flag], device=dev)
 
-    def count(self) -> None:
-        """Count one frame run at twice the substeps (launched inside that branch)."""
-        wp.launch(K.count_frame, dim=1, outputs=[self._count], device=self.model.device)
+    def count(self, level: int) -> None:
+        """Count one frame run at refined level ``level`` (launched inside that branch)."""
+        wp.launch(K.count_frame, dim=1, outputs=[self._count[level : level + 1]], device=self.model.device)
 
-    def read_count(self) -> int:
-        """Frames run at twice the substeps since the last call (one host synchronisation)."""
-        count = int(self._count.numpy()[0])
+    def read_count(self) -> list[int]:
+        """Frames run at each refined level since the last call (one host synchronisation)."""
+        counts = [int(k) for k in self._count.numpy()]
         self._count.zero_()
-        return count
+        return counts

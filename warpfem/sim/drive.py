@@ -133,9 +133,10 @@ class Handle:
     name: str = "handle"
 
 
-TICKS_PER_STEP = 2
-"""The clock counts ticks of the first step's dt over this many, so that a step half as long (a frame that
-``warpfem.Simulation`` runs at twice the substeps) advances it by one tick and the motions keep their time."""
+TICKS_PER_STEP = 6
+"""The clock counts ticks of the first step's dt over this many, so that a step two thirds or half as long (a
+frame that ``warpfem.Simulation`` runs at 1.5 or 2 times the substeps) advances it by four or three ticks and
+the motions keep their time."""
 
 
 class Drive:
