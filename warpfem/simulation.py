@@ -266,6 +266,8 @@ class Simulation:
         self.substeps, self.fps = int(substeps), float(fps)
         self.approach = ApproachWatch(model, solver.collider, approach_limit, self.substeps) if watched else None
         self.dt = 1.0 / (self.fps * self.substeps)
+        if solver.drive is not None:
+            solver.drive.set_step(self.dt)
         self.states = [model.state(), model.state()]
         self.dense = wp.zeros(model.dense_count, dtype=wp.vec3, device=model.device)
         self.frame = 0

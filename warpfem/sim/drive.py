@@ -202,6 +202,14 @@ class Drive:
             device=self.model.device,
         )  # fmt: skip
 
+    def set_step(self, dt: float) -> None:
+        """Set the clock's tick from a run's step of ``dt`` s, before the first step.
+
+        A refined frame's shorter steps are then whole numbers of ticks whichever frame comes first.
+        """
+        if self.tick_dt is None:
+            self.tick_dt = dt / TICKS_PER_STEP
+
     def tick(self, dt: float) -> None:
         """One step of ``dt`` s taken (after every launch of the step that reads the clock)."""
         wp.launch(K.tick, dim=1, inputs=[self.clock, self._ticks(dt)], device=self.model.device)
