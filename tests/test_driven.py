@@ -86,7 +86,7 @@ def test_held_vertices_keep_the_keys_time_through_refined_frames(device, substep
     refined, steps = sim.totals.refined_frames, sim.totals.steps
     if substeps == 3:
         assert steps == 12 * substeps + substeps * refined
-    else:  # some frames ran 6 steps, the others 8
+    else:  # at least one frame ran 6 steps rather than 8
         assert 12 * substeps + refined * substeps // 2 <= steps < 12 * substeps + substeps * refined
 
 
