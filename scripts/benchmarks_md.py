@@ -221,7 +221,12 @@ def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     if found is None:
         return []
     path, before, gap = found
-    when = "the same day" if gap <= PEER_HOURS * 3600 else f"{gap / 3600:.0f} hours apart, in another lease of it"
+    if gap <= 3600:
+        when = f"{gap / 60:.0f} minutes apart"
+    elif gap <= PEER_HOURS * 3600:
+        when = "the same day"
+    else:
+        when = f"{gap / 3600:.0f} hours apart, in another lease of it"
     old = {(r["kind"], r["n"]): r for r in before["runs"]}
     lines = [
         "",
