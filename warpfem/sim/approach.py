@@ -66,8 +66,9 @@ class ApproachWatch:
         """
         m, n, dev, c = self.model, len(self.model.bodies), self.model.device, self.collider
         boxes = [self._lower, self._upper]
-        self.flags.zero_()
         wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flag], device=dev)
+        if len(self.levels) > 1:  # clear_bodies lowers the first flag
+            self.flags[1:].zero_()
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]

@@ -215,9 +215,11 @@ class Drive:
         wp.launch(K.tick, dim=1, inputs=[self.clock, self._ticks(dt)], device=self.model.device)
 
     def _ticks(self, dt: float) -> int:
-        """How many ticks a step of ``dt`` s is (the first step sets the tick); ValueError if not a whole number."""
-        if self.tick_dt is None:
-            self.tick_dt = dt / TICKS_PER_STEP
+        """How many ticks a step of ``dt`` s is; ValueError if not a whole number.
+
+        The first step sets the tick where :meth:`set_step` did not.
+        """
+        self.set_step(dt)
         ticks = round(dt / self.tick_dt)
         if ticks < 1 or abs(ticks * self.tick_dt - dt) > 1e-9 * dt:
             raise ValueError(f"a driven step of {dt} s is not a whole number of the clock's {self.tick_dt} s ticks")
