@@ -120,5 +120,5 @@ def contacts_closing(
 
 @wp.kernel
 def count_frame(count_out: wp.array(dtype=wp.int32)):
-    """One more frame run at a refined level's substeps."""
+    """One more frame run at twice the substeps."""
     count_out[0] = count_out[0] + 1

@@ -5,7 +5,7 @@ predicts; a thin part (a leg, an ear) that a step carries deeper than it is thic
 sees it. :class:`ApproachWatch` looks at the state at each frame's start (a few launches, no host
 synchronisation) and raises a device flag where two bodies near each other, or the points of the last step's
 contacts, close by more than a share of the smaller body's size in one step; the frame then runs the fewest of
-1.5, 2, 3 or 4 times its substeps that brings that closing within the share (``warpfem.Simulation`` branches on the
+1.5 or 2 times its substeps that brings that closing within the share (``warpfem.Simulation`` branches on the
 flags inside its captured graph). Only frames of fast impacts pay for it.
 """
 
@@ -24,13 +24,11 @@ __all__ = ["DEFAULT_APPROACH_LIMIT", "ApproachWatch", "refined_substeps"]
 def refined_substeps(substeps: int) -> tuple[int, ...]:
     """The substeps a refined frame may run, fewest first.
 
-    1.5 times ``substeps`` where that is a whole number of steps two thirds as long (an even count), then 2, 3
-    and 4 times: the last brings a landing at up to four times the limit a step within it.
+    1.5 times ``substeps`` where that is a whole number of steps two thirds as long (an even count), then twice.
     """
-    more = (2 * substeps, 3 * substeps, 4 * substeps)
     if substeps % 2 == 0:
-        return (3 * substeps // 2, *more)
-    return more
+        return (3 * substeps // 2, 2 * substeps)
+    return (2 * substeps,)
 
 
 class ApproachWatch:

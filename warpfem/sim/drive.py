@@ -133,10 +133,10 @@ class Handle:
     name: str = "handle"
 
 
-TICKS_PER_STEP = 12
-"""The clock counts ticks of the first step's dt over this many, so that a step 1/1.5, 1/2, 1/3 or 1/4 as long
-(a frame that ``warpfem.Simulation`` runs at that many times the substeps) advances it by 8, 6, 4 or 3 ticks
-and the motions keep their time."""
+TICKS_PER_STEP = 6
+"""The clock counts ticks of the first step's dt over this many, so that a step two thirds or half as long (a
+frame that ``warpfem.Simulation`` runs at 1.5 or 2 times the substeps) advances it by four or three ticks and
+the motions keep their time."""
 
 
 class Drive:
