@@ -466,7 +466,7 @@ class Simulation:
         refined = self.approach.read_count() if self.approach is not None else []
         levels = self.approach.levels if self.approach is not None else ()
         substeps = self.substeps * frames + sum(
-            k * (more - self.substeps) for k, more in zip(refined, levels, strict=True)
+            count * (more - self.substeps) for count, more in zip(refined, levels, strict=True)
         )
         cg = self.solver.read_cg_stats()
         t = self.totals

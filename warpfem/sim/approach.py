@@ -41,7 +41,7 @@ class ApproachWatch:
         substeps: The frame's substeps (>= 1); a refined frame runs one of :func:`refined_substeps`.
     """
 
-    def __init__(self, model: Model, collider: Collider, limit: float, substeps: int = 4) -> None:
+    def __init__(self, model: Model, collider: Collider, limit: float, substeps: int) -> None:
         if not limit > 0.0:
             raise ValueError(f"limit must be > 0, got {limit}")
         self.model, self.collider, self.limit = model, collider, float(limit)
