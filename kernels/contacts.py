@@ -9,6 +9,10 @@ import warp as wp
 
 from .integrate import tie_friction
 
+import os
+
+DAMP = wp.constant(float(os.environ.get("WARPFEM_DAMP", "1.0")))
+
 
 @wp.func
 def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.vec4i, w_t: wp.vec4) -> wp.vec3:
@@ -34,6 +38,7 @@ def contact_forces(
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     point_stiffness: wp.array(dtype=float),
+    point_mass: wp.array(dtype=float),
     friction: wp.array(dtype=float),
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
@@ -102,6 +107,9 @@ def contact_forces(
     c = tie_friction(friction[0], a, loaded, wp.length(ut), dt)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
+    if -wp.dot(u, g) * dt > solve_depth:
+        # closing fast: a damper along the way out, DAMP times critical for the point's mass on its spring
+        C += dt * 2.0 * DAMP * wp.sqrt(a * point_mass[p]) * gg
     contact_matrix_out[i] = C
     pair_verts_a_out[i] = tp
     pair_weights_a_out[i] = w_p

@@ -324,6 +324,7 @@ class Collider:
                 m.point_cell,
                 m.point_bary,
                 self.point_stiffness,
+                m.point_mass,
                 self.friction,
                 m.diag_slot,
                 dt,
