@@ -9,10 +9,6 @@ import warp as wp
 
 from .integrate import tie_friction
 
-import os
-
-DAMP = wp.constant(float(os.environ.get("WARPFEM_DAMP", "1.0")))
-
 
 @wp.func
 def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.vec4i, w_t: wp.vec4) -> wp.vec3:
@@ -39,6 +35,7 @@ def contact_forces(
     point_bary: wp.array(dtype=wp.vec4),
     point_stiffness: wp.array(dtype=float),
     point_mass: wp.array(dtype=float),
+    damping: float,
     friction: wp.array(dtype=float),
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
@@ -69,8 +66,10 @@ def contact_forces(
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
-    friction across it, c from :func:`kernels.integrate.tie_friction` at the step's start velocity and a depth
-    of at most ``friction[1]`` (m; ``friction[0]``: the coefficient), none for a point ``placed_out`` marks
+    friction across it; a contact closing by more than ``solve_depth`` in the step adds a damper along g,
+    ``dt b g g^T`` with ``b = 2 damping sqrt(a m_p)`` (``damping`` times critical for the point's mass
+    ``point_mass`` on its spring). c from :func:`kernels.integrate.tie_friction` at the step's start velocity
+    and a depth of at most ``friction[1]`` (m; ``friction[0]``: the coefficient), none for a point ``placed_out`` marks
     while its contact is deeper than that (it clears the mark once one is not: :func:`mark_placed`). C goes to
     ``contact_matrix_out`` and the two embedded points to ``pair_*_out`` for the matrix-free product in CG
     (:class:`warpfem.sim.contacts.Coupling`); its diagonal blocks to the matrix. Thread 0 also adds the step's
@@ -107,9 +106,9 @@ def contact_forces(
     c = tie_friction(friction[0], a, loaded, wp.length(ut), dt)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
-    if -wp.dot(u, g) * dt > solve_depth:
-        # closing fast: a damper along the way out, DAMP times critical for the point's mass on its spring
-        C += dt * 2.0 * DAMP * wp.sqrt(a * point_mass[p]) * gg
+    if damping > 0.0 and -wp.dot(u, g) * dt > solve_depth:
+        # closing fast: a damper along the way out, ``damping`` times critical for the point's mass on its spring
+        C += dt * 2.0 * damping * wp.sqrt(a * point_mass[p]) * gg
     contact_matrix_out[i] = C
     pair_verts_a_out[i] = tp
     pair_weights_a_out[i] = w_p

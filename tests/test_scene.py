@@ -183,6 +183,8 @@ ERRORS = [
     ("approach_limit 1", "[collision]\napproach_limit = 1.0\n" + OBJ, "collision.approach_limit", "< 1"),
     ("contact offset < 0", "[collision]\noffset = -0.001\n" + OBJ, "collision.offset", ">= 0"),
     ("contact offset 0.05", "[collision]\noffset = 0.05\n" + OBJ, "collision.offset", "< 0.05"),
+    ("contact damping < 0", "[collision]\ndamping = -1.0\n" + OBJ, "collision.damping", ">= 0"),
+    ("contact damping nan", "[collision]\ndamping = nan\n" + OBJ, "collision.damping", ""),
     ("ground stiffness 0", "[ground]\nstiffness = 0\n" + OBJ, "ground.stiffness", "> 0 1/s^2"),
     ("ground friction < 0", "[ground]\nfriction = -0.1\n" + OBJ, "ground.friction", ">= 0"),
     ("ground offset < 0", "[ground]\noffset = -0.001\n" + OBJ, "ground.offset", ">= 0 and <= 0.05"),

@@ -242,6 +242,7 @@ def _head_on(
     rotation_updates: int | None = None,
     elements: str = "linear",
     offset: float | None = None,
+    damping: float | None = None,
 ) -> float:
     """Two bunnies (0.8 m) thrown at each other at ``speed`` each, no gravity: the deepest a dense vertex of
     one gets inside the other's dense surface over 30 frames (libigl's winding number on the dense meshes
@@ -266,7 +267,7 @@ def _head_on(
         | ({"contact_passes": contact_passes} if contact_passes is not None else {})
         | ({"rotation_updates": rotation_updates} if rotation_updates is not None else {}),
         "ground": {"enabled": False},
-        "collision": {} if offset is None else {"offset": offset},
+        "collision": ({} if offset is None else {"offset": offset}) | ({} if damping is None else {"damping": damping}),
         "object": [thrown("left", -0.55, speed, 90.0), thrown("right", 0.55, -speed, -90.0)],
     }
     sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="head_on"), device=device)
@@ -283,10 +284,11 @@ def test_bodies_meeting_head_on_do_not_sink_into_each_other(device):
     can overlap more: docs/decisions.md), since contacts the step's own motion makes are answered within the
     step; found only at the start of the next step, and with each step linearised about the rotations at its
     start (which stretches the deforming surfaces along their tangents), they overlap by more than 1.5 % when
-    contacts start at the surface (no ``[collision] offset``, whose gap absorbs part of that overlap)."""
+    contacts start at the surface and close undamped (no ``[collision] offset``, whose gap absorbs part of that
+    overlap, nor ``damping``, which stops the closing nearer the surface)."""
     assert _head_on(device, 5.0) < 0.01
     assert _head_on(device, 15.0, contact_passes=2) < 0.01
-    assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0, offset=0.0) > 0.015
+    assert _head_on(device, 15.0, contact_passes=0, rotation_updates=0, offset=0.0, damping=0.0) > 0.015
 
 
 def test_quadratic_bodies_meeting_head_on_do_not_sink_into_each_other(device):
@@ -610,12 +612,41 @@ def test_only_the_frames_of_a_fast_impact_run_more_substeps(device, asset, prep_
     """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run 1.5 or 2 times
     the substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
     which a step then carries deeper than they are thick, sink past 1 % of the size into the other horse where
-    contacts start at its surface (``offset = 0``: the default offset's gap holds this drop without them)."""
+    contacts start at its surface and close undamped (``offset = 0``, ``damping = 0``: the default offset's gap
+    or the damper of contacts closing fast holds this drop without the other two)."""
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5)
     refined, s = sim.totals.refined_frames, sim.substeps
     assert 1 <= refined <= 12, refined
     assert s * 72 + refined * s // 2 <= sim.totals.steps <= s * (72 + refined)
     assert inside < 0.01
-    inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0, offset=0.0)
+    inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0, offset=0.0, damping=0.0)
     assert sim.approach is None and sim.totals.steps == sim.substeps * 72
     assert inside > 0.01
+
+
+def _landing(device: str, asset, prep_cache, speed: float, **collision) -> float:
+    """A 1 m armadillo of the piles (1e6 Pa) thrown down at ``speed`` m/s onto another falling from the piles'
+    first layer, turned so that its feet meet the other's ears, 40 frames: the deepest a dense vertex of one gets
+    inside the other's dense surface, checked on the dense meshes alone every frame, relative to its size."""
+    body = {"mesh": str(asset("armadillo.off")), "faces": 500, "scale": 0.0066, "young": 1e6, "poisson": 0.3,
+            "density": 1000.0, "damping_stiffness": 0.005}  # fmt: skip
+    objects = [
+        {**body, "name": "below", "translate": [0.0, 0.7, 0.0], "rotate": [0.0, 40.0, 0.0]},
+        {**body, "name": "above", "translate": [0.05, 2.0, 0.03], "rotate": [0.0, 120.0, 0.0],
+         "velocity": [0.0, -speed, 0.0]},
+    ]  # fmt: skip
+    doc = {"scene": {"frames": 40}, "collision": collision, "object": objects}
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="landing"), device=device, cache_dir=prep_cache)
+    inside = 0.0
+    for _ in range(40):
+        sim.step_frame()
+        inside = max(inside, warpfem.frame_penetration(sim).relative)
+    return inside
+
+
+def test_a_fast_landing_on_thin_parts_stops_near_the_surface(device, asset, prep_cache):
+    """Landing feet first on the other's ears at 22 m/s (a refined step's travel 3 % of the size, more than an
+    ear is thick), the dense surfaces overlap by less than 0.5 % of the size with scene defaults, where contacts
+    closing undamped (``damping = 0``) let the feet 0.8 % and more into the other's head."""
+    assert _landing(device, asset, prep_cache, 22.0) < 0.005
+    assert _landing(device, asset, prep_cache, 22.0, damping=0.0) > 0.008

@@ -384,7 +384,7 @@ def solver_of(scene: Scene, model: Model, cg_path: str | None = None, held: list
         obstacles=obstacles_of(scene),
         cg_iterations=scene.solver.cg_iterations,
         cg_tolerance=scene.solver.stop_tolerance,
-        collision=CollisionSettings(c.stiffness, c.friction, c.offset) if c.enabled else None,
+        collision=CollisionSettings(c.stiffness, c.friction, c.offset, damping=c.damping) if c.enabled else None,
         cg_path=cg_path,
         handles=handles,
         contact_passes=scene.solver.contact_passes,

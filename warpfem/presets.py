@@ -56,6 +56,11 @@ APPROACH_LIMIT = 0.02
 before a frame runs more substeps (``[collision] approach_limit``). Chosen by measurement (docs/decisions.md,
 "Frames of fast approach at twice the substeps", "Refined frames at 1.5 times the substeps where that is enough")."""
 
+CONTACT_DAMPING = 20.0
+"""The damping of a contact between bodies that closes fast, as a ratio to critical for its point's mass on its
+penalty spring (``[collision] damping``). Chosen by measurement (docs/decisions.md, "A damper on contacts that
+close fast")."""
+
 CONTACT_OFFSET = 0.002
 """How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
 smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.

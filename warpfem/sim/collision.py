@@ -13,6 +13,7 @@ is a corner of the tet or shares a tet with one (the one-ring), so a body at res
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ import warp as wp
 
 from warpfem.kernels import collision as K
 from warpfem.kernels import contacts as KC
-from warpfem.presets import CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
+from warpfem.presets import CONTACT_DAMPING, CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
@@ -41,18 +42,23 @@ class CollisionSettings:
             scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
             rather than inside the visible surface, and resting bodies stand up to that far apart.
         contacts_per_point: Contact buffer capacity per collision point.
+        damping: Damping along the way out of a contact closing by more than :data:`LATE_SOLVE_SHARE` of the
+            offset in a step, as a ratio to critical for its point's mass on its penalty spring (>= 0).
     """
 
     stiffness: float = 1.0e7
     friction: float = 0.5
     offset: float = CONTACT_OFFSET
     contacts_per_point: float = 2.0
+    damping: float = CONTACT_DAMPING
 
     def __post_init__(self) -> None:
         if not self.stiffness > 0.0:
             raise ValueError(f"CollisionSettings.stiffness must be > 0 1/s^2, got {self.stiffness}")
         if not self.friction >= 0.0:
             raise ValueError(f"CollisionSettings.friction must be >= 0, got {self.friction}")
+        if not (self.damping >= 0.0 and math.isfinite(self.damping)):
+            raise ValueError(f"CollisionSettings.damping must be >= 0 and finite, got {self.damping}")
         if not 0.0 <= self.offset < CONTACT_OFFSET_LIMIT:
             raise ValueError(
                 f"CollisionSettings.offset must be in [0, {CONTACT_OFFSET_LIMIT}) of the size, got {self.offset}"
@@ -190,6 +196,8 @@ class Collider:
         see :data:`LATE_SOLVE_SHARE`."""
         self.lanes = detect_lanes(n_points, dev)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
+        self.damping = float(settings.damping)
+        """Damping of contacts closing fast, a ratio to critical (:class:`CollisionSettings`)."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -325,6 +333,7 @@ class Collider:
                 m.point_bary,
                 self.point_stiffness,
                 m.point_mass,
+                self.damping,
                 self.friction,
                 m.diag_slot,
                 dt,
