@@ -36,6 +36,7 @@ def contact_forces(
     point_stiffness: wp.array(dtype=float),
     point_mass: wp.array(dtype=float),
     damping: float,
+    closing_depth: float,
     friction: wp.array(dtype=float),
     diag_slot: wp.array(dtype=wp.int32),
     dt: float,
@@ -66,7 +67,7 @@ def contact_forces(
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
-    friction across it; a contact closing by more than ``solve_depth`` in the step adds a damper along g,
+    friction across it; a contact closing by more than ``closing_depth`` (m) in the step adds a damper along g,
     ``dt b g g^T`` with ``b = 2 damping sqrt(a m_p)`` (``damping`` times critical for the point's mass
     ``point_mass`` on its spring). c from :func:`kernels.integrate.tie_friction` at the step's start velocity
     and a depth of at most ``friction[1]`` (m; ``friction[0]``: the coefficient), none for a point ``placed_out`` marks
@@ -106,7 +107,7 @@ def contact_forces(
     c = tie_friction(friction[0], a, loaded, wp.length(ut), dt)
     gg = wp.outer(g, g)
     C = dt * dt * a * gg + dt * c * (wp.identity(n=3, dtype=float) - gg)
-    if damping > 0.0 and -wp.dot(u, g) * dt > solve_depth:
+    if damping > 0.0 and -wp.dot(u, g) * dt > closing_depth:
         # closing fast: a damper along the way out, ``damping`` times critical for the point's mass on its spring
         C += dt * 2.0 * damping * wp.sqrt(a * point_mass[p]) * gg
     contact_matrix_out[i] = C

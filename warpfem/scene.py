@@ -174,7 +174,7 @@ class CollisionConfig:
             scene's smallest colliding body's size (0 <= offset < 0.05): the give a penalty needs to hold a
             load goes into that gap instead of into the other body, and bodies resting on each other stand up
             to that far apart; 0: at the surface.
-        damping: Damping along the way out of a contact that closes by more than half the offset in a step,
+        damping: Damping along the way out of a contact that closes by more than the offset in a step,
             as a ratio to critical for its point's mass on its penalty spring (>= 0): a fast impact is stopped
             nearer the surface, at the cost of some of its bounce; resting and settling contacts, which close
             slower, are left undamped. 0: none.

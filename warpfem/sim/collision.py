@@ -42,8 +42,8 @@ class CollisionSettings:
             scene's smallest colliding body's size: the penalty's give under a load is spent in that gap
             rather than inside the visible surface, and resting bodies stand up to that far apart.
         contacts_per_point: Contact buffer capacity per collision point.
-        damping: Damping along the way out of a contact closing by more than :data:`LATE_SOLVE_SHARE` of the
-            offset in a step, as a ratio to critical for its point's mass on its penalty spring (>= 0).
+        damping: Damping along the way out of a contact closing by more than the offset in a step, as a ratio
+            to critical for its point's mass on its penalty spring (>= 0).
     """
 
     stiffness: float = 1.0e7
@@ -198,6 +198,9 @@ class Collider:
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.damping = float(settings.damping)
         """Damping of contacts closing fast, a ratio to critical (:class:`CollisionSettings`)."""
+        self.closing_depth = offset
+        """How far (m) a contact must close in a step to be damped: the offset, the room the penalty has before
+        the visible surface."""
         self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
@@ -334,6 +337,7 @@ class Collider:
                 self.point_stiffness,
                 m.point_mass,
                 self.damping,
+                self.closing_depth,
                 self.friction,
                 m.diag_slot,
                 dt,
