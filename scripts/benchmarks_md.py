@@ -228,6 +228,11 @@ def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     else:
         when = f"{gap / 3600:.0f} hours apart, in another lease of it"
     old = {(r["kind"], r["n"]): r for r in before["runs"]}
+    for part in before["environment"].get("parts", []):  # a part run far from the rest: say which, and when
+        part_gap = (ours_at - datetime.fromisoformat(part["date"])).total_seconds()
+        if abs(part_gap) > 3600:
+            side = "earlier" if part_gap > 0 else "later"
+            when += f" (its `{part['command']}` {abs(part_gap) / 3600:.1f} hours {side}, in another lease of it)"
     lines = [
         "",
         "## Before and after",
