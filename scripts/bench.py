@@ -283,7 +283,8 @@ def frame_error(sim: warpfem.Simulation, scene, device, cache_dir: Path, cg_path
 
 
 CHECKS_OVER_RUN = 12
-"""Frames of the timed run, replayed, on which the dense meshes are checked for penetration."""
+"""Frames of the timed run, replayed, on which the dense meshes are checked for penetration by default
+(``--check-every`` sets the frames between checks instead: 1 checks every frame)."""
 
 CHECK_MAX_BODIES = 256
 """Scenes of more bodies are checked at the end only by default (the check of a frame grows with the bodies in
@@ -301,11 +302,12 @@ def time_scene(
     cg_path: str | None = None,
     accuracy: bool = False,
     check_bodies: int = CHECK_MAX_BODIES,
+    check_every: int = 0,
 ) -> dict:
     """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures.
 
     With ``accuracy``, also the error of one frame from where the timed frames end against converged CG
-    (:func:`frame_error`). ``check_bodies``: see :func:`dense_check`.
+    (:func:`frame_error`). ``check_bodies``, ``check_every``: see :func:`dense_check`.
     """
     sim = build(scene, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
@@ -330,7 +332,7 @@ def time_scene(
     dense = sim.dense.numpy()
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
     end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
-    check = dense_check(sim, start, frames, check_bodies)
+    check = dense_check(sim, start, frames, check_bodies, check_every)
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
     error = frame_error(sim, scene, device, cache_dir, cg_path) if accuracy else None
@@ -370,13 +372,14 @@ def time_scene(
 
 
 def dense_check(
-    sim: warpfem.Simulation, start: warpfem.State, frames: int, most_bodies: int = CHECK_MAX_BODIES
+    sim: warpfem.Simulation, start: warpfem.State, frames: int, most_bodies: int = CHECK_MAX_BODIES, every: int = 0
 ) -> dict:
     """Penetration of the dense meshes measured on the meshes alone (``warpfem.io.penetration``).
 
-    At the end of the timed frames, and the worst over :data:`CHECKS_OVER_RUN` frames of a replay of them from
-    ``start`` (on CUDA the replay drifts from the timed run as float atomics add in another order); ``sim``
-    is left where the timed frames ended. Scenes of more than ``most_bodies`` bodies are checked at the end only.
+    At the end of the timed frames, and the worst over every ``every``-th frame of a replay of them from
+    ``start`` (0: :data:`CHECKS_OVER_RUN` frames spread over it; on CUDA the replay drifts from the timed run as
+    float atomics add in another order); ``sim`` is left where the timed frames ended. Scenes of more than
+    ``most_bodies`` bodies are checked at the end only.
     """
     from dataclasses import asdict
 
@@ -390,7 +393,7 @@ def dense_check(
     if len(sim.body_names) <= most_bodies:
         saved = snapshot(sim)
         sim.states[0].assign(start)
-        every = max(1, frames // CHECKS_OVER_RUN)
+        every = every or max(1, frames // CHECKS_OVER_RUN)
         for f in range(1, frames + 1):
             sim.advance()
             if f % every == 0:
@@ -567,6 +570,13 @@ def _parser() -> argparse.ArgumentParser:
         default=CHECK_MAX_BODIES,
         help=f"scenes of more bodies get the dense penetration check at the end only (default {CHECK_MAX_BODIES})",
     )
+    parser.add_argument(
+        "--check-every",
+        type=int,
+        default=0,
+        help=f"frames between dense penetration checks over the run (1: every frame; default: {CHECKS_OVER_RUN} "
+        "checks spread over it)",
+    )
     parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: paper,piles,mixed,cg")
@@ -661,7 +671,14 @@ def _time_all(work: list, cg_paths: list[str], args: argparse.Namespace, device,
         path = None if cg_path == "auto" else cg_path
         measured = kind not in ("pile", "mixed") or (kind == "pile" and n in args.deviation)
         run = time_scene(
-            scene, device, args.cache_dir, frames, cg_path=path, accuracy=measured, check_bodies=args.check_bodies
+            scene,
+            device,
+            args.cache_dir,
+            frames,
+            cg_path=path,
+            accuracy=measured,
+            check_bodies=args.check_bodies,
+            check_every=args.check_every,
         )
         if kind == "pile" and n in args.deviation and cg_path == cg_paths[0]:
             run["settle_deviation"] = settle_deviation(scene, device, args.cache_dir, frames, path)
@@ -690,6 +707,8 @@ def main(argv=None) -> int:
     cg_paths = [p for p in args.cg_paths.split(",") if p]
     if args.check_bodies < 0:
         parser.error(f"--check-bodies: expected a body count >= 0, got {args.check_bodies}")
+    if args.check_every < 0:
+        parser.error(f"--check-every: expected a frame count >= 0, got {args.check_every}")
     if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
         parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     parts = {"paper", "piles", "mixed", "cg"}

@@ -72,6 +72,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--cg-paths", "grid:0"], "--cg-paths"),
         ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
         ("bench.py", ["--check-bodies", "-1"], "--check-bodies"),
+        ("bench.py", ["--check-every", "-2"], "--check-every"),
         ("bench_newton.py", ["--piles", "1.5"], "--piles"),
         ("bench_end_to_end.py", ["--queue-mb", "-1"], "--queue-mb"),
         ("bench_end_to_end.py", ["--writers", "two"], "--writers"),
@@ -103,6 +104,35 @@ def test_frame_error_is_the_cg_error_of_one_frame_and_leaves_the_state(tmp_path)
     # against itself the converged run differs by nothing: the figure isolates CG from everything else
     assert errors[bench.CONVERGED_CG] == 0.0
     assert 0.0 < errors[1e-4] < 1e-2 * errors[1e-1]
+
+
+def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(tmp_path):
+    """A ball thrown down at 25 m/s onto another, 8 frames: ``--check-every 1`` finds the worst of the dense
+    check made on each frame of a separate run of the same scene (CPU: the runs match bit for bit), the impact's;
+    ``--check-every 3`` checks frames 3 and 6 and the end, and finds the worst of those, which miss the impact;
+    the simulation is left where the frames ended."""
+    from warpfem.io.penetration import frame_penetration
+
+    scene = load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
+    top = dataclasses.replace(scene.objects[1], translate=(0.05, 0.7, 0.0), velocity=(0.0, -25.0, 0.0))
+    scene = dataclasses.replace(scene, objects=[scene.objects[0], top])
+    separate = bench.build(scene, "cpu", tmp_path)
+    depths = []
+    for _ in range(8):
+        separate.advance()
+        depths.append(frame_penetration(separate, bodies=True).relative)
+    assert max(depths) > 2 * max(depths[2], depths[5], depths[7])  # checks of frames 3 and 6 miss the impact
+    sim = bench.build(scene, "cpu", tmp_path)
+    start = bench.snapshot(sim)
+    for _ in range(8):
+        sim.advance()
+    end = sim.states[0].x.numpy().copy()
+    every = bench.dense_check(sim, start, 8, every=1)
+    assert every["frames_checked"] == 9 and every["worst"]["relative"] == pytest.approx(max(depths), abs=0.0)
+    np.testing.assert_array_equal(sim.states[0].x.numpy(), end)
+    third = bench.dense_check(sim, start, 8, every=3)
+    assert third["frames_checked"] == 3
+    assert third["worst"]["relative"] == pytest.approx(max(depths[2], depths[5], depths[7]), abs=0.0)
 
 
 def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_above_the_ground(tmp_path):
