@@ -29,16 +29,6 @@ from .surface import (
     visible_depth,
 )
 
-FAR_GAP = wp.constant(1.0e30)
-"""A gap (m) beyond any reach: where a leaf has no tet to measure."""
-
-DETECT_REGISTERS = 168
-"""Registers a thread of contact detection may take: what lets an SM hold 12 of its warps (docs/performance.md)."""
-
-MOVE_SLACK = wp.constant(1.0e-6)
-"""How much more gap than its reach, per metre of the point's distance from the origin (and 1 m), a late
-pass needs to leave a point's walk out: the inside test's own float32 rounding (:func:`late_walk_needed`)."""
-
 
 @wp.kernel
 def accumulate_gradients(
@@ -138,33 +128,17 @@ def block_sync():
 
 
 @wp.func
-def tet_height(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3) -> float:
-    """A tet's lowest height (m): six times its volume over twice its largest face's area (0 if flat)."""
-    volume6 = wp.abs(wp.dot(b - a, wp.cross(c - a, d - a)))
-    face2 = wp.max(
-        wp.max(wp.length(wp.cross(c - b, d - b)), wp.length(wp.cross(c - a, d - a))),
-        wp.max(wp.length(wp.cross(b - a, d - a)), wp.length(wp.cross(b - a, c - a))),
-    )
-    return wp.where(face2 > 0.0, volume6 / face2, 0.0)
-
-
-@wp.func
 def leaf_box(leaf: wp.vec4i, tets: wp.array(dtype=wp.vec4i), x: wp.array(dtype=wp.vec3)):
-    """Bounding box of a leaf's tets (-1: none) and their lowest height (:func:`tet_height`).
-
-    The box is empty (lower above upper) for a leaf without tets.
-    """
+    """Bounding box of a leaf's tets (-1: none); empty (lower above upper) for a leaf without tets."""
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
-    height = float(1.0e30)
     for k in range(4):
         if leaf[k] >= 0:
             t = tets[leaf[k]]
             for c in range(4):
                 lo = wp.min(lo, x[t[c]])
                 hi = wp.max(hi, x[t[c]])
-            height = wp.min(height, tet_height(x[t[0]], x[t[1]], x[t[2]], x[t[3]]))
-    return lo, hi, height
+    return lo, hi
 
 
 @wp.kernel
@@ -177,7 +151,6 @@ def refit_trees(
     leaf_start: wp.array(dtype=wp.int32),
     leaf_tets: wp.array(dtype=wp.vec4i),
     threads: int,
-    grow: float,
     # outputs
     inverse_out: wp.array(dtype=wp.mat33),
     origin_out: wp.array(dtype=wp.vec3),
@@ -185,15 +158,13 @@ def refit_trees(
     node_upper_out: wp.array(dtype=wp.vec3),
     body_lower_out: wp.array(dtype=wp.vec3),
     body_upper_out: wp.array(dtype=wp.vec3),
-    leaf_height_out: wp.array(dtype=float),
 ):
-    """Per body (one block of ``threads`` threads): its tets' inverses, first corners, tree boxes, leaf heights.
+    """Per body (one block of ``threads`` threads): its tets' inverse edge matrices, first corners, tree boxes.
 
     The tree of body b is complete, in heap order (node k has children 2k+1 and 2k+2) from
     ``node_start[b]``, its L = ``leaf_start[b+1] - leaf_start[b]`` leaves last; the leaves are boxed from
     their tets' corners, then each level from the one below it, with a block barrier between levels. The
-    root's box, grown by ``grow`` (m) each way, is the body's (what a point within that of the body finds
-    it by). A degenerate (flat) tet gets a zero inverse, which the inside test refuses.
+    root's box is the body's. A degenerate (flat) tet gets a zero inverse, which the inside test refuses.
     """
     body, lane = wp.tid()
     for e in range(body_tet_start[body] + lane, body_tet_start[body + 1], threads):
@@ -206,10 +177,9 @@ def refit_trees(
     ls = leaf_start[body]
     first_leaf = leaf_start[body + 1] - ls - 1
     for j in range(lane, first_leaf + 1, threads):
-        lo, hi, height = leaf_box(leaf_tets[ls + j], tets, x)
+        lo, hi = leaf_box(leaf_tets[ls + j], tets, x)
         node_lower_out[ns + first_leaf + j] = lo
         node_upper_out[ns + first_leaf + j] = hi
-        leaf_height_out[ls + j] = height
     block_sync()
     end = first_leaf
     while end > 0:
@@ -221,8 +191,8 @@ def refit_trees(
         block_sync()
         end = begin
     if lane == 0:
-        body_lower_out[body] = node_lower_out[ns] - wp.vec3(grow)
-        body_upper_out[body] = node_upper_out[ns] + wp.vec3(grow)
+        body_lower_out[body] = node_lower_out[ns]
+        body_upper_out[body] = node_upper_out[ns]
 
 
 @wp.func
@@ -231,25 +201,19 @@ def leaf_holds(
     leaf: wp.vec4i,
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
-):
-    """Bit k set if the leaf's k-th tet holds ``q``, and the largest over its tets of ``q``'s least weight there.
+) -> int:
+    """Bit k set if the leaf's k-th tet holds ``q`` (a flat tet, with a zero inverse, holds nothing).
 
-    A flat tet, with a zero inverse, holds nothing. The least weight is >= 0 where a tet holds ``q``. A weight
-    is the signed distance to its face's plane over the height of the corner opposite, so a least weight ``-u``
-    puts ``q`` at least ``u`` times the leaf's lowest tet height outside every tet of it. The four tets' loads
-    do not depend on one another, so they are in flight together.
+    The four tets' loads do not depend on one another, so they are in flight together.
     """
     mask = int(0)
-    least = float(-FAR_GAP)
     for k in range(4):
         e = wp.max(leaf[k], 0)
         inverse = tet_inverse[e]
         w = tet_weights(q, inverse, tet_origin[e])
-        if leaf[k] >= 0:
-            if wp.min(w) >= 0.0 and wp.determinant(inverse) != 0.0:
-                mask = mask | (1 << k)
-            least = wp.max(least, wp.min(w))
-    return mask, least
+        if leaf[k] >= 0 and wp.min(w) >= 0.0 and wp.determinant(inverse) != 0.0:
+            mask = mask | (1 << k)
+    return mask
 
 
 @wp.struct
@@ -420,23 +384,16 @@ def overlaps(q: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
 
 @wp.func
 def group_holds(
-    q: wp.vec3,
-    node_lower: wp.array(dtype=wp.vec3),
-    node_upper: wp.array(dtype=wp.vec3),
-    base: int,
-    size: int,
-    reach: float,
+    q: wp.vec3, node_lower: wp.array(dtype=wp.vec3), node_upper: wp.array(dtype=wp.vec3), base: int, size: int
 ) -> int:
-    """Bit j set if box ``base + j`` grown by ``reach`` (m) each way holds ``q``, for ``size`` (<= 8) boxes.
+    """Bit j set if box ``base + j`` holds ``q``, for the ``size`` (at most 8) consecutive boxes from ``base``.
 
-    The boxes are consecutive from ``base``; their loads do not depend on one another, so they are in flight
-    together.
+    The boxes' loads do not depend on one another, so they are in flight together.
     """
     mask = int(0)
-    grow = wp.vec3(reach)
     for j in range(8):
         k = base + wp.min(j, size - 1)
-        if j < size and overlaps(q, node_lower[k] - grow, node_upper[k] + grow):
+        if j < size and overlaps(q, node_lower[k], node_upper[k]):
             mask = mask | (1 << j)
     return mask
 
@@ -448,59 +405,6 @@ def lowest_bit(mask: int) -> int:
     while (mask >> j) & 1 == 0:
         j += 1
     return j
-
-
-@wp.struct
-class Gaps:
-    """What lets a late pass leave out the walks that cannot find a contact.
-
-    ``reach``: how far (m) the step's first detection measures each point's gap to the other bodies' tets;
-    ``near[p]``: ``reach`` less point p's gap then (0 where nothing was within reach; zeroed each step);
-    ``velocity[6 b + k]``: the highest velocity component k (m/s) of body b's vertices in the answer a late pass
-    reads, and ``velocity[6 b + 3 + k]`` the highest of its negation (set to -inf each step).
-    """
-
-    reach: float
-    near: wp.array(dtype=float)
-    velocity: wp.array(dtype=float)
-
-
-@wp.func
-def late_walk_needed(
-    gaps: Gaps, p: int, point_velocity: wp.array(dtype=wp.vec3), body: int, q: wp.vec3, dt: float
-) -> bool:
-    """Whether a late pass must walk ``body``'s tree for point p (at ``q`` at the step's end).
-
-    The point inside a tet at the step's end puts it at the start within ``dt`` times the largest speed of
-    that tet's corners relative to the point's own of the same tet at the start; the body's velocity box
-    bounds that speed. Where it cannot cover the point's gap at the start, no contact is there.
-    """
-    gap = gaps.reach - gaps.near[p]
-    vp = point_velocity[p]
-    far = wp.vec3()
-    for k in range(3):
-        far[k] = wp.max(gaps.velocity[6 * body + k] - vp[k], vp[k] + gaps.velocity[6 * body + 3 + k])
-    size = wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2])))
-    return dt * wp.length(far) + MOVE_SLACK * (1.0 + size) >= gap
-
-
-@wp.func
-def keep_gap(gaps: Gaps, p: int, reach: float, gap: float, lanes: int):
-    """Record point p's gap to the other bodies (the least over its ``lanes`` threads)."""
-    if lanes == 1:
-        gaps.near[p] = reach - gap
-    else:
-        wp.atomic_max(gaps.near, p, reach - gap)
-
-
-@wp.kernel
-def velocity_box(v: wp.array(dtype=wp.vec3), vertex_body: wp.array(dtype=wp.int32), gaps: Gaps):
-    """Each body's box of vertex velocities (``Gaps.velocity``), one atomic per warp and bound where it can."""
-    i = wp.tid()
-    b = vertex_body[i]
-    for k in range(3):
-        warp_max_at(v[i][k], 6 * b + k, gaps.velocity)
-        warp_max_at(-v[i][k], 6 * b + 3 + k, gaps.velocity)
 
 
 WALK_STRIDE = wp.constant(3)
@@ -516,7 +420,6 @@ def walk_tree(
     node_start: wp.array(dtype=wp.int32),
     leaf_start: wp.array(dtype=wp.int32),
     leaf_tets: wp.array(dtype=wp.vec4i),
-    leaf_height: wp.array(dtype=float),
     node_lower: wp.array(dtype=wp.vec3),
     node_upper: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
@@ -536,7 +439,6 @@ def walk_tree(
     cols: wp.array(dtype=wp.int32),
     depth: wp.array(dtype=float),
     grad: wp.array(dtype=wp.vec3),
-    reach: float,
 ):
     """Point p (at q) against one body's tet tree: at most one contact (see :func:`detect_contacts`).
 
@@ -544,9 +446,7 @@ def walk_tree(
     point are tested together (one round trip to memory), the bits of those that hold it kept 8 to a level in
     an int64 stack (the first step down takes 1 to 3 levels). A leaf's four tets are tested together; the
     first that answers (:func:`depth_in_tet`: a positive depth, or status 2 or 3) ends the walk. Returns that
-    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk, and the
-    point's gap to the body: how far (m) it lies from every tet of it at least (up to ``reach``; the boxes are
-    grown by ``reach``, so the walk also measures the tets within that of the point; 0 when a tet holds it).
+    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -557,8 +457,7 @@ def walk_tree(
     top = wp.where(leaf_level == 0, 0, leaf_level - WALK_STRIDE * ((leaf_level - 1) // WALK_STRIDE))
     level = top  # tree level of the group of boxes being walked
     base = (1 << top) - 1  # its first node
-    mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top, reach)
-    gap = reach
+    mask = group_holds(q, node_lower, node_upper, ns + base, 1 << top)
     stack = wp.int64(0)
     found = bool(False)
     pending = int(-1)
@@ -582,8 +481,7 @@ def walk_tree(
             mask = mask & (mask - 1)
             if level == leaf_level:
                 leaf = leaf_tets[ls + node - (leaves - 1)]
-                inside, least = leaf_holds(q, leaf, tet_inverse, tet_origin)
-                gap = wp.min(gap, leaf_height[ls + node - (leaves - 1)] * wp.max(-least, 0.0))
+                inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
                 while inside != 0 and not found:
                     k = lowest_bit(inside)
                     inside = inside & (inside - 1)
@@ -606,18 +504,17 @@ def walk_tree(
                 stack = (stack << wp.int64(8)) | wp.int64(mask)
                 level += WALK_STRIDE
                 base = ((node + 1) << WALK_STRIDE) - 1
-                mask = group_holds(q, node_lower, node_upper, ns + base, 8, reach)
-    return pending, pending_w, pending_status, pending_d, pending_g, pending_bound, gap
+                mask = group_holds(q, node_lower, node_upper, ns + base, 8)
+    return pending, pending_w, pending_status, pending_d, pending_g, pending_bound
 
 
-@wp.kernel(cuda_max_registers=DETECT_REGISTERS)
+@wp.kernel
 def detect_contacts(
     # inputs: geometry
     body_bvh: wp.uint64,
     node_start: wp.array(dtype=wp.int32),
     leaf_start: wp.array(dtype=wp.int32),
     leaf_tets: wp.array(dtype=wp.vec4i),
-    leaf_height: wp.array(dtype=float),
     node_lower: wp.array(dtype=wp.vec3),
     node_upper: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
@@ -644,7 +541,6 @@ def detect_contacts(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    gaps: Gaps,
     # outputs
     found_out: Found,
 ):
@@ -664,8 +560,6 @@ def detect_contacts(
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    reach = wp.where(late != 0, 0.0, gaps.reach)
-    gap = reach
     bodies = wp.bvh_query_aabb(body_bvh, q, q)
     body = int(0)
     candidate = int(-1)
@@ -674,22 +568,17 @@ def detect_contacts(
         same = body == body_p
         if candidate % lanes != lane or (same and not self_ok):
             continue
-        if late != 0 and not late_walk_needed(gaps, p, point_velocity, body, q, dt):
-            continue
-        e, w, status, d, g, bound, body_gap = walk_tree(
-            p, q, body, same, node_start, leaf_start, leaf_tets, leaf_height, node_lower, node_upper, x, v, dt, tets,
+        e, w, status, d, g, bound = walk_tree(
+            p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
             tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
-            point_anchor, row_start, cols, depth, grad, reach,
+            point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
-        gap = wp.min(gap, body_gap)
         if e >= 0:
             answer_pending(
                 p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
                 tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth, grad,
                 found_out, late,
             )  # fmt: skip
-    if late == 0:
-        keep_gap(gaps, p, reach, gap, lanes)
 
 
 @wp.kernel
@@ -700,7 +589,6 @@ def detect_contacts_direct(
     node_start: wp.array(dtype=wp.int32),
     leaf_start: wp.array(dtype=wp.int32),
     leaf_tets: wp.array(dtype=wp.vec4i),
-    leaf_height: wp.array(dtype=float),
     node_lower: wp.array(dtype=wp.vec3),
     node_upper: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
@@ -727,7 +615,6 @@ def detect_contacts_direct(
     lanes: int,
     point_contact: wp.array(dtype=wp.int32),
     late: int,
-    gaps: Gaps,
     # outputs
     found_out: Found,
 ):
@@ -744,28 +631,20 @@ def detect_contacts_direct(
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
-    reach = wp.where(late != 0, 0.0, gaps.reach)
-    gap = reach
     candidate = int(-1)
     for body in range(body_lower.shape[0]):
         if overlaps(q, body_lower[body], body_upper[body]):
             candidate += 1
             same = body == body_p
-            walk = candidate % lanes == lane and (self_ok or not same)
-            if walk and late != 0:
-                walk = late_walk_needed(gaps, p, point_velocity, body, q, dt)
-            if walk:
-                e, w, status, d, g, bound, body_gap = walk_tree(
-                    p, q, body, same, node_start, leaf_start, leaf_tets, leaf_height, node_lower, node_upper, x, v,
-                    dt, tets, tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
-                    point_velocity, point_anchor, row_start, cols, depth, grad, reach,
+            if candidate % lanes == lane and (self_ok or not same):
+                e, w, status, d, g, bound = walk_tree(
+                    p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
+                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    point_velocity, point_anchor, row_start, cols, depth, grad,
                 )  # fmt: skip
-                gap = wp.min(gap, body_gap)
                 if e >= 0:
                     answer_pending(
                         p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces,
                         tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth,
                         grad, found_out, late,
                     )  # fmt: skip
-    if late == 0:
-        keep_gap(gaps, p, reach, gap, lanes)

@@ -259,13 +259,8 @@ def clear_step(
     contact_counts: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
     body_speed: wp.array(dtype=float),
-    point_near: wp.array(dtype=float),
-    velocity_box: wp.array(dtype=float),
 ):
-    """Zero every array a step accumulates into or counts in, and set ``velocity_box`` (maxima) to -inf.
-
-    One launch instead of a memset each.
-    """
+    """Zero every array a step accumulates into or counts in: one launch instead of a memset each."""
     i = wp.tid()
     if i < force.shape[0]:
         force[i] = wp.vec3(0.0)
@@ -287,10 +282,6 @@ def clear_step(
         flags[i] = 0
     if i < body_speed.shape[0]:
         body_speed[i] = 0.0
-    if i < point_near.shape[0]:
-        point_near[i] = 0.0
-    if i < velocity_box.shape[0]:
-        velocity_box[i] = -FAR
 
 
 @wp.kernel

@@ -21,7 +21,6 @@ import warp as wp
 
 from warpfem.kernels import collision as K
 from warpfem.kernels import contacts as KC
-from warpfem.kernels.integrate import FAR
 from warpfem.presets import CONTACT_DAMPING, CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
@@ -83,12 +82,6 @@ is within half the offset of it where the cage caps the offset (``kernels.surfac
 next step answers it from its start. A pile at rest finds a few such grazing contacts in most steps, and each
 would otherwise re-solve the whole scene."""
 
-GAP_REACH = 0.01
-"""How far (a share of the scene's smallest colliding body's size) a step's first detection measures each
-collision point's gap to the other bodies' tets, beyond which it counts the gap as that far: a late pass walks
-a point's trees only where the bodies' motion in the step can close its gap (``kernels.collision.Gaps``).
-The boxes the walk tests grow by as much, so it tests a few more tets."""
-
 DETECT_LANES = 4
 """The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the
 bodies whose boxes hold the point (:func:`detect_lanes`)."""
@@ -148,12 +141,6 @@ class Collider:
         self.contact_depth = wp.zeros(self.capacity, dtype=float, device=dev)
         self.contact_matrix = wp.zeros(self.capacity, dtype=wp.mat33, device=dev)
         self.depth_max = wp.zeros(1, dtype=float, device=dev)
-        self.gaps = K.Gaps()
-        """Each point's gap to the other bodies at the step's start and the bodies' velocity boxes: what lets a
-        late pass leave out the walks that cannot find a contact (``kernels.collision.Gaps``)."""
-        self.gaps.reach = GAP_REACH * min(b.size for b in model.bodies)
-        self.gaps.near = wp.zeros(n_points, dtype=float, device=dev)
-        self.gaps.velocity = wp.zeros(6 * len(model.bodies), dtype=float, device=dev)
         self.found = K.Found()
         """The buffers above as detection's one output."""
         self.found.count, self.found.point, self.found.cell = self.count, self.contact_point, self.contact_cell
@@ -189,8 +176,6 @@ class Collider:
         self.leaf_tets = model.tree_leaf_tets
         self.node_lower = wp.zeros(2 * model.tree_leaf_tets.shape[0] - len(model.bodies), dtype=wp.vec3, device=dev)
         self.node_upper = wp.zeros_like(self.node_lower)
-        self.leaf_height = wp.zeros(model.tree_leaf_tets.shape[0], dtype=float, device=dev)
-        """Each tree leaf's lowest tet height (m), what turns a point's weights into its gap to the leaf's tets."""
         self.body_lowers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.direct = len(model.bodies) <= DIRECT_BODIES
@@ -258,13 +243,11 @@ class Collider:
         Needs :meth:`prepare` at the same ``x`` and ``v`` first. Reads the rotated distance gradients in
         ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
         first. ``cleared``: ``point_contact`` and ``counts`` are zero already (a step clears them with its
-        own accumulators, in one launch, which also clears the gaps and velocity boxes that a late pass reads).
+        own accumulators, in one launch).
         """
         if not cleared:
             self.point_contact.zero_()
             self.counts.zero_()
-            self.gaps.near.zero_()
-            self.gaps.velocity.fill_(-FAR)
         self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
@@ -287,12 +270,6 @@ class Collider:
         without elasticity, which the rigid correction reads), there too.
         """
         self.prepare(x, v, late=True)
-        wp.launch(
-            K.velocity_box,
-            dim=self.model.vertex_count,
-            inputs=[v, self.model.vertex_body, self.gaps],
-            device=self.model.device,
-        )
         self._detect(x, v, dt, late=True)
         self._answer(v, dt, rhs_out, matrix_out, count_out)
         if base_out is not None:
@@ -312,7 +289,6 @@ class Collider:
         self.prepare(x, v)
         self.point_contact.zero_()
         self.counts.zero_()
-        self.gaps.near.zero_()
         self._detect(x, v, dt)
         wp.launch(
             KC.mark_placed,
@@ -392,16 +368,7 @@ class Collider:
         wp.launch_tiled(
             K.refit_trees,
             dim=[len(m.bodies)],
-            inputs=[
-                m.tets,
-                x,
-                self.body_tet_start,
-                self.node_start,
-                self.leaf_start,
-                self.leaf_tets,
-                threads,
-                self.gaps.reach,
-            ],  # fmt: skip
+            inputs=[m.tets, x, self.body_tet_start, self.node_start, self.leaf_start, self.leaf_tets, threads],
             outputs=[
                 self.tet_inverse,
                 self.tet_origin,
@@ -409,7 +376,6 @@ class Collider:
                 self.node_upper,
                 self.body_lowers,
                 self.body_uppers,
-                self.leaf_height,
             ],
             block_dim=threads,
             device=m.device,
@@ -445,7 +411,6 @@ class Collider:
                 self.node_start,
                 self.leaf_start,
                 self.leaf_tets,
-                self.leaf_height,
                 self.node_lower,
                 self.node_upper,
                 x,
@@ -472,7 +437,6 @@ class Collider:
                 lanes,
                 self.point_contact,
                 int(late),
-                self.gaps,
             ],
             outputs=[self.found],
             device=m.device,

@@ -138,7 +138,6 @@ class Solver:
         self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
         self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
         self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
-        self._no_float = wp.zeros(0, dtype=float, device=dev)
         self.held_v = self.drive.held_v if self.drive is not None else self._no_vec3
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
@@ -218,8 +217,6 @@ class Solver:
             collider.counts if collider is not None else self._no_int,
             self.flags,
             self.body_speed,
-            collider.gaps.near if collider is not None else self._no_float,
-            collider.gaps.velocity if collider is not None else self._no_float,
         ]
         self._cleared_dim = max(a.shape[0] for a in self._cleared)
 
