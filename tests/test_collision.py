@@ -504,6 +504,47 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     assert (solves > 0) == (speed > 1.0)  # the grazing contacts ask for no second solve
 
 
+@pytest.mark.parametrize("bodies", ["direct", "bvh"])
+@pytest.mark.parametrize("gap", [0.0021, 0.0113, 0.0307])
+def test_a_late_pass_misses_no_point_between_bodies_that_both_move_and_turn(device, bodies, gap, monkeypatch):
+    """Against NumPy: where both bodies move and spin, a late pass still finds every collision point that the
+    step carried into the other body (none was inside at the start).
+
+    Two boxes ``gap`` (m) apart close on each other at 1 m/s each and spin at up to 20 rad/s about axes of
+    their own, so their corners swing up to about 5 m/s, 2 cm in the step: the late pass must find exactly
+    what NumPy's barycentrics find at the step's end, whichever body's motion carried a point in.
+    """
+    monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
+    dt = 1 / 240
+    b = ModelBuilder()
+    for k, lo in enumerate([(0.0, 0.0, 0.0), (0.3 + gap, 0.0517, 0.0231)]):
+        add_body(b, f"b{k}", *_box(lo, (0.3, 0.3, 0.3), (3, 3, 3)), 1e5, 0.3, 1000.0, collision_spacing=0.02)
+    model = b.finalize(device)
+    solver = Solver(model, ground=None)
+    c = solver.collider
+    x0 = model.rest_x.numpy()
+    body = model.vertex_body.numpy()
+    centre = np.array([x0[body == k].mean(axis=0) for k in range(2)])[body]
+    spin = np.where((body == 0)[:, None], [0.0, 20.0, 5.0], [3.0, -4.0, 20.0])
+    v = np.cross(spin, x0 - centre) + np.where((body == 0)[:, None], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0])
+    v = v.astype(np.float32)
+    x1 = (x0 + dt * v).astype(np.float32)
+    xs0, xs1, vs = (wp.array(a, dtype=wp.vec3, device=device) for a in (x0, x1, v))
+    c.rotate_gradients(wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device))
+    c.prepare(xs0, vs)
+    c.respond(xs0, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix))
+    assert int(c.count.numpy()[0]) == 0
+    count = wp.zeros(1, dtype=wp.int32, device=device)
+    c.respond_late(xs1, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix), count)
+    late = set(c.contact_point.numpy()[: int(c.count.numpy()[0])].tolist())
+
+    cells, bary = model.cells.numpy()[model.point_cell.numpy()], model.point_bary.numpy()
+    points = np.einsum("pk,pkj->pj", bary, x1[cells])
+    expected = set(np.flatnonzero(_inside_other_body(model, x1, points)).tolist())
+    assert expected or gap > 0.003
+    assert late == expected
+
+
 def test_top_speed_per_body_matches_numpy(device):
     """``read_speeds``: per body, the fastest collision point (its velocity interpolated like its position),
     against NumPy. Three bodies of a few hundred points each (whole warps of one body, and warps that straddle
