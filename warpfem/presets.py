@@ -61,7 +61,7 @@ CONTACT_DAMPING = 20.0
 penalty spring (``[collision] damping``). Chosen by measurement (docs/decisions.md, "A damper on contacts that
 close fast")."""
 
-CONTACT_OFFSET = 0.002
+CONTACT_OFFSET = 0.004
 """How far outside another body's dense surface a contact with it starts by default, as a share of the scene's
 smallest colliding body's size (``[collision] offset``): the body-body counterpart of :data:`STATIC_OFFSET`.
 Chosen by measurement (docs/decisions.md, "Body-body contacts from an offset")."""
