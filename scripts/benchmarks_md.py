@@ -223,14 +223,12 @@ def before_after_lines(data: dict, newton: dict[int, dict]) -> list[str]:
     path, before, gap = found
     if gap <= 3600:
         when = f"{gap / 60:.0f} minutes apart"
-    elif gap <= PEER_HOURS * 3600:
-        when = "the same day"
     else:
-        when = f"{gap / 3600:.0f} hours apart, in another lease of it"
+        when = f"{gap / 3600:.1f} hours apart, in another lease of it"
     old = {(r["kind"], r["n"]): r for r in before["runs"]}
-    for part in before["environment"].get("parts", []):  # a part run far from the rest: say which, and when
+    for part in before["environment"].get("parts", []):  # a part run far from the others: say which, and when
         part_gap = (ours_at - datetime.fromisoformat(part["date"])).total_seconds()
-        if abs(part_gap) > 3600:
+        if abs(part_gap) > 3600 and abs(abs(part_gap) - gap) > 3600:  # not with the rest
             side = "earlier" if part_gap > 0 else "later"
             when += f" (its `{part['command']}` {abs(part_gap) / 3600:.1f} hours {side}, in another lease of it)"
     lines = [
