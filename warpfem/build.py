@@ -47,9 +47,11 @@ def prepare_scene(
         progress: Receives ``(object name, message)`` as each stage starts.
 
     Raises:
-        InputError: One line naming the scene file, the object and what is wrong with its mesh.
+        InputError: One line naming the scene file, the object and what is wrong with its mesh, or with the
+            collision points its ``collision_spacing`` asks of it (before any kernel is compiled).
     """
     done: dict[tuple[Any, ...], PreparedBody] = {}
+    checked: set[tuple[int, float]] = set()
     prepared = []
     for obj in scene.objects:
         key = (obj.mesh, obj.prim, obj.faces, obj.subdivide, obj.maxh, obj.tets_across, obj.max_tets)
@@ -69,8 +71,23 @@ def prepare_scene(
                 )
             except InputError as err:
                 raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None
-        prepared.append(done[key])
+        body = done[key]
+        spacing = _spacing(obj, body)
+        if (id(body), spacing) not in checked:
+            _check_spacing(scene, obj, body, spacing)
+            checked.add((id(body), spacing))
+        prepared.append(body)
     return prepared
+
+
+def _spacing(obj: ObjectConfig, body: PreparedBody) -> float:
+    """The collision points' spacing of ``obj`` in its mesh's units (:func:`~warpfem.prep.samples.spacings`)."""
+    return spacings(obj.collision_spacing / obj.scale, _size(body))[0]
+
+
+def _size(body: PreparedBody) -> float:
+    """A prepared body's size in its mesh's units: the diagonal of its tets' bounding box."""
+    return float(np.linalg.norm(np.ptp(body.tet_vertices, axis=0)))
 
 
 def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | None = None) -> list[SurfaceSamples]:
@@ -84,11 +101,10 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
     done: dict[tuple[int, float], SurfaceSamples] = {}
     samples = []
     for obj, body in zip(scene.objects, prepared, strict=True):
-        size = float(np.linalg.norm(np.ptp(body.tet_vertices, axis=0)))
+        size = _size(body)
         spacing, skin_spacing = spacings(obj.collision_spacing / obj.scale, size)  # in the mesh's units
         key = (id(body), spacing)
         if key not in done:
-            _check_spacing(scene, obj, body, spacing)
             done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)
             if scene.solver.elements == "quadratic":
                 done[key] = replace(done[key], skin=np.arange(len(body.dense_vertices)))
