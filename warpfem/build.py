@@ -72,7 +72,7 @@ def prepare_scene(
             except InputError as err:
                 raise InputError(f"{scene.path}: object '{obj.name}': {err}") from None
         body = done[key]
-        spacing = _spacing(obj, body)
+        spacing = _spacings(obj, body)[0]
         if (id(body), spacing) not in checked:
             _check_spacing(scene, obj, body, spacing)
             checked.add((id(body), spacing))
@@ -80,9 +80,9 @@ def prepare_scene(
     return prepared
 
 
-def _spacing(obj: ObjectConfig, body: PreparedBody) -> float:
-    """The collision points' spacing of ``obj`` in its mesh's units (:func:`~warpfem.prep.samples.spacings`)."""
-    return spacings(obj.collision_spacing / obj.scale, _size(body))[0]
+def _spacings(obj: ObjectConfig, body: PreparedBody) -> tuple[float, float]:
+    """The collision and skin points' spacings of ``obj`` in its mesh's units (``prep.samples.spacings``)."""
+    return spacings(obj.collision_spacing / obj.scale, _size(body))
 
 
 def _size(body: PreparedBody) -> float:
@@ -101,11 +101,10 @@ def scene_samples(scene: Scene, prepared: list[PreparedBody], cache_dir: Path | 
     done: dict[tuple[int, float], SurfaceSamples] = {}
     samples = []
     for obj, body in zip(scene.objects, prepared, strict=True):
-        size = _size(body)
-        spacing, skin_spacing = spacings(obj.collision_spacing / obj.scale, size)  # in the mesh's units
+        spacing, skin_spacing = _spacings(obj, body)
         key = (id(body), spacing)
         if key not in done:
-            done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * size, cache_dir, skin_spacing)
+            done[key] = cached_surface_samples(body, spacing, SKIN_TOLERANCE * _size(body), cache_dir, skin_spacing)
             if scene.solver.elements == "quadratic":
                 done[key] = replace(done[key], skin=np.arange(len(body.dense_vertices)))
         samples.append(done[key])
