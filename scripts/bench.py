@@ -91,12 +91,18 @@ def pile_body(
 
 
 def override(doc: dict, setting: str) -> None:
-    """Apply ``section.key=value`` to a scene document (``object.key``, ``obstacle.key``: on every one)."""
+    """Apply ``section.key=value`` to a scene document (``object.key``, ``obstacle.key``: on every one); the
+    value is read as TOML, and a bare word that is not TOML as a string (``solver.elements=quadratic``)."""
     name, _, text = setting.partition("=")
     section, _, key = name.partition(".")
     if not key or not text:
         raise SystemExit(f"--set {setting!r}: expected section.key=value")
-    value = tomllib.loads(f"v = {text}")["v"]
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        if not re.fullmatch(r"[A-Za-z_][\w.-]*", text):
+            raise SystemExit(f"--set {setting!r}: the value {text!r} is neither TOML nor a bare word") from None
+        value = text
     if isinstance(doc.get(section), list):
         for entry in doc[section]:
             entry[key] = value
@@ -283,8 +289,9 @@ def frame_error(sim: warpfem.Simulation, scene, device, cache_dir: Path, cg_path
 
 
 CHECKS_OVER_RUN = 12
-"""Frames of the timed run, replayed, on which the dense meshes are checked for penetration by default
-(``--check-every`` sets the frames between checks instead: 1 checks every frame)."""
+"""Frames of the run (the timed frames and the ones before them) on which the dense meshes are checked for
+penetration by default, besides the last (``--check-every`` sets the frames between checks instead: 1 checks
+every frame)."""
 
 CHECK_MAX_BODIES = 256
 """Scenes of more bodies are checked at the end only by default (the check of a frame grows with the bodies in
@@ -307,7 +314,7 @@ def time_scene(
     """Per-frame time of stepping + dense mapping, phase split, sizes and accuracy figures.
 
     With ``accuracy``, also the error of one frame from where the timed frames end against converged CG
-    (:func:`frame_error`). ``check_bodies``, ``check_every``: see :func:`dense_check`.
+    (:func:`frame_error`). ``check_bodies``, ``check_every``: see :class:`DenseCheck`.
     """
     sim = build(scene, device, cache_dir, cg_path)
     model, solver = sim.model, sim.solver
@@ -316,23 +323,27 @@ def time_scene(
         sim.advance(timer)
         sim.map_dense()
 
+    check = DenseCheck(sim, 1 + warmup + frames, 2 + warmup, check_bodies, check_every)
     frame(PhaseTimer(device))  # a frame run directly (also compiles everything)
-    for _ in range(warmup):
+    check.after(1)
+    for f in range(warmup):
         frame()  # captures the graph on CUDA
+        check.after(2 + f)
     start = snapshot(sim)
     sim.read_stats()  # from here on: the timed frames
     refined, steps = sim.totals.refined_frames, sim.totals.steps
     wp.synchronize_device(device)
     t0 = time.perf_counter()
-    for _ in range(frames):
+    for f in range(frames):
         frame()
+        check.after(2 + warmup + f)
     wp.synchronize_device(device)
     ms = 1000.0 * (time.perf_counter() - t0) / frames
     stats = sim.read_stats(frames)
     dense = sim.dense.numpy()
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
     end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
-    check = dense_check(sim, start, frames, check_bodies, check_every)
+    check = check.result()
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
     error = frame_error(sim, scene, device, cache_dir, cg_path) if accuracy else None
@@ -371,35 +382,55 @@ def time_scene(
     }
 
 
-def dense_check(
-    sim: warpfem.Simulation, start: warpfem.State, frames: int, most_bodies: int = CHECK_MAX_BODIES, every: int = 0
-) -> dict:
-    """Penetration of the dense meshes measured on the meshes alone (``warpfem.io.penetration``).
+def checked_frames(run_frames: int, every: int) -> list[int]:
+    """The frames of a run of ``run_frames`` (numbered from 1) the dense check reads: every ``every``-th and the
+    last (0: :data:`CHECKS_OVER_RUN` spread over it)."""
+    every = every or max(1, run_frames // CHECKS_OVER_RUN)
+    return sorted({*range(every, run_frames + 1, every), run_frames})
 
-    At the end of the timed frames, and the worst over every ``every``-th frame of a replay of them from
-    ``start`` (0: :data:`CHECKS_OVER_RUN` frames spread over it; on CUDA the replay drifts from the timed run as
-    float atomics add in another order); ``sim`` is left where the timed frames ended. Scenes of more than
-    ``most_bodies`` bodies are checked at the end only.
+
+class DenseCheck:
+    """Penetration of the dense meshes measured on the meshes alone (``warpfem.io.penetration``), over the run.
+
+    The frames to check (:func:`checked_frames`) are checked as they come before the timed frames; during them
+    each is copied on the device into a buffer allocated beforehand (no host synchronisation), and checked once
+    they are timed. So the run checked is the run timed, its solver state included. Scenes of more than
+    ``most_bodies`` bodies are checked at their last frame only.
     """
-    from dataclasses import asdict
 
-    from warpfem.io.penetration import frame_penetration
+    def __init__(self, sim: warpfem.Simulation, run_frames: int, timed_from: int, most_bodies: int, every: int):
+        frames = checked_frames(run_frames, every) if len(sim.body_names) <= most_bodies else [run_frames]
+        self.sim, self.worst, self.end, self.checked = sim, warpfem.Penetration(), None, 0
+        self.buffers = {f: wp.empty_like(sim.dense) for f in frames if f >= timed_from}
+        self.direct = set(frames) - set(self.buffers)
+        self.last = run_frames
 
-    def now() -> warpfem.Penetration:
-        return frame_penetration(sim, bodies=True)
+    def after(self, frame: int) -> None:
+        """Frame ``frame`` of the run has been stepped and mapped: check it now (before the timed frames), or
+        copy it for later."""
+        if frame in self.direct:
+            self._check(frame, None)
+        elif frame in self.buffers:
+            wp.copy(self.buffers[frame], self.sim.dense)
 
-    end = worst = now()
-    checked = 1
-    if len(sim.body_names) <= most_bodies:
-        saved = snapshot(sim)
-        sim.states[0].assign(start)
-        every = every or max(1, frames // CHECKS_OVER_RUN)
-        for f in range(1, frames + 1):
-            sim.advance()
-            if f % every == 0:
-                worst, checked = worst.worst(now()), checked + 1
-        sim.states[0].assign(saved)
-    return {"end": asdict(end), "worst": asdict(worst), "frames_checked": checked}
+    def result(self) -> dict:
+        """Check the copied frames; the worst over the checked frames and the last frame's figures."""
+        for frame, buffer in sorted(self.buffers.items()):
+            self._check(frame, buffer.numpy())
+        frames = sorted(self.direct | set(self.buffers))
+        self.buffers.clear()
+        end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
+        return {"end": end, "worst": worst, "frames_checked": self.checked, "frames": frames}
+
+    def _check(self, frame: int, flat: np.ndarray | None) -> None:
+        from warpfem.io.penetration import frame_penetration
+
+        bodies = self.sim.model.bodies
+        points = None if flat is None else [flat[b.dense_start : b.dense_start + b.dense_count] for b in bodies]
+        now = frame_penetration(self.sim, points, bodies=True, time=frame / self.sim.fps)
+        self.worst, self.checked = self.worst.worst(now), self.checked + 1
+        if frame == self.last:
+            self.end = now
 
 
 def snapshot(sim: warpfem.Simulation) -> warpfem.State:
@@ -565,6 +596,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=ROOT / "scripts" / "results")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument(
+        "--label", default="", help="a name for this run, kept in the JSON and its file name (letters, digits, . _ -)"
+    )
+    parser.add_argument(
         "--check-bodies",
         type=int,
         default=CHECK_MAX_BODIES,
@@ -709,6 +743,8 @@ def main(argv=None) -> int:
         parser.error(f"--check-bodies: expected a body count >= 0, got {args.check_bodies}")
     if args.check_every < 0:
         parser.error(f"--check-every: expected a frame count >= 0, got {args.check_every}")
+    if not re.fullmatch(r"[\w.-]*", args.label, re.ASCII):
+        parser.error(f"--label: expected letters, digits, '.', '_' or '-', got {args.label!r}")
     if not cg_paths or not all(re.fullmatch(r"auto|launches|grid(:[1-9][0-9]*)?", p) for p in cg_paths):
         parser.error(f"--cg-paths: expected a comma list of auto, launches, grid or grid:B, got '{args.cg_paths}'")
     parts = {"paper", "piles", "mixed", "cg"}
@@ -716,6 +752,8 @@ def main(argv=None) -> int:
         parser.error(f"--skip: unknown part(s) {', '.join(sorted(skip - parts))}")
     scene_defaults = warpfem.load_scene(ROOT / "scenes" / "default.toml")
     results = {"environment": environment(device), "mode": "quick" if args.quick else "full", "runs": []}
+    if args.label:
+        results["label"] = args.label
     if args.quick:
         work = [("pile", n, pile(scene_defaults, n, "builtin:bunny", 300, scale=0.5)) for n in (1, 2)]
         ball = str(ROOT / "tests" / "data" / "golden" / "ball.obj")
@@ -737,7 +775,8 @@ def main(argv=None) -> int:
         print("CG at scale:", json.dumps(results["cg_at_scale"]), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    path = args.out / f"bench-{results['mode']}-{device.alias.replace(':', '')}-{stamp}.json"
+    label = f"{args.label}-" if args.label else ""
+    path = args.out / f"bench-{results['mode']}-{label}{device.alias.replace(':', '')}-{stamp}.json"
     path.write_text(json.dumps(results, indent=1))
     print(f"wrote {path}")
     return 0

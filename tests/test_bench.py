@@ -27,11 +27,14 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         str(tmp_path),
         "--cache-dir",
         str(tmp_path / "cache"),
+        "--label",
+        "check-1",
     ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    (path,) = tmp_path.glob("bench-quick-cpu-*.json")
+    (path,) = tmp_path.glob("bench-quick-check-1-cpu-*.json")
     result = json.loads(path.read_text())
+    assert result["label"] == "check-1"
     env = result["environment"]
     assert env["warp"] and env["commit"] and env["device_alias"] == "cpu"
     runs = result["runs"]
@@ -45,7 +48,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         assert run["phase_rerun_gap_m"] == 0.0
     assert "collision" in runs[1]["phase_ms"] and "collision" not in runs[0]["phase_ms"]
     mixed = runs[2]  # a bunny and a ball: its own dense check over the run and at the end, the ground included
-    assert mixed["bodies"] == 2 and mixed["dense_check"]["frames_checked"] == 6 and "frame_error" not in mixed
+    assert mixed["bodies"] == 2 and mixed["dense_check"]["frames_checked"] == 8 and "frame_error" not in mixed
     assert {"relative", "below_relative"} <= set(mixed["dense_check"]["end"]) & set(mixed["dense_check"]["worst"])
     assert all(run["cg_tolerance"] == 1e-4 for run in runs)  # the default scene's
     error = runs[0]["frame_error"]  # one frame against converged CG, from the same state
@@ -73,6 +76,7 @@ def test_quick_benchmark_writes_a_complete_json(tmp_path):
         ("bench.py", ["--cg-paths", "fast"], "--cg-paths"),
         ("bench.py", ["--check-bodies", "-1"], "--check-bodies"),
         ("bench.py", ["--check-every", "-2"], "--check-every"),
+        ("bench.py", ["--label", "a/b"], "--label"),
         ("bench_newton.py", ["--piles", "1.5"], "--piles"),
         ("bench_end_to_end.py", ["--queue-mb", "-1"], "--queue-mb"),
         ("bench_end_to_end.py", ["--writers", "two"], "--writers"),
@@ -107,10 +111,10 @@ def test_frame_error_is_the_cg_error_of_one_frame_and_leaves_the_state(tmp_path)
 
 
 def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(tmp_path):
-    """A ball thrown down at 25 m/s onto another, 8 frames: ``--check-every 1`` finds the worst of the dense
-    check made on each frame of a separate run of the same scene (CPU: the runs match bit for bit), the impact's;
-    ``--check-every 3`` checks frames 3 and 6 and the end, and finds the worst of those, which miss the impact;
-    the simulation is left where the frames ended."""
+    """A ball thrown down at 25 m/s onto another, 8 frames: the bench's check of every frame finds the worst of
+    the dense check made on each frame of a separate run of the same scene (CPU: the runs match bit for bit), the
+    impact's, whether a frame is checked as it comes (before the timed frames) or copied and checked after them;
+    checking every third frame reads frames 3 and 6 and the last, which miss the impact."""
     from warpfem.io.penetration import frame_penetration
 
     scene = load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
@@ -122,17 +126,19 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         separate.advance()
         depths.append(frame_penetration(separate, bodies=True).relative)
     assert max(depths) > 2 * max(depths[2], depths[5], depths[7])  # checks of frames 3 and 6 miss the impact
-    sim = bench.build(scene, "cpu", tmp_path)
-    start = bench.snapshot(sim)
-    for _ in range(8):
-        sim.advance()
-    end = sim.states[0].x.numpy().copy()
-    every = bench.dense_check(sim, start, 8, every=1)
-    assert every["frames_checked"] == 9 and every["worst"]["relative"] == pytest.approx(max(depths), abs=0.0)
-    np.testing.assert_array_equal(sim.states[0].x.numpy(), end)
-    third = bench.dense_check(sim, start, 8, every=3)
-    assert third["frames_checked"] == 3
-    assert third["worst"]["relative"] == pytest.approx(max(depths[2], depths[5], depths[7]), abs=0.0)
+    for every, timed_from, expected in ((1, 4, depths), (1, 1, depths), (3, 4, [depths[i] for i in (2, 5, 7)])):
+        sim = bench.build(scene, "cpu", tmp_path)
+        check = bench.DenseCheck(sim, 8, timed_from, most_bodies=2, every=every)
+        for f in range(1, 9):
+            sim.advance()
+            sim.map_dense()
+            check.after(f)
+        result = check.result()
+        assert result["frames_checked"] == len(expected)
+        assert result["worst"]["relative"] == pytest.approx(max(expected), abs=0.0)
+        assert result["end"]["relative"] == pytest.approx(depths[7], abs=0.0)
+    ends_only = bench.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
+    assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
 
 
 def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_above_the_ground(tmp_path):
@@ -189,6 +195,8 @@ def test_mixed_pile_with_a_small_side_stacks_its_bodies(tmp_path):
         ("collision.bogus=1", "bogus"),
         ("collision.stiffness=-1", "stiffness"),
         ("object.young=nan", "young"),
+        ("solver.elements=cubic", "elements"),
+        ("collision.offset=[1,", "neither TOML nor a bare word"),
     ],
 )
 def test_a_bad_set_is_a_one_line_error_before_anything_runs(tmp_path, setting, message):
@@ -198,6 +206,14 @@ def test_a_bad_set_is_a_one_line_error_before_anything_runs(tmp_path, setting, m
         bench.main(["--quick", "--out", str(tmp_path), "--cache-dir", str(tmp_path / "cache"), "--set", setting])
     assert "\n" not in str(stop.value)
     assert not list(tmp_path.iterdir())
+
+
+def test_set_reads_a_bare_word_as_a_string():
+    """``--set solver.elements=quadratic`` needs no TOML quotes; a TOML value keeps its type."""
+    scene = load_scene(ROOT / "scenes" / "default.toml")
+    assert bench.replaced(scene, "solver.elements=quadratic").solver.elements == "quadratic"
+    assert bench.replaced(scene, 'solver.elements="quadratic"').solver.elements == "quadratic"
+    assert bench.replaced(scene, "collision.offset=0.003").collision.offset == 0.003
 
 
 def _floor_beside(path: Path, vertices: int, frames: int):
