@@ -401,6 +401,7 @@ class DenseCheck:
     def __init__(self, sim: warpfem.Simulation, run_frames: int, timed_from: int, most_bodies: int, every: int):
         frames = checked_frames(run_frames, every) if len(sim.body_names) <= most_bodies else [run_frames]
         self.sim, self.worst, self.end, self.checked = sim, warpfem.Penetration(), None, 0
+        self.frame_inside = self.frame_below = 0  # the frames of the worst so far (0: none)
         self.buffers = {f: wp.empty_like(sim.dense) for f in frames if f >= timed_from}
         self.direct = set(frames) - set(self.buffers)
         self.last = run_frames
@@ -420,6 +421,7 @@ class DenseCheck:
         frames = sorted(self.direct | set(self.buffers))
         self.buffers.clear()
         end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
+        worst |= {"frame": self.frame_inside, "below_frame": self.frame_below}
         return {"end": end, "worst": worst, "frames_checked": self.checked, "frames": frames}
 
     def _check(self, frame: int, flat: np.ndarray | None) -> None:
@@ -428,6 +430,10 @@ class DenseCheck:
         bodies = self.sim.model.bodies
         points = None if flat is None else [flat[b.dense_start : b.dense_start + b.dense_count] for b in bodies]
         now = frame_penetration(self.sim, points, bodies=True, time=frame / self.sim.fps)
+        if now.relative > self.worst.relative:
+            self.frame_inside = frame
+        if now.below_relative > self.worst.below_relative:
+            self.frame_below = frame
         self.worst, self.checked = self.worst.worst(now), self.checked + 1
         if frame == self.last:
             self.end = now

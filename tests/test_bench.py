@@ -114,7 +114,8 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
     """A ball thrown down at 25 m/s onto another, 8 frames: the bench's check of every frame finds the worst of
     the dense check made on each frame of a separate run of the same scene (CPU: the runs match bit for bit), the
     impact's, whether a frame is checked as it comes (before the timed frames) or copied and checked after them;
-    checking every third frame reads frames 3 and 6 and the last, which miss the impact."""
+    checking every third frame reads frames 3 and 6 and the last, which miss the impact. The worst's frame is
+    named."""
     from warpfem.io.penetration import frame_penetration
 
     scene = load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
@@ -126,7 +127,8 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         separate.advance()
         depths.append(frame_penetration(separate, bodies=True).relative)
     assert max(depths) > 2 * max(depths[2], depths[5], depths[7])  # checks of frames 3 and 6 miss the impact
-    for every, timed_from, expected in ((1, 4, depths), (1, 1, depths), (3, 4, [depths[i] for i in (2, 5, 7)])):
+    for every, timed_from, frames in ((1, 4, range(1, 9)), (1, 1, range(1, 9)), (3, 4, (3, 6, 8))):
+        expected = [depths[f - 1] for f in frames]
         sim = bench.build(scene, "cpu", tmp_path)
         check = bench.DenseCheck(sim, 8, timed_from, most_bodies=2, every=every)
         for f in range(1, 9):
@@ -137,6 +139,8 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         assert result["frames_checked"] == len(expected)
         assert result["worst"]["relative"] == pytest.approx(max(expected), abs=0.0)
         assert result["end"]["relative"] == pytest.approx(depths[7], abs=0.0)
+        deepest = max(frames, key=lambda f: depths[f - 1])  # the frame the worst was found at (0: none)
+        assert result["worst"]["frame"] == (deepest if depths[deepest - 1] > 0 else 0)
     ends_only = bench.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
     assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
 
