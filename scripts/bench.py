@@ -402,6 +402,7 @@ class DenseCheck:
         frames = checked_frames(run_frames, every) if len(sim.body_names) <= most_bodies else [run_frames]
         self.sim, self.worst, self.end, self.checked = sim, warpfem.Penetration(), None, 0
         self.frame_inside = self.frame_below = 0  # the frames of the worst so far (0: none)
+        self.by_frame: dict[int, tuple[float, float]] = {}  # inside another body, below the ground (relative)
         self.buffers = {f: wp.empty_like(sim.dense) for f in frames if f >= timed_from}
         self.direct = set(frames) - set(self.buffers)
         self.last = run_frames
@@ -418,11 +419,12 @@ class DenseCheck:
         """Check the copied frames; the worst over the checked frames and the last frame's figures."""
         for frame, buffer in sorted(self.buffers.items()):
             self._check(frame, buffer.numpy())
-        frames = sorted(self.direct | set(self.buffers))
         self.buffers.clear()
         end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
         worst |= {"frame": self.frame_inside, "below_frame": self.frame_below}
-        return {"end": end, "worst": worst, "frames_checked": self.checked, "frames": frames}
+        frames = sorted(self.by_frame)
+        by_frame = {"inside": [self.by_frame[f][0] for f in frames], "below": [self.by_frame[f][1] for f in frames]}
+        return {"end": end, "worst": worst, "frames_checked": self.checked, "frames": frames, "by_frame": by_frame}
 
     def _check(self, frame: int, flat: np.ndarray | None) -> None:
         from warpfem.io.penetration import frame_penetration
@@ -435,6 +437,7 @@ class DenseCheck:
         if now.below_relative > self.worst.below_relative:
             self.frame_below = frame
         self.worst, self.checked = self.worst.worst(now), self.checked + 1
+        self.by_frame[frame] = (now.relative, now.below_relative)
         if frame == self.last:
             self.end = now
 

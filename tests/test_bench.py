@@ -115,7 +115,7 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
     the dense check made on each frame of a separate run of the same scene (CPU: the runs match bit for bit), the
     impact's, whether a frame is checked as it comes (before the timed frames) or copied and checked after them;
     checking every third frame reads frames 3 and 6 and the last, which miss the impact. The worst's frame is
-    named."""
+    named, and each checked frame's figure listed."""
     from warpfem.io.penetration import frame_penetration
 
     scene = load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
@@ -141,6 +141,7 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         assert result["end"]["relative"] == pytest.approx(depths[7], abs=0.0)
         deepest = max(frames, key=lambda f: depths[f - 1])  # the frame the worst was found at (0: none)
         assert result["worst"]["frame"] == (deepest if depths[deepest - 1] > 0 else 0)
+        assert result["frames"] == list(frames) and result["by_frame"]["inside"] == pytest.approx(expected, abs=0.0)
     ends_only = bench.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
     assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
 
