@@ -13,6 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
 import bench  # noqa: E402
+import bench_check  # noqa: E402
 
 from warpfem.scene import load_scene  # noqa: E402
 
@@ -130,7 +131,7 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
     for every, timed_from, frames in ((1, 4, range(1, 9)), (1, 1, range(1, 9)), (3, 4, (3, 6, 8))):
         expected = [depths[f - 1] for f in frames]
         sim = bench.build(scene, "cpu", tmp_path)
-        check = bench.DenseCheck(sim, 8, timed_from, most_bodies=2, every=every)
+        check = bench_check.DenseCheck(sim, 8, timed_from, most_bodies=2, every=every)
         for f in range(1, 9):
             sim.advance()
             sim.map_dense()
@@ -142,7 +143,7 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         deepest = max(frames, key=lambda f: depths[f - 1])  # the frame the worst was found at (0: none)
         assert result["worst"]["frame"] == (deepest if depths[deepest - 1] > 0 else 0)
         assert result["frames"] == list(frames) and result["by_frame"]["inside"] == pytest.approx(expected, abs=0.0)
-    ends_only = bench.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
+    ends_only = bench_check.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
     assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
 
 
