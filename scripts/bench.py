@@ -548,7 +548,7 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         help=f"frames between dense penetration checks over the run (1: every frame; default: {CHECKS_OVER_RUN} "
-        "checks spread over it)",
+        "checks spread over it); each timed frame checked is held on the device until the timing ends",
     )
     parser.add_argument("--piles", type=int_list, default=",".join(map(str, PILES)))
     parser.add_argument("--prepare-only", action="store_true", help="fill the cache and stop")
