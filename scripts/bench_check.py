@@ -29,6 +29,34 @@ def checked_frames(run_frames: int, every: int) -> list[int]:
     return sorted({*range(every, run_frames + 1, every), run_frames})
 
 
+class FrameChecks:
+    """The figures of a run's checked frames: the worst (and its frame), the last frame's, each frame's."""
+
+    def __init__(self, last: int) -> None:
+        self.last, self.worst, self.end = last, warpfem.Penetration(), warpfem.Penetration()
+        self.frame_inside = self.frame_below = 0  # the frames of the worst so far (0: none)
+        self.by_frame: dict[int, tuple[float, float]] = {}  # inside another body, below the ground (relative)
+
+    def add(self, frame: int, now: warpfem.Penetration) -> None:
+        """Frame ``frame``'s figures."""
+        if now.relative > self.worst.relative:
+            self.frame_inside = frame
+        if now.below_relative > self.worst.below_relative:
+            self.frame_below = frame
+        self.worst = self.worst.worst(now)
+        self.by_frame[frame] = (now.relative, now.below_relative)
+        if frame == self.last:
+            self.end = now
+
+    def result(self) -> dict:
+        """The JSON of the checks: ``end``, ``worst`` (with its frames), the frames checked and their figures."""
+        end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
+        worst |= {"frame": self.frame_inside, "below_frame": self.frame_below}
+        frames = sorted(self.by_frame)
+        by_frame = {"inside": [self.by_frame[f][0] for f in frames], "below": [self.by_frame[f][1] for f in frames]}
+        return {"end": end, "worst": worst, "frames_checked": len(frames), "frames": frames, "by_frame": by_frame}
+
+
 class DenseCheck:
     """Penetration of the dense meshes measured on the meshes alone (``warpfem.io.penetration``), over the run.
 
@@ -40,12 +68,9 @@ class DenseCheck:
 
     def __init__(self, sim: warpfem.Simulation, run_frames: int, timed_from: int, most_bodies: int, every: int):
         frames = checked_frames(run_frames, every) if len(sim.body_names) <= most_bodies else [run_frames]
-        self.sim, self.worst, self.end, self.checked = sim, warpfem.Penetration(), None, 0
-        self.frame_inside = self.frame_below = 0  # the frames of the worst so far (0: none)
-        self.by_frame: dict[int, tuple[float, float]] = {}  # inside another body, below the ground (relative)
+        self.sim, self.checks = sim, FrameChecks(run_frames)
         self.buffers = {f: wp.empty_like(sim.dense) for f in frames if f >= timed_from}
         self.direct = set(frames) - set(self.buffers)
-        self.last = run_frames
 
     def after(self, frame: int) -> None:
         """Frame ``frame`` of the run has been stepped and mapped: check it now (before the timed frames), or
@@ -60,23 +85,11 @@ class DenseCheck:
         for frame, buffer in sorted(self.buffers.items()):
             self._check(frame, buffer.numpy())
         self.buffers.clear()
-        end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
-        worst |= {"frame": self.frame_inside, "below_frame": self.frame_below}
-        frames = sorted(self.by_frame)
-        by_frame = {"inside": [self.by_frame[f][0] for f in frames], "below": [self.by_frame[f][1] for f in frames]}
-        return {"end": end, "worst": worst, "frames_checked": self.checked, "frames": frames, "by_frame": by_frame}
+        return self.checks.result()
 
     def _check(self, frame: int, flat: np.ndarray | None) -> None:
         from warpfem.io.penetration import frame_penetration
 
         bodies = self.sim.model.bodies
         points = None if flat is None else [flat[b.dense_start : b.dense_start + b.dense_count] for b in bodies]
-        now = frame_penetration(self.sim, points, bodies=True, time=frame / self.sim.fps)
-        if now.relative > self.worst.relative:
-            self.frame_inside = frame
-        if now.below_relative > self.worst.below_relative:
-            self.frame_below = frame
-        self.worst, self.checked = self.worst.worst(now), self.checked + 1
-        self.by_frame[frame] = (now.relative, now.below_relative)
-        if frame == self.last:
-            self.end = now
+        self.checks.add(frame, frame_penetration(self.sim, points, bodies=True, time=frame / self.sim.fps))
