@@ -255,3 +255,17 @@ def test_end_to_end_floor_is_written_beside_a_sample_of_large_frames(tmp_path, m
         for n, frame in enumerate(sampled):  # before the writer's frame on every other sample, after it on the rest
             assert raws[n] == (writers[frame] - 1 if n % 2 == 0 else writers[frame] + 1)
         assert beside.per_frame_ms()[0] == pytest.approx(1e3 * beside.seconds / len(sampled))
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [([], "expected COMMIT STEP"), (["abc123"], "expected COMMIT STEP"), (["abc123", "p256 --piles 256"], "p256")],
+)
+def test_device_bench_refuses_a_bad_step_in_one_line_before_running(tmp_path, args, named):
+    """The GPU machine's runner (``scripts/device_bench.sh``) stops on a missing or malformed step with one line
+    and exit code 2, before it links, copies or runs anything."""
+    script = ROOT / "scripts" / "device_bench.sh"
+    done = subprocess.run(["bash", str(script), *args], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == ""
+    assert len(done.stderr.splitlines()) == 1 and named in done.stderr
+    assert not list(tmp_path.iterdir())
