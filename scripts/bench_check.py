@@ -34,15 +34,10 @@ class FrameChecks:
 
     def __init__(self, last: int) -> None:
         self.last, self.worst, self.end = last, warpfem.Penetration(), warpfem.Penetration()
-        self.frame_inside = self.frame_below = 0  # the frames of the worst so far (0: none)
         self.by_frame: dict[int, tuple[float, float]] = {}  # inside another body, below the ground (relative)
 
     def add(self, frame: int, now: warpfem.Penetration) -> None:
         """Frame ``frame``'s figures."""
-        if now.relative > self.worst.relative:
-            self.frame_inside = frame
-        if now.below_relative > self.worst.below_relative:
-            self.frame_below = frame
         self.worst = self.worst.worst(now)
         self.by_frame[frame] = (now.relative, now.below_relative)
         if frame == self.last:
@@ -50,9 +45,14 @@ class FrameChecks:
 
     def result(self) -> dict:
         """The JSON of the checks: ``end``, ``worst`` (with its frames), the frames checked and their figures."""
-        end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
-        worst |= {"frame": self.frame_inside, "below_frame": self.frame_below}
         frames = sorted(self.by_frame)
+
+        def first_deepest(k: int) -> int:  # the first frame of the worst figure k (0: none above zero)
+            deepest = max(frames, key=lambda f: self.by_frame[f][k], default=0)
+            return deepest if deepest and self.by_frame[deepest][k] > 0 else 0
+
+        end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
+        worst |= {"frame": first_deepest(0), "below_frame": first_deepest(1)}
         by_frame = {"inside": [self.by_frame[f][0] for f in frames], "below": [self.by_frame[f][1] for f in frames]}
         return {"end": end, "worst": worst, "frames_checked": len(frames), "frames": frames, "by_frame": by_frame}
 
