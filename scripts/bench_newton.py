@@ -7,7 +7,9 @@ then gets a ground plane (y up, gravity -9.81 m/s^2), every body as ``ModelBuild
 (Lame mu and lambda from E and nu), and ``SolverVBD`` with particle self-contact, 10 substeps x 10
 iterations per 1/60 s frame. Time per frame is taken after 2 warm-up frames over ``--frames`` frames, the
 substep loop replayed as a captured CUDA graph on GPUs (as Newton's examples do). Alongside it: the
-lowest particle height at the end (below 0: into the ground) and whether any position is NaN.
+lowest particle height at the end (below 0: into the ground), whether any position is NaN, and the dense
+meshes carried by Newton's tets checked as ``scripts/bench.py`` checks ours (inside another body, below the
+ground; over the run and at its end).
 
     python scripts/bench_newton.py --quick     # CPU, N=1 bunny, 3 frames: tests the harness itself
     python scripts/bench_newton.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU, all piles
@@ -35,6 +37,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from bench import PILES, end_gap, environment, int_list, pile  # noqa: E402
+from bench_check import CHECK_MAX_BODIES, FrameChecks, checked_frames  # noqa: E402
 
 import warpfem  # noqa: E402
 from warpfem.build import euler_rotation  # noqa: E402
@@ -50,21 +53,68 @@ def lame(young: float, poisson: float) -> tuple[float, float]:
     return mu, lam
 
 
-def placed_meshes(objects, cache_dir: Path | None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """World tet vertices and tets of each object, placed as ``warpfem.build.add_prepared_body`` does."""
+def prepared_bodies(objects, cache_dir: Path | None) -> list:
+    """Each object's ``warpfem.prep.pipeline.PreparedBody`` (prepared once per mesh and settings)."""
     prepared = {}
-    meshes = []
     for obj in objects:
         key = (obj.mesh, obj.faces, obj.subdivide, obj.maxh)
         if key not in prepared:
             prepared[key] = prepare(
                 obj.mesh, faces=obj.faces, subdivide=obj.subdivide, maxh=obj.maxh, cache_dir=cache_dir
             )
-        body = prepared[key]
+    return [prepared[(obj.mesh, obj.faces, obj.subdivide, obj.maxh)] for obj in objects]
+
+
+def placed_meshes(objects, cache_dir: Path | None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """World tet vertices and tets of each object, placed as ``warpfem.build.add_prepared_body`` does."""
+    meshes = []
+    for obj, body in zip(objects, prepared_bodies(objects, cache_dir), strict=True):
         rot = euler_rotation(obj.rotate)
         x = obj.scale * body.tet_vertices @ rot.T + np.asarray(obj.translate, dtype=np.float64)
         meshes.append((x, np.asarray(body.tets, dtype=np.int32)))
     return meshes
+
+
+class NewtonDenseCheck:
+    """The dense meshes carried by Newton's tets, checked as ``scripts/bench.py`` checks ours.
+
+    Each body's dense vertices follow its tets with the barycentric weights of warpfem's preprocessing (the tet
+    meshes Newton runs are the same), so the check sees what a user rendering the dense meshes from Newton's run
+    would. Frames before the timed ones are read as they come; timed frames are copied on the device and
+    checked after the timing, as ``bench_check.DenseCheck`` does.
+    """
+
+    def __init__(self, objects, cache_dir: Path | None, particles, run_frames: int, timed_from: int):
+        from warpfem.io.penetration import PenetrationCheck
+
+        bodies = prepared_bodies(objects, cache_dir)
+        starts = np.cumsum([0] + [len(b.tet_vertices) for b in bodies])
+        self.corners = [start + b.tets[b.embed_tet] for start, b in zip(starts, bodies, strict=False)]
+        self.weights = [b.embed_bary for b in bodies]
+        self.check = PenetrationCheck([b.dense_faces for b in bodies], [o.name for o in objects], particles.device)
+        frames = checked_frames(run_frames, 0) if len(objects) <= CHECK_MAX_BODIES else [run_frames]
+        self.buffers = {f: wp.empty_like(particles) for f in frames if f >= timed_from}
+        self.direct = set(frames) - set(self.buffers)
+        self.checks = FrameChecks(run_frames)
+
+    def after(self, frame: int, particles) -> None:
+        """Frame ``frame`` has run, its particles in ``particles``: check it now, or copy it for later."""
+        if frame in self.direct:
+            self._check(frame, particles.numpy())
+        elif frame in self.buffers:
+            wp.copy(self.buffers[frame], particles)
+
+    def result(self) -> dict:
+        """Check the copied frames; the same JSON as ``bench_check.FrameChecks``."""
+        for frame, buffer in sorted(self.buffers.items()):
+            self._check(frame, buffer.numpy())
+        self.buffers.clear()
+        return self.checks.result()
+
+    def _check(self, frame: int, q: np.ndarray) -> None:
+        q = np.asarray(q, np.float64)
+        points = [np.einsum("nk,nkj->nj", w, q[c]) for c, w in zip(self.corners, self.weights, strict=True)]
+        self.checks.add(frame, self.check.measure(points, ground=(0.0, (0.0, 1.0, 0.0))))
 
 
 def build_model(objects, meshes, device, settings: dict):
@@ -150,16 +200,21 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
 
 
 def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict, warmup: int = 2) -> dict:
-    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle and NaN check."""
+    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle, NaN check and the dense meshes' check
+    (:class:`NewtonDenseCheck`)."""
     t0 = time.perf_counter()
     model, frame, state, graph = pile_stepper(objects, device, cache_dir, settings)
     first_frame_s = time.perf_counter() - t0
-    for _ in range(warmup - 1):
+    check = NewtonDenseCheck(objects, cache_dir, state[0].particle_q, warmup + frames, warmup + 1)
+    check.after(1, state[0].particle_q)
+    for f in range(warmup - 1):
         frame()
+        check.after(2 + f, state[0].particle_q)
     wp.synchronize_device(device)
     t0 = time.perf_counter()
-    for _ in range(frames):
+    for f in range(frames):
         frame()
+        check.after(warmup + 1 + f, state[0].particle_q)
     wp.synchronize_device(device)
     ms = 1000.0 * (time.perf_counter() - t0) / frames
     q = state[0].particle_q.numpy()
@@ -179,6 +234,7 @@ def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: di
         "lowest_point_m": float(np.nanmin(q[:, 1])) if finite else float("nan"),
         "nan": not finite,
         "build_and_first_frame_s": first_frame_s,
+        "dense_check": check.result() if finite else None,
     }
 
 
@@ -285,11 +341,11 @@ def main(argv=None) -> int:
             run["settle_deviation"] = settle_deviation(objs, device, args.cache_dir, frames, settings)
         run.update(kind="pile", n=n, wall_s=time.perf_counter() - t0)
         results["runs"].append(run)
-        low = run["lowest_point_m"]
+        low, worst = run["lowest_point_m"], (run["dense_check"] or {}).get("worst")
+        dense = f"dense {100 * worst['relative']:.2f} / {100 * worst['below_relative']:.2f} %" if worst else "NaN!"
         print(
             f"newton pile N={n:5d} tets={run['tets']:8d} particles={run['particles']:8d} "
-            f"{run['ms_per_frame']:9.2f} ms/frame  lowest {1e3 * low if math.isfinite(low) else low:7.1f} mm"
-            f"{'  NaN!' if run['nan'] else ''}",
+            f"{run['ms_per_frame']:9.2f} ms/frame  lowest {1e3 * low if math.isfinite(low) else low:7.1f} mm  {dense}",
             flush=True,
         )
         # after every pile, so a crash in a later one (Newton's VBD has hit illegal memory accesses on large

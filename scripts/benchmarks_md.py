@@ -131,7 +131,9 @@ def header_lines(path: Path, data: dict, used: list[Path], peer: tuple[Path, dic
         + " a vertex inside another",
         "body's dense surface / below the ground, relative to the body's size (runs before that check: the",
         "collider's own estimate at the end, in mm); lowest point: ours the lowest dense vertex at the end,",
-        "Newton's its lowest tet vertex (ground at 0). Substeps: the scene's; \"4 (x2 in 12 of 120)\": 12 of the",
+        "Newton's its lowest tet vertex (ground at 0); Newton's dense penetration: the same dense meshes carried",
+        "by its tets with our embedding's weights, checked the same way on the same frames (blank: a peer run",
+        'before that check). Substeps: the scene\'s; "4 (x2 in 12 of 120)": 12 of the',
         "timed frames ran twice that many (`[collision] approach_limit`: bodies closing fast on each other);",
         '"4 (more in 12 of 120, 1.07x the steps)": 12 ran 1.5 or 2 times that many, the steps 1.07 times the',
         "scene's; the phase split runs every frame at the scene's substeps, so there its parts add up to less",
@@ -156,9 +158,9 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
         "",
         "| scene | substeps | bodies | tets | dense triangles | ms/frame | fps | elastic | collision | solve | map"
         " | output | CG it/step | contacts max/step | dense penetration | lowest point | Newton ms/frame"
-        " | Newton lowest | speed-up |",
+        " | Newton dense penetration | Newton lowest | speed-up |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-        "| --- |",
+        "| --- | --- |",
     ]
     own_tolerance: dict[str, float] = {}  # each scene's first run has the scene file's own CG settings
     for r in data["runs"]:
@@ -169,10 +171,10 @@ def main_table_lines(data: dict, newton: dict[int, dict]) -> list[str]:
             name += f", CG to {r['cg_tolerance']:g}"
         peer_run = newton.get(r["n"]) if r["kind"] == "pile" else None
         peer_cols = (
-            f"{peer_run['ms_per_frame']:.1f} | {1e3 * peer_run['lowest_point_m']:+.1f} mm | "
-            f"{peer_run['ms_per_frame'] / r['ms_per_frame']:.1f}x"
+            f"{peer_run['ms_per_frame']:.1f} | {penetration_text(peer_run) if peer_run.get('dense_check') else ''} | "
+            f"{1e3 * peer_run['lowest_point_m']:+.1f} mm | {peer_run['ms_per_frame'] / r['ms_per_frame']:.1f}x"
             if peer_run
-            else "| |"
+            else "| | |"
         )
         output = f"{p['output']:.1f}" if "output" in p else ""
         lines.append(

@@ -15,6 +15,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import bench  # noqa: E402
 import bench_check  # noqa: E402
 
+import warpfem  # noqa: E402
 from warpfem.scene import load_scene  # noqa: E402
 
 
@@ -145,6 +146,26 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         assert result["frames"] == list(frames) and result["by_frame"]["inside"] == pytest.approx(expected, abs=0.0)
     ends_only = bench_check.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
     assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
+
+
+def test_newton_dense_meshes_follow_its_tets_as_warpfem_maps_them(tmp_path):
+    """The peer's dense check carries each body's dense mesh on the particles Newton moves (the same tet
+    meshes, in body order): given warpfem's own tet positions for two turned, placed bunnies, it measures the
+    dense points warpfem maps itself (``Simulation.dense_points``)."""
+    import bench_newton
+
+    scene = bench.pile(load_scene(ROOT / "scenes" / "default.toml"), 2, "builtin:bunny", 300, scale=0.5)
+    sim = bench.build(scene, "cpu", tmp_path)
+    for _ in range(3):
+        sim.advance()
+    check = bench_newton.NewtonDenseCheck(scene.objects, tmp_path, sim.states[0].x, 3, 4)
+    measured = []
+    check.check.measure = lambda points, **_: measured.append(points) or warpfem.Penetration()
+    check.after(3, sim.states[0].x)
+    (points,) = measured
+    for ours, theirs in zip(sim.dense_points(), points, strict=True):
+        np.testing.assert_allclose(theirs, ours, atol=1e-5)
+    assert check.result()["frames"] == [3]
 
 
 def test_mixed_pile_spreads_sizes_and_stiffnesses_and_drops_every_body_from_above_the_ground(tmp_path):

@@ -39,3 +39,7 @@ def test_quick_newton_benchmark_writes_a_complete_json(tmp_path):
     assert run["ms_per_frame"] > 0 and not run["nan"]
     # 5 frames after the drop from 0.7 m: still falling, above the ground
     assert math.isfinite(run["lowest_point_m"]) and 0.0 < run["lowest_point_m"] < 1.0
+    # its dense mesh carried by Newton's tets, checked on every frame of the run: still in the air
+    check = run["dense_check"]
+    assert check["frames"] == [1, 2, 3, 4, 5] and check["end"]["below_relative"] == 0.0
+    assert check["worst"]["relative"] == 0.0 and check["by_frame"]["below"] == [0.0] * 5
