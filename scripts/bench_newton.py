@@ -84,16 +84,18 @@ class NewtonDenseCheck:
     checked after the timing, as ``bench_check.DenseCheck`` does.
     """
 
-    def __init__(self, objects, cache_dir: Path | None, particles, run_frames: int, timed_from: int):
+    def __init__(self, objects, cache_dir: Path | None, device, run_frames: int, timed_from: int):
         from warpfem.io.penetration import PenetrationCheck
 
         bodies = prepared_bodies(objects, cache_dir)
         starts = np.cumsum([0] + [len(b.tet_vertices) for b in bodies])
         self.corners = [start + b.tets[b.embed_tet] for start, b in zip(starts, bodies, strict=False)]
         self.weights = [b.embed_bary for b in bodies]
-        self.check = PenetrationCheck([b.dense_faces for b in bodies], [o.name for o in objects], particles.device)
+        self.check = PenetrationCheck([b.dense_faces for b in bodies], [o.name for o in objects], device)
         frames = checked_frames(run_frames, 0) if len(objects) <= CHECK_MAX_BODIES else [run_frames]
-        self.buffers = {f: wp.empty_like(particles) for f in frames if f >= timed_from}
+        # allocated before Newton captures its frame's graph (allocations after it crashed its launches)
+        count = int(starts[-1])
+        self.buffers = {f: wp.empty(count, dtype=wp.vec3, device=device) for f in frames if f >= timed_from}
         self.direct = set(frames) - set(self.buffers)
         self.checks = FrameChecks(run_frames)
 
@@ -202,10 +204,10 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
 def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict, warmup: int = 2) -> dict:
     """Per-frame time of N bodies under SolverVBD, sizes, lowest particle, NaN check and the dense meshes' check
     (:class:`NewtonDenseCheck`)."""
+    check = NewtonDenseCheck(objects, cache_dir, device, warmup + frames, warmup + 1)
     t0 = time.perf_counter()
     model, frame, state, graph = pile_stepper(objects, device, cache_dir, settings)
     first_frame_s = time.perf_counter() - t0
-    check = NewtonDenseCheck(objects, cache_dir, state[0].particle_q, warmup + frames, warmup + 1)
     check.after(1, state[0].particle_q)
     for f in range(warmup - 1):
         frame()
