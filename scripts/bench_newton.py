@@ -22,6 +22,7 @@ Needs ``newton`` (PyPI, pure Python on top of warp-lang); warpfem's own bench do
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import sys
@@ -155,8 +156,8 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
     """The Newton model of a pile and a function advancing it one frame (a replayed CUDA graph on GPUs).
 
     Returns (model, frame, state, graph): ``state[0]`` holds the current particles after each frame, graph
-    says whether frames replay a CUDA graph. The first frame is run here (it captures the graph, or compiles
-    the kernels without one).
+    says whether frames replay a CUDA graph. The first frame is run here, uncaptured, before the graph is
+    captured.
     """
     import newton
 
@@ -189,15 +190,19 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
             state[0], state[1] = state[1], state[0]
 
     graph = None
+    if device.is_cuda and settings["graph"] and substeps % 2:  # the captured swaps must end where they began
+        raise ValueError("a CUDA graph needs an even substep count (or --no-graph)")
+    # The first frame runs uncaptured: it compiles the kernels, and whatever Newton allocates on its first step
+    # is allocated outside the graph (memory a capture allocates belongs to the graph; freed by the garbage
+    # collector between launches, it crashed them).
+    simulate()
+    wp.synchronize_device(device)
     if device.is_cuda and settings["graph"]:
-        if substeps % 2:  # the captured swaps must bring the states back to where they began
-            raise ValueError("a CUDA graph needs an even substep count (or --no-graph)")
         with wp.ScopedCapture(device=device) as capture:
             simulate()
         graph = capture.graph
     frame = (lambda: wp.capture_launch(graph)) if graph is not None else simulate
-    frame()  # with no graph: the first frame compiles and loads the kernels
-    wp.synchronize_device(device)
+    gc.collect()
     return model, frame, state, graph is not None
 
 
