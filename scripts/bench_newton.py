@@ -9,7 +9,7 @@ iterations per 1/60 s frame. Time per frame is taken after 2 warm-up frames over
 substep loop replayed as a captured CUDA graph on GPUs (as Newton's examples do). Alongside it: the
 lowest particle height at the end (below 0: into the ground), whether any position is NaN, and the dense
 meshes carried by Newton's tets checked as ``scripts/bench.py`` checks ours (inside another body, below the
-ground; over the run and at its end).
+ground; over the run and at its end), in a second run of the same frames with its kernels launched one by one.
 
     python scripts/bench_newton.py --quick     # CPU, N=1 bunny, 3 frames: tests the harness itself
     python scripts/bench_newton.py --assets ../shared/assets --cache-dir .warpfem-cache   # GPU, all piles
@@ -22,7 +22,6 @@ Needs ``newton`` (PyPI, pure Python on top of warp-lang); warpfem's own bench do
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import math
 import sys
@@ -81,11 +80,10 @@ class NewtonDenseCheck:
 
     Each body's dense vertices follow its tets with the barycentric weights of warpfem's preprocessing (the tet
     meshes Newton runs are the same), so the check sees what a user rendering the dense meshes from Newton's run
-    would. Frames before the timed ones are read as they come; timed frames are copied on the device and
-    checked after the timing, as ``bench_check.DenseCheck`` does.
+    would. The frames are those ``scripts/bench.py`` checks in a run of as many frames.
     """
 
-    def __init__(self, objects, cache_dir: Path | None, device, run_frames: int, timed_from: int):
+    def __init__(self, objects, cache_dir: Path | None, device, run_frames: int):
         from warpfem.io.penetration import PenetrationCheck
 
         bodies = prepared_bodies(objects, cache_dir)
@@ -93,31 +91,19 @@ class NewtonDenseCheck:
         self.corners = [start + b.tets[b.embed_tet] for start, b in zip(starts, bodies, strict=False)]
         self.weights = [b.embed_bary for b in bodies]
         self.check = PenetrationCheck([b.dense_faces for b in bodies], [o.name for o in objects], device)
-        frames = checked_frames(run_frames, 0) if len(objects) <= CHECK_MAX_BODIES else [run_frames]
-        # allocated before Newton captures its frame's graph (allocations after it crashed its launches)
-        count = int(starts[-1])
-        self.buffers = {f: wp.empty(count, dtype=wp.vec3, device=device) for f in frames if f >= timed_from}
-        self.direct = set(frames) - set(self.buffers)
+        self.frames = set(checked_frames(run_frames, 0) if len(objects) <= CHECK_MAX_BODIES else [run_frames])
         self.checks = FrameChecks(run_frames)
 
     def after(self, frame: int, particles) -> None:
-        """Frame ``frame`` has run, its particles in ``particles``: check it now, or copy it for later."""
-        if frame in self.direct:
-            self._check(frame, particles.numpy())
-        elif frame in self.buffers:
-            wp.copy(self.buffers[frame], particles)
+        """Frame ``frame`` has run, its particles in ``particles``: check it if it is one of the checked frames."""
+        if frame in self.frames:
+            q = np.asarray(particles.numpy(), np.float64)
+            points = [np.einsum("nk,nkj->nj", w, q[c]) for c, w in zip(self.corners, self.weights, strict=True)]
+            self.checks.add(frame, self.check.measure(points, ground=(0.0, (0.0, 1.0, 0.0))))
 
     def result(self) -> dict:
-        """Check the copied frames; the same JSON as ``bench_check.FrameChecks``."""
-        for frame, buffer in sorted(self.buffers.items()):
-            self._check(frame, buffer.numpy())
-        self.buffers.clear()
+        """The same JSON as ``bench_check.FrameChecks``."""
         return self.checks.result()
-
-    def _check(self, frame: int, q: np.ndarray) -> None:
-        q = np.asarray(q, np.float64)
-        points = [np.einsum("nk,nkj->nj", w, q[c]) for c, w in zip(self.corners, self.weights, strict=True)]
-        self.checks.add(frame, self.check.measure(points, ground=(0.0, (0.0, 1.0, 0.0))))
 
 
 def build_model(objects, meshes, device, settings: dict):
@@ -156,8 +142,8 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
     """The Newton model of a pile and a function advancing it one frame (a replayed CUDA graph on GPUs).
 
     Returns (model, frame, state, graph): ``state[0]`` holds the current particles after each frame, graph
-    says whether frames replay a CUDA graph. The first frame is run here, uncaptured, before the graph is
-    captured.
+    says whether frames replay a CUDA graph. The first frame is run here (it captures the graph, or compiles
+    the kernels without one).
     """
     import newton
 
@@ -190,38 +176,29 @@ def pile_stepper(objects, device, cache_dir: Path | None, settings: dict):
             state[0], state[1] = state[1], state[0]
 
     graph = None
-    if device.is_cuda and settings["graph"] and substeps % 2:  # the captured swaps must end where they began
-        raise ValueError("a CUDA graph needs an even substep count (or --no-graph)")
-    # The first frame runs uncaptured: it compiles the kernels, and whatever Newton allocates on its first step
-    # is allocated outside the graph (memory a capture allocates belongs to the graph; freed by the garbage
-    # collector between launches, it crashed them).
-    simulate()
-    wp.synchronize_device(device)
     if device.is_cuda and settings["graph"]:
+        if substeps % 2:  # the captured swaps must bring the states back to where they began
+            raise ValueError("a CUDA graph needs an even substep count (or --no-graph)")
         with wp.ScopedCapture(device=device) as capture:
             simulate()
         graph = capture.graph
     frame = (lambda: wp.capture_launch(graph)) if graph is not None else simulate
-    gc.collect()
+    frame()  # with no graph: the first frame compiles and loads the kernels
+    wp.synchronize_device(device)
     return model, frame, state, graph is not None
 
 
 def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict, warmup: int = 2) -> dict:
-    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle, NaN check and the dense meshes' check
-    (:class:`NewtonDenseCheck`)."""
-    check = NewtonDenseCheck(objects, cache_dir, device, warmup + frames, warmup + 1)
+    """Per-frame time of N bodies under SolverVBD, sizes, lowest particle and NaN check."""
     t0 = time.perf_counter()
     model, frame, state, graph = pile_stepper(objects, device, cache_dir, settings)
     first_frame_s = time.perf_counter() - t0
-    check.after(1, state[0].particle_q)
-    for f in range(warmup - 1):
+    for _ in range(warmup - 1):
         frame()
-        check.after(2 + f, state[0].particle_q)
     wp.synchronize_device(device)
     t0 = time.perf_counter()
-    for f in range(frames):
+    for _ in range(frames):
         frame()
-        check.after(warmup + 1 + f, state[0].particle_q)
     wp.synchronize_device(device)
     ms = 1000.0 * (time.perf_counter() - t0) / frames
     q = state[0].particle_q.numpy()
@@ -241,8 +218,23 @@ def time_pile(objects, device, cache_dir: Path | None, frames: int, settings: di
         "lowest_point_m": float(np.nanmin(q[:, 1])) if finite else float("nan"),
         "nan": not finite,
         "build_and_first_frame_s": first_frame_s,
-        "dense_check": check.result() if finite else None,
     }
+
+
+def check_pile(objects, device, cache_dir: Path | None, frames: int, settings: dict) -> dict | None:
+    """The dense meshes of a run of ``frames`` frames checked on the frames ``scripts/bench.py`` checks
+    (:class:`NewtonDenseCheck`); None where the run went NaN.
+
+    A run of its own, its kernels launched one by one: the frames are read between launches, which Newton's
+    captured graph did not survive on the H200 (Warp's ``capture_launch`` failed in the timed frames).
+    """
+    check = NewtonDenseCheck(objects, cache_dir, device, frames)
+    _, frame, state, _ = pile_stepper(objects, device, cache_dir, {**settings, "graph": False})
+    check.after(1, state[0].particle_q)
+    for f in range(2, frames + 1):
+        frame()
+        check.after(f, state[0].particle_q)
+    return check.result() if np.isfinite(state[0].particle_q.numpy()).all() else None
 
 
 def settle_deviation(objects, device, cache_dir: Path | None, frames: int, settings: dict) -> dict:
@@ -344,6 +336,7 @@ def main(argv=None) -> int:
     for n, objs in work:
         t0 = time.perf_counter()
         run = time_pile(objs, device, args.cache_dir, frames, settings, warmup=args.warmup)
+        run["dense_check"] = check_pile(objs, device, args.cache_dir, args.warmup + frames, settings)
         if n in args.deviation:
             run["settle_deviation"] = settle_deviation(objs, device, args.cache_dir, frames, settings)
         run.update(kind="pile", n=n, wall_s=time.perf_counter() - t0)

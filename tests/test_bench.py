@@ -158,7 +158,7 @@ def test_newton_dense_meshes_follow_its_tets_as_warpfem_maps_them(tmp_path):
     sim = bench.build(scene, "cpu", tmp_path)
     for _ in range(3):
         sim.advance()
-    check = bench_newton.NewtonDenseCheck(scene.objects, tmp_path, "cpu", 3, 4)
+    check = bench_newton.NewtonDenseCheck(scene.objects, tmp_path, "cpu", 3)
     measured = []
     check.check.measure = lambda points, **_: measured.append(points) or warpfem.Penetration()
     check.after(3, sim.states[0].x)
