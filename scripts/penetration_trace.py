@@ -4,6 +4,11 @@
     .venv/bin/python scripts/penetration_trace.py scenes/paper_c_two_bodies.toml --set ground.stiffness=1e8
     .venv/bin/python scripts/penetration_trace.py scenes/default.toml --contact-passes 0 --frames 60
     .venv/bin/python scripts/penetration_trace.py --pile 16 --set object.faces=1000
+    .venv/bin/python scripts/penetration_trace.py --pile 256 --device cuda:0 --dissect 0.5
+
+``--dissect P`` adds, on each checked frame where a body's dense vertex lies more than P % of the other body's
+size inside it, how many of that body's dense vertices and of its collision points lie inside the other, by
+libigl's winding number: whether a deep frame is a few points carrying a load or a wide overlap.
 
 ``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
@@ -57,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         "--contact-passes", type=int, help="the solver's late-contact passes (default: its own; only fewer)"
     )
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    parser.add_argument("--dissect", type=float, metavar="P", help="dissect frames deeper than P %% (see above)")
     args = parser.parse_args(argv)
     if (args.scene is None) == (args.pile <= 0):
         parser.error("give a scene file or --pile N (N > 0), not both")
@@ -87,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{frame:5d}  inside {100 * r.relative:6.2f} % {r.inside:24s} below {100 * r.below_relative:6.3f} % "
             f"({1000 * r.below_ground:.2f} mm)"
         )
+        if args.dissect is not None and 100 * r.relative > args.dissect:
+            print("       " + dissect(sim, *r.inside.split(" in ")))
     t = sim.totals
     print(
         f"worst inside {100 * inside:.2f} %, below {100 * below:.3f} %; at the end {100 * r.relative:.2f} % and "
@@ -96,6 +104,28 @@ def main(argv: list[str] | None = None) -> int:
         f"{time.perf_counter() - clock:.0f} s"
     )
     return 0
+
+
+def dissect(sim, name: str, other: str) -> str:
+    """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points inside
+    the other's dense surface (libigl's fast winding number), and the deepest of each (% of the other's size)."""
+    import igl
+    import numpy as np
+
+    faces = np.asarray(sim.body(other).dense_faces, np.int64)
+    surface = np.asarray(sim.dense_points(other), np.float64)
+    size = float(np.linalg.norm(np.ptp(surface, axis=0)))
+    m = sim.model
+    cells, cell, bary, body = (a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body))
+    x = sim.states[0].x.numpy().astype(np.float64)
+    mine = body == sim.body_names.index(name)
+    points = np.einsum("nk,nkj->nj", bary[mine].astype(np.float64), x[cells[cell[mine]]])
+    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+    parts = []
+    for what, p in (("dense vertices", np.asarray(sim.dense_points(name), np.float64)), ("collision points", points)):
+        depth = -igl.signed_distance(p, surface, faces, kind)[0]
+        parts.append(f"{int((depth > 0).sum())} of {len(p)} {what} inside (deepest {100 * depth.max() / size:.2f} %)")
+    return f"{name} in {other}: " + ", ".join(parts)
 
 
 def lowest_point(sim) -> str:

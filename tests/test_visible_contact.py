@@ -338,6 +338,20 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
     out = capsys.readouterr().out.splitlines()  # Warp may print its banner first
     lines = [line for line in out if line.split() and (line.split()[0].isdigit() or line.startswith("worst"))]
     assert [line.split()[0] for line in lines[:2]] == ["10", "12"] and lines[2].startswith("worst inside")
+    # --dissect: the bodies of a deep frame counted by libigl's winding number; its deepest dense vertex is the
+    # one warpfem.io.penetration found (a soft penalty lets the top ball sink into the lower one)
+    assert (
+        trace.main(
+            [str(scene), "--frames", "20", "--every", "20", "--dissect", "0", "--set", "collision.stiffness=1e3"]
+        )
+        == 0
+    )
+    out = [line.strip() for line in capsys.readouterr().out.splitlines()]
+    frame = next(line for line in out if line.startswith("20 "))
+    pair = out[out.index(frame) + 1]
+    assert frame.split()[4:7] == ["top", "in", "ball"] and pair.startswith("top in ball: ")
+    dense = pair.split(": ")[1].split(", ")[0]
+    assert int(dense.split()[0]) > 0 and dense.endswith(f"(deepest {frame.split()[2]} %)")
     with pytest.raises(SystemExit, match="expected section.key=value"):
         trace.main([str(scene), "--set", "young"])
     with pytest.raises(SystemExit):  # a scene file or --pile, not both
