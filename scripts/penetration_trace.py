@@ -8,7 +8,8 @@
 
 ``--dissect P`` adds, on each checked frame where a body's dense vertex lies more than P % of the other body's
 size inside it, how many of that body's dense vertices and of its collision points lie inside the other, by
-libigl's winding number: whether a deep frame is a few points carrying a load or a wide overlap.
+libigl's winding number, and of those points how many lie in none of the other body's tets and how many have
+no contact with it in the last step: whether a deep frame is a few points or a wide overlap, seen or missed.
 
 ``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
@@ -108,7 +109,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def dissect(sim, name: str, other: str) -> str:
     """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points inside
-    the other's dense surface (libigl's fast winding number), and the deepest of each (% of the other's size)."""
+    the other's dense surface (libigl's fast winding number), the deepest of each (% of the other's size), and of
+    those collision points how many lie in none of the other body's tets (which detection needs) and how many
+    have no contact with it in the last step's contact buffers."""
     import igl
     import numpy as np
 
@@ -116,15 +119,29 @@ def dissect(sim, name: str, other: str) -> str:
     surface = np.asarray(sim.dense_points(other), np.float64)
     size = float(np.linalg.norm(np.ptp(surface, axis=0)))
     m = sim.model
-    cells, cell, bary, body = (a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body))
+    cells, cell, bary, body, cell_body = (
+        a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body, m.cell_body)
+    )
     x = sim.states[0].x.numpy().astype(np.float64)
-    mine = body == sim.body_names.index(name)
+    mine = np.flatnonzero(body == sim.body_names.index(name))
     points = np.einsum("nk,nkj->nj", bary[mine].astype(np.float64), x[cells[cell[mine]]])
     kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
     parts = []
     for what, p in (("dense vertices", np.asarray(sim.dense_points(name), np.float64)), ("collision points", points)):
         depth = -igl.signed_distance(p, surface, faces, kind)[0]
         parts.append(f"{int((depth > 0).sum())} of {len(p)} {what} inside (deepest {100 * depth.max() / size:.2f} %)")
+    inside = depth > 0
+    theirs = cells[cell_body == sim.body_names.index(other)]
+    corner = x[theirs[:, 0]]
+    edges = np.stack([x[theirs[:, k]] - corner for k in (1, 2, 3)], axis=2)
+    w = np.einsum("cij,ncj->nci", np.linalg.inv(edges), points[inside][:, None, :] - corner[None])
+    held = np.minimum(w.min(axis=2), 1.0 - w.sum(axis=2)).max(axis=1) >= 0.0
+    collider = sim.solver.collider
+    count = min(int(collider.count.numpy()[0]), collider.capacity)
+    contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
+    answered = set(contact_point[cell_body[contact_cell] == sim.body_names.index(other)].tolist())
+    missing = sum(int(p) not in answered for p in mine[inside])
+    parts.append(f"{int((~held).sum())} of those outside its tets, {missing} with no contact")
     return f"{name} in {other}: " + ", ".join(parts)
 
 

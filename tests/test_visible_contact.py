@@ -352,6 +352,8 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
     assert frame.split()[4:7] == ["top", "in", "ball"] and pair.startswith("top in ball: ")
     dense = pair.split(": ")[1].split(", ")[0]
     assert int(dense.split()[0]) > 0 and dense.endswith(f"(deepest {frame.split()[2]} %)")
+    inside, outside, missing = (int(part.split()[0]) for part in pair.split(": ")[1].split(", ")[1:])
+    assert 0 < inside and 0 <= outside <= inside and 0 <= missing <= inside
     with pytest.raises(SystemExit, match="expected section.key=value"):
         trace.main([str(scene), "--set", "young"])
     with pytest.raises(SystemExit):  # a scene file or --pile, not both
