@@ -225,8 +225,8 @@ def check_pile(objects, device, cache_dir: Path | None, frames: int, settings: d
     """The dense meshes of a run of ``frames`` frames checked on the frames ``scripts/bench.py`` checks
     (:class:`NewtonDenseCheck`); None where the run went NaN.
 
-    A run of its own, its kernels launched one by one: the frames are read between launches, which Newton's
-    captured graph did not survive on the H200 (Warp's ``capture_launch`` failed in the timed frames).
+    A run of its own, its kernels launched one by one: the timed run replays Newton's captured graph, whose
+    replays fail once frames are read between them.
     """
     check = NewtonDenseCheck(objects, cache_dir, device, frames)
     _, frame, state, _ = pile_stepper(objects, device, cache_dir, {**settings, "graph": False})
