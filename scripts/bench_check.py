@@ -34,17 +34,19 @@ class FrameChecks:
 
     def __init__(self, last: int) -> None:
         self.last, self.worst, self.end = last, warpfem.Penetration(), warpfem.Penetration()
-        self.by_frame: dict[int, tuple[float, float]] = {}  # inside another body, below the ground (relative)
+        # inside another body, below the ground (relative), which body in which ("" for none)
+        self.by_frame: dict[int, tuple[float, float, str]] = {}
 
     def add(self, frame: int, now: warpfem.Penetration) -> None:
         """Frame ``frame``'s figures."""
         self.worst = self.worst.worst(now)
-        self.by_frame[frame] = (now.relative, now.below_relative)
+        self.by_frame[frame] = (now.relative, now.below_relative, now.inside)
         if frame == self.last:
             self.end = now
 
     def result(self) -> dict:
-        """The JSON of the checks: ``end``, ``worst`` (with its frames), the frames checked and their figures."""
+        """The JSON of the checks: ``end``, ``worst`` (with its frames), the frames checked and their figures (the
+        depth inside another body and below the ground, and the pair of bodies of the first)."""
         frames = sorted(self.by_frame)
 
         def first_deepest(k: int) -> int:  # the first frame of the worst figure k (0: none above zero)
@@ -53,7 +55,7 @@ class FrameChecks:
 
         end, worst = dataclasses.asdict(self.end), dataclasses.asdict(self.worst)
         worst |= {"frame": first_deepest(0), "below_frame": first_deepest(1)}
-        by_frame = {"inside": [self.by_frame[f][0] for f in frames], "below": [self.by_frame[f][1] for f in frames]}
+        by_frame = {key: [self.by_frame[f][k] for f in frames] for k, key in enumerate(("inside", "below", "pair"))}
         return {"end": end, "worst": worst, "frames_checked": len(frames), "frames": frames, "by_frame": by_frame}
 
 

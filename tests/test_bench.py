@@ -124,10 +124,12 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
     top = dataclasses.replace(scene.objects[1], translate=(0.05, 0.7, 0.0), velocity=(0.0, -25.0, 0.0))
     scene = dataclasses.replace(scene, objects=[scene.objects[0], top])
     separate = bench.build(scene, "cpu", tmp_path)
-    depths = []
+    depths, pairs = [], []
     for _ in range(8):
         separate.advance()
-        depths.append(frame_penetration(separate, bodies=True).relative)
+        now = frame_penetration(separate, bodies=True)
+        depths.append(now.relative)
+        pairs.append(now.inside)
     assert max(depths) > 2 * max(depths[2], depths[5], depths[7])  # checks of frames 3 and 6 miss the impact
     for every, timed_from, frames in ((1, 4, range(1, 9)), (1, 1, range(1, 9)), (3, 4, (3, 6, 8))):
         expected = [depths[f - 1] for f in frames]
@@ -144,6 +146,7 @@ def test_dense_check_every_frame_is_the_worst_of_separate_checks_of_each_frame(t
         deepest = max(frames, key=lambda f: depths[f - 1])  # the frame the worst was found at (0: none)
         assert result["worst"]["frame"] == (deepest if depths[deepest - 1] > 0 else 0)
         assert result["frames"] == list(frames) and result["by_frame"]["inside"] == pytest.approx(expected, abs=0.0)
+        assert result["by_frame"]["pair"] == [pairs[f - 1] for f in frames] and "top in ball" in pairs
     ends_only = bench_check.DenseCheck(bench.build(scene, "cpu", tmp_path), 8, 4, most_bodies=1, every=1)
     assert ends_only.direct == set() and set(ends_only.buffers) == {8}  # more bodies than checked over the run
 
