@@ -333,7 +333,7 @@ def time_scene(
     dense = sim.dense.numpy()
     lowest = float(dense[:, 1].min()) if scene.up_axis == "Y" else float(dense[:, 2].min())
     end = sim.states[0].x.numpy().copy()  # a view on the CPU, which the rerun below would overwrite
-    check = check.result()
+    checked = check.result()
     phase_ms = phase_split(sim, start, frames, device)
     rerun_gap = end_gap(end, sim.states[0].x.numpy())["max_m"]
     error = frame_error(sim, scene, device, cache_dir, cg_path) if accuracy else None
@@ -366,8 +366,8 @@ def time_scene(
         "cg_float32_floor": sim.totals.cg_float32_floor,
         "contacts_max_per_step": stats.contacts_max,
         "contact_depth_max_m": stats.deepest_contact,
-        "dense_penetration_m": check["end"]["depth"],
-        "dense_check": check,
+        "dense_penetration_m": checked["end"]["depth"],
+        "dense_check": checked,
         "lowest_dense_point_m": lowest,
     }
 

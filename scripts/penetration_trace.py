@@ -115,32 +115,38 @@ def dissect(sim, name: str, other: str) -> str:
     import igl
     import numpy as np
 
-    faces = np.asarray(sim.body(other).dense_faces, np.int64)
-    surface = np.asarray(sim.dense_points(other), np.float64)
+    mine, theirs = sim.body_names.index(name), sim.body_names.index(other)
+    dense = sim.dense_points()  # one mapping of every body
+    faces = np.asarray(sim.model.bodies[theirs].dense_faces, np.int64)
+    surface = np.asarray(dense[theirs], np.float64)
     size = float(np.linalg.norm(np.ptp(surface, axis=0)))
+    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+
+    def depths(p: np.ndarray) -> np.ndarray:  # inside the other body's dense surface: positive
+        return -igl.signed_distance(p, surface, faces, kind)[0]
+
     m = sim.model
     cells, cell, bary, body, cell_body = (
         a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body, m.cell_body)
     )
     x = sim.states[0].x.numpy().astype(np.float64)
-    mine = np.flatnonzero(body == sim.body_names.index(name))
-    points = np.einsum("nk,nkj->nj", bary[mine].astype(np.float64), x[cells[cell[mine]]])
-    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
-    parts = []
-    for what, p in (("dense vertices", np.asarray(sim.dense_points(name), np.float64)), ("collision points", points)):
-        depth = -igl.signed_distance(p, surface, faces, kind)[0]
-        parts.append(f"{int((depth > 0).sum())} of {len(p)} {what} inside (deepest {100 * depth.max() / size:.2f} %)")
-    inside = depth > 0
-    theirs = cells[cell_body == sim.body_names.index(other)]
-    corner = x[theirs[:, 0]]
-    edges = np.stack([x[theirs[:, k]] - corner for k in (1, 2, 3)], axis=2)
+    own = np.flatnonzero(body == mine)
+    points = np.einsum("nk,nkj->nj", bary[own].astype(np.float64), x[cells[cell[own]]])
+    dense_depth, point_depth = depths(np.asarray(dense[mine], np.float64)), depths(points)
+    parts = [
+        f"{int((d > 0).sum())} of {len(d)} {what} inside (deepest {100 * d.max() / size:.2f} %)"
+        for what, d in (("dense vertices", dense_depth), ("collision points", point_depth))
+    ]
+    inside = point_depth > 0
+    their_cells = cells[cell_body == theirs]
+    corner = x[their_cells[:, 0]]
+    edges = np.stack([x[their_cells[:, k]] - corner for k in (1, 2, 3)], axis=2)
     w = np.einsum("cij,ncj->nci", np.linalg.inv(edges), points[inside][:, None, :] - corner[None])
     held = np.minimum(w.min(axis=2), 1.0 - w.sum(axis=2)).max(axis=1) >= 0.0
     collider = sim.solver.collider
     count = min(int(collider.count.numpy()[0]), collider.capacity)
     contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
-    answered = set(contact_point[cell_body[contact_cell] == sim.body_names.index(other)].tolist())
-    missing = sum(int(p) not in answered for p in mine[inside])
+    missing = int((~np.isin(own[inside], contact_point[cell_body[contact_cell] == theirs])).sum())
     parts.append(f"{int((~held).sum())} of those outside its tets, {missing} with no contact")
     return f"{name} in {other}: " + ", ".join(parts)
 
