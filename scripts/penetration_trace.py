@@ -67,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if (args.scene is None) == (args.pile <= 0):
         parser.error("give a scene file or --pile N (N > 0), not both")
+    if args.dissect is not None and not args.dissect >= 0.0:  # NaN too
+        parser.error(f"--dissect: expected a depth in % >= 0, got {args.dissect}")
 
     import warpfem
     from warpfem.io.penetration import frame_penetration

@@ -356,6 +356,10 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
     assert 0 < inside and 0 <= outside <= inside and 0 <= missing <= inside
     with pytest.raises(SystemExit, match="expected section.key=value"):
         trace.main([str(scene), "--set", "young"])
+    for bad in ("abc", "nan", "-1"):  # a depth in % >= 0, or argparse's one line and exit 2, before any run
+        with pytest.raises(SystemExit) as stop:
+            trace.main([str(scene), "--dissect", bad])
+        assert stop.value.code == 2 and "--dissect" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a scene file or --pile, not both
         trace.main([str(scene), "--pile", "4"])
     # --pile's overrides (scripts/bench.py's, as its own --set) reach the scene's dataclasses as the file's
