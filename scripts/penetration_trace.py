@@ -8,8 +8,9 @@
 
 ``--dissect P`` adds, on each checked frame where a body's dense vertex lies more than P % of the other body's
 size inside it, how many of that body's dense vertices and of its collision points lie inside the other, by
-libigl's winding number, and of those points how many lie in none of the other body's tets and how many have
-no contact with it in the last step: whether a deep frame is a few points or a wide overlap, seen or missed.
+libigl's winding number, and of those points how many lie in none of the other body's tets, how many lie in
+them but outside its dense surface at rest (where its own parts overlap) and how many have no contact with it
+in the last step: whether a deep frame is a few points or a wide overlap, seen or missed.
 
 ``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
@@ -26,6 +27,10 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def load(args):
@@ -112,8 +117,9 @@ def main(argv: list[str] | None = None) -> int:
 def dissect(sim, name: str, other: str) -> str:
     """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points inside
     the other's dense surface (libigl's fast winding number), the deepest of each (% of the other's size), and of
-    those collision points how many lie in none of the other body's tets (which detection needs) and how many
-    have no contact with it in the last step's contact buffers."""
+    those collision points how many lie in none of the other body's tets (which detection needs), how many lie
+    in them but outside its dense surface at rest (its own parts overlapping there) and how many have no contact
+    with it in the last step's contact buffers."""
     import igl
     import numpy as np
 
@@ -144,13 +150,39 @@ def dissect(sim, name: str, other: str) -> str:
     corner = x[their_cells[:, 0]]
     edges = np.stack([x[their_cells[:, k]] - corner for k in (1, 2, 3)], axis=2)
     w = np.einsum("cij,ncj->nci", np.linalg.inv(edges), points[inside][:, None, :] - corner[None])
-    held = np.minimum(w.min(axis=2), 1.0 - w.sum(axis=2)).max(axis=1) >= 0.0
+    lowest = np.minimum(w.min(axis=2), 1.0 - w.sum(axis=2))  # per point and cell of theirs
+    held = lowest.max(axis=1) >= 0.0
+    rest_depth = _rest_depths(sim, theirs, their_cells, lowest, w, faces)
     collider = sim.solver.collider
     count = min(int(collider.count.numpy()[0]), collider.capacity)
     contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
     missing = int((~np.isin(own[inside], contact_point[cell_body[contact_cell] == theirs])).sum())
-    parts.append(f"{int((~held).sum())} of those outside its tets, {missing} with no contact")
+    overlap = int((held & (rest_depth <= 0.0)).sum())
+    parts.append(
+        f"{int((~held).sum())} of those outside its tets, {overlap} in them but outside its dense surface at rest "
+        f"(where its own parts overlap), {missing} with no contact"
+    )
     return f"{name} in {other}: " + ", ".join(parts)
+
+
+def _rest_depths(sim, body: int, cells: np.ndarray, lowest: np.ndarray, w: np.ndarray, faces: np.ndarray):
+    """Per point, its depth (m, positive inside) below body ``body``'s dense surface at rest, at the weights of
+    the cell of ``cells`` it lies least outside of (``lowest``: per point and cell, its lowest weight; ``w``: the
+    weights of corners 1-3): where that body's parts do not overlap, the same side as in the world."""
+    import igl
+    import numpy as np
+
+    m = sim.model
+    rest = m.rest_x.numpy().astype(np.float64)
+    dense_cell, dense_bary = m.dense_cell.numpy(), m.dense_bary.numpy().astype(np.float64)
+    own = np.flatnonzero(m.cell_body.numpy()[dense_cell] == body)
+    surface = np.einsum("nk,nkj->nj", dense_bary[own], rest[m.cells.numpy()[dense_cell[own]]])
+    best = lowest.argmax(axis=1)
+    w3 = w[np.arange(len(best)), best]
+    weights = np.concatenate([1.0 - w3.sum(axis=1, keepdims=True), w3], axis=1)
+    points = np.einsum("nk,nkj->nj", weights, rest[cells[best]])
+    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+    return -igl.signed_distance(points, surface, faces, kind)[0] if len(points) else np.zeros(0)
 
 
 def lowest_point(sim) -> str:
