@@ -152,7 +152,7 @@ def dissect(sim, name: str, other: str) -> str:
     w = np.einsum("cij,ncj->nci", np.linalg.inv(edges), points[inside][:, None, :] - corner[None])
     lowest = np.minimum(w.min(axis=2), 1.0 - w.sum(axis=2))  # per point and cell of theirs
     held = lowest.max(axis=1) >= 0.0
-    rest_depth = _rest_depths(sim, theirs, their_cells, lowest, w, faces)
+    rest_depth = _rest_depths(sim, theirs, cells, their_cells, lowest, w, faces)
     collider = sim.solver.collider
     count = min(int(collider.count.numpy()[0]), collider.capacity)
     contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
@@ -165,22 +165,24 @@ def dissect(sim, name: str, other: str) -> str:
     return f"{name} in {other}: " + ", ".join(parts)
 
 
-def _rest_depths(sim, body: int, cells: np.ndarray, lowest: np.ndarray, w: np.ndarray, faces: np.ndarray):
-    """Per point, its depth (m, positive inside) below body ``body``'s dense surface at rest, at the weights of
-    the cell of ``cells`` it lies least outside of (``lowest``: per point and cell, its lowest weight; ``w``: the
-    weights of corners 1-3): where that body's parts do not overlap, the same side as in the world."""
+def _rest_depths(sim, body: int, cells: np.ndarray, their_cells: np.ndarray, lowest: np.ndarray, w: np.ndarray, faces):
+    """Per point, its depth (m, positive inside) below body ``body``'s dense surface at rest, at its weights in
+    the cell of ``their_cells`` (the body's) it lies least outside of (``lowest``: per point and such cell, its
+    lowest weight; ``w``: the weights of corners 1-3; ``cells``: every cell's nodes): where that body's parts
+    do not overlap, the same side as in the world."""
     import igl
     import numpy as np
 
     m = sim.model
     rest = m.rest_x.numpy().astype(np.float64)
-    dense_cell, dense_bary = m.dense_cell.numpy(), m.dense_bary.numpy().astype(np.float64)
-    own = np.flatnonzero(m.cell_body.numpy()[dense_cell] == body)
-    surface = np.einsum("nk,nkj->nj", dense_bary[own], rest[m.cells.numpy()[dense_cell[own]]])
+    b = m.bodies[body]
+    span = slice(b.dense_start, b.dense_start + b.dense_count)  # the body's dense vertices alone
+    dense_cell, dense_bary = m.dense_cell[span].numpy(), m.dense_bary[span].numpy().astype(np.float64)
+    surface = np.einsum("nk,nkj->nj", dense_bary, rest[cells[dense_cell]])
     best = lowest.argmax(axis=1)
     w3 = w[np.arange(len(best)), best]
     weights = np.concatenate([1.0 - w3.sum(axis=1, keepdims=True), w3], axis=1)
-    points = np.einsum("nk,nkj->nj", weights, rest[cells[best]])
+    points = np.einsum("nk,nkj->nj", weights, rest[their_cells[best]])
     kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
     return -igl.signed_distance(points, surface, faces, kind)[0] if len(points) else np.zeros(0)
 
