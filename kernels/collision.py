@@ -201,17 +201,19 @@ def leaf_holds(
     leaf: wp.vec4i,
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
+    tet_slack: wp.array(dtype=float),
 ) -> int:
-    """Bit k set if the leaf's k-th tet holds ``q`` (a flat tet, with a zero inverse, holds nothing).
+    """Bit k set if the leaf's k-th tet holds ``q``, its weights there no lower than minus the tet's slack.
 
-    The four tets' loads do not depend on one another, so they are in flight together.
+    A flat tet, with a zero inverse, holds nothing. The four tets' loads do not depend on one another, so
+    they are in flight together.
     """
     mask = int(0)
     for k in range(4):
         e = wp.max(leaf[k], 0)
         inverse = tet_inverse[e]
         w = tet_weights(q, inverse, tet_origin[e])
-        if leaf[k] >= 0 and wp.min(w) >= 0.0 and wp.determinant(inverse) != 0.0:
+        if leaf[k] >= 0 and wp.min(w) >= -tet_slack[e] and wp.determinant(inverse) != 0.0:
             mask = mask | (1 << k)
     return mask
 
@@ -428,6 +430,7 @@ def walk_tree(
     tets: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
+    tet_slack: wp.array(dtype=float),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
@@ -445,8 +448,10 @@ def walk_tree(
     Depth first, :data:`WALK_STRIDE` levels at a time: the 8 boxes three levels below a box that holds the
     point are tested together (one round trip to memory), the bits of those that hold it kept 8 to a level in
     an int64 stack (the first step down takes 1 to 3 levels). A leaf's four tets are tested together; the
-    first that answers (:func:`depth_in_tet`: a positive depth, or status 2 or 3) ends the walk. Returns that
-    tet (-1 if none), its weights and the answer, for :func:`answer_pending` to record after the walk.
+    first that answers (:func:`depth_in_tet`: a positive depth, or status 2) ends the walk. A tet whose part
+    of the dense surface the point surely lies outside (status 3) does not: where parts of a body overlap
+    (one pressed onto another), the point may lie in the cage margin of one and inside the other. Returns the
+    tet that answered (-1 if none), its weights and the answer, for :func:`answer_pending` to record.
     """
     ns = node_start[body]
     ls = leaf_start[body]
@@ -481,7 +486,7 @@ def walk_tree(
             mask = mask & (mask - 1)
             if level == leaf_level:
                 leaf = leaf_tets[ls + node - (leaves - 1)]
-                inside = leaf_holds(q, leaf, tet_inverse, tet_origin)
+                inside = leaf_holds(q, leaf, tet_inverse, tet_origin, tet_slack)
                 while inside != 0 and not found:
                     k = lowest_bit(inside)
                     inside = inside & (inside - 1)
@@ -492,7 +497,7 @@ def walk_tree(
                         p, q, e, t, w, same, x, v, dt, tet_face_start, tet_faces, tet_face_ids, face_depth,
                         surface, point_velocity, point_anchor, row_start, cols, depth, grad,
                     )  # fmt: skip
-                    if status >= 2 or (status == 1 and d > 0.0 and wp.length(g) > 0.0):
+                    if status == 2 or (status == 1 and d > 0.0 and wp.length(g) > 0.0):
                         found = True
                         pending = e
                         pending_w = w
@@ -524,6 +529,7 @@ def detect_contacts(
     cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
+    tet_slack: wp.array(dtype=float),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
@@ -570,8 +576,8 @@ def detect_contacts(
             continue
         e, w, status, d, g, bound = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-            tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
-            point_anchor, row_start, cols, depth, grad,
+            tet_inverse, tet_origin, tet_slack, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+            point_velocity, point_anchor, row_start, cols, depth, grad,
         )  # fmt: skip
         if e >= 0:
             answer_pending(
@@ -598,6 +604,7 @@ def detect_contacts_direct(
     cells: wp.array(dtype=wp.vec4i),
     tet_inverse: wp.array(dtype=wp.mat33),
     tet_origin: wp.array(dtype=wp.vec3),
+    tet_slack: wp.array(dtype=float),
     tet_face_start: wp.array(dtype=wp.int32),
     tet_faces: wp.array(dtype=wp.vec3i),
     tet_face_ids: wp.array(dtype=wp.int32),
@@ -639,7 +646,7 @@ def detect_contacts_direct(
             if candidate % lanes == lane and (self_ok or not same):
                 e, w, status, d, g, bound = walk_tree(
                     p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,
-                    tet_inverse, tet_origin, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
+                    tet_inverse, tet_origin, tet_slack, tet_face_start, tet_faces, tet_face_ids, face_depth, surface,
                     point_velocity, point_anchor, row_start, cols, depth, grad,
                 )  # fmt: skip
                 if e >= 0:

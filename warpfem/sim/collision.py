@@ -420,6 +420,7 @@ class Collider:
                 m.cells,
                 self.tet_inverse,
                 self.tet_origin,
+                m.tet_slack,
                 m.tet_face_start,
                 m.tet_faces,
                 m.tet_face_ids,

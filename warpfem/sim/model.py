@@ -118,6 +118,7 @@ class Model:
     tree_node_start: wp.array  # int32 (bodies+1), node offsets of each body's tree of tets
     tree_leaf_start: wp.array  # int32 (bodies+1), leaf offsets (a body's leaves are its last nodes)
     tree_leaf_tets: wp.array  # vec4i, global tets of each leaf (-1: none)
+    tet_slack: wp.array  # float, how far below zero a point's weights in each tet may go for detection to test it
     tet_size: float  # typical tet size (m): the median largest edge component of a tet (tunnelling warning)
 
     @property
@@ -455,8 +456,31 @@ _FLAT_FIELDS = {
     "tree_node_start": ("node_start", wp.int32, np.int32),
     "tree_leaf_start": ("leaf_start", wp.int32, np.int32),
     "tree_leaf_tets": ("leaf_tets", wp.vec4i, np.int32),
+    "tet_slack": ("slack", float, np.float32),
 }
 """The :class:`Model` fields copied as they are from the builder's flat arrays: (flat key, Warp dtype, NumPy dtype)."""
+
+
+TET_SLACK_MARGIN = 1.25
+"""A tet's detection slack over the lowest weight of its own dense vertices and collision points outside it."""
+
+
+def tet_slack(tet_count: int, *embeddings: tuple[np.ndarray | None, np.ndarray | None]) -> np.ndarray:
+    """Per tet, how far below zero a point's weights in it may go for contact detection to test the tet.
+
+    Where the dense surface stands outside the tets, its vertices and collision points are carried by the tet
+    nearest them with weights below zero; another body's point pressed into that part of the surface lies in
+    no tet either. A tet's slack is :data:`TET_SLACK_MARGIN` times the lowest weight of a point it carries
+    (zero where it carries none outside it), so detection finds such a point in the tet that carries the
+    surface there, where the tet's leaf box holds it (the boxes do not grow: a leaf's box already reaches
+    past its tets, and grown boxes cost detection more than they find). ``embeddings``: (tet, weights) per
+    kind of embedded point, local indices (None: none).
+    """
+    slack = np.zeros(tet_count)
+    for tet, bary in embeddings:
+        if tet is not None and len(tet):
+            np.maximum.at(slack, np.asarray(tet), -np.asarray(bary, np.float64).reshape(len(tet), 4).min(axis=1))
+    return TET_SLACK_MARGIN * np.maximum(slack, 0.0)
 
 
 class ModelBuilder:
@@ -555,6 +579,7 @@ class ModelBuilder:
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
                 face_depth=np.asarray(g.face_depth, np.float64).reshape(-1),
                 leaf_tets=np.asarray(g.leaf_tets, np.int32).reshape(-1, 4),
+                slack=tet_slack(len(tets), (embed_tet, embed_bary), (g.point_tet, g.point_bary)),
                 **embedded,
             )
         )
@@ -641,6 +666,7 @@ class ModelBuilder:
                 "skin_bary",
                 "skin_mass",
                 "face_depth",
+                "slack",
             ):
                 add(key, b[key])
             start, flat = b["tet_faces"]
