@@ -479,8 +479,11 @@ def tet_slack(tet_count: int, *embeddings: tuple[np.ndarray | None, np.ndarray |
     slack = np.zeros(tet_count)
     for tet, bary in embeddings:
         if tet is not None and len(tet):
-            np.maximum.at(slack, np.asarray(tet), -np.asarray(bary, np.float64).reshape(len(tet), 4).min(axis=1))
-    return TET_SLACK_MARGIN * np.maximum(slack, 0.0)
+            w = np.asarray(bary).reshape(len(tet), 4)
+            lowest = np.minimum(np.minimum(w[:, 0], w[:, 1]), np.minimum(w[:, 2], w[:, 3]))
+            outside = lowest < 0.0
+            np.maximum.at(slack, np.asarray(tet)[outside], -lowest[outside].astype(np.float64))
+    return TET_SLACK_MARGIN * slack
 
 
 class ModelBuilder:
