@@ -9,8 +9,11 @@
 ``--dissect P`` adds, on each checked frame where a body's dense vertex lies more than P % of the other body's
 size inside it, how many of that body's dense vertices and of its collision points lie inside the other, by
 libigl's winding number, and of those points how many lie in none of the other body's tets, how many lie in
-them but outside its dense surface at rest (where its own parts overlap) and how many have no contact with it
-in the last step: whether a deep frame is a few points or a wide overlap, seen or missed.
+them but outside its dense surface at rest (where its own parts overlap), how many have no contact with it
+in the last step, how many a detection run afresh on the frame's positions finds none for, and how many
+both (a point with none in the last step but one afresh came in during the step's last solve): whether a deep
+frame is a few points or a wide overlap, seen or missed. The fresh detection rewrites the contact buffers,
+which the next step fills again.
 
 ``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
@@ -118,8 +121,8 @@ def dissect(sim, name: str, other: str) -> str:
     """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points inside
     the other's dense surface (libigl's fast winding number), the deepest of each (% of the other's size), and of
     those collision points how many lie in none of the other body's tets (which detection needs), how many lie
-    in them but outside its dense surface at rest (its own parts overlapping there) and how many have no contact
-    with it in the last step's contact buffers."""
+    in them but outside its dense surface at rest (its own parts overlapping there), how many have no contact
+    with it in the last step's contact buffers, how many a detection afresh finds none for, and how many both."""
     import igl
     import numpy as np
 
@@ -156,11 +159,15 @@ def dissect(sim, name: str, other: str) -> str:
     collider = sim.solver.collider
     count = min(int(collider.count.numpy()[0]), collider.capacity)
     contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
-    missing = int((~np.isin(own[inside], contact_point[cell_body[contact_cell] == theirs])).sum())
+    without = ~np.isin(own[inside], contact_point[cell_body[contact_cell] == theirs])
+    state = sim.states[0]
+    fresh_point, fresh_cell = collider.contacts_at(state.x, state.v, sim.dt)
+    unseen = ~np.isin(own[inside], fresh_point[cell_body[fresh_cell] == theirs])
     overlap = int((held & (rest_depth <= 0.0)).sum())
     parts.append(
         f"{int((~held).sum())} of those outside its tets, {overlap} in them but outside its dense surface at rest "
-        f"(where its own parts overlap), {missing} with no contact"
+        f"(where its own parts overlap), {int(without.sum())} with no contact, {int(unseen.sum())} with none "
+        f"afresh ({int((without & unseen).sum())} both)"
     )
     return f"{name} in {other}: " + ", ".join(parts)
 

@@ -352,9 +352,13 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
     assert frame.split()[4:7] == ["top", "in", "ball"] and pair.startswith("top in ball: ")
     dense = pair.split(": ")[1].split(", ")[0]
     assert int(dense.split()[0]) > 0 and dense.endswith(f"(deepest {frame.split()[2]} %)")
-    inside, outside, overlap, missing = (int(part.split()[0]) for part in pair.split(": ")[1].split(", ")[1:])
+    counts = pair.split(": ")[1].split(", ")[1:]
+    inside, outside, overlap, missing, unseen = (int(part.split()[0]) for part in counts)
     assert 0 < inside and 0 <= outside <= inside and 0 <= missing <= inside
     assert overlap == 0  # a ball's parts never overlap: a point in its tets inside it is inside it at rest too
+    # a detection afresh at the frame's positions finds every point inside the other ball by winding number
+    # (none lies outside its tets past their slack, nor where its parts overlap)
+    assert counts[4] == "0 with none afresh (0 both)"
     with pytest.raises(SystemExit, match="expected section.key=value"):
         trace.main([str(scene), "--set", "young"])
     for bad in ("abc", "nan", "-1"):  # a depth in % >= 0, or argparse's one line and exit 2, before any run

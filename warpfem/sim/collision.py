@@ -251,6 +251,20 @@ class Collider:
         self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
+    def contacts_at(self, x: wp.array, v: wp.array, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The contacts a detection finds afresh at positions ``x``: (collision point, cell) of each, on the host.
+
+        For checks between frames: it rewrites the contact buffers and the points' contact marks, which the next
+        step clears and fills again (points placed inside another body keep their mark only where it finds a
+        contact). Reads the rotated distance gradients the last step left in ``grad``.
+        """
+        self.prepare(x, v)
+        self.point_contact.zero_()
+        self.counts.zero_()
+        self._detect(x, v, dt)
+        count = min(int(self.count.numpy()[0]), self.capacity)
+        return self.contact_point.numpy()[:count], self.contact_cell.numpy()[:count]
+
     def respond_late(
         self,
         x: wp.array,
