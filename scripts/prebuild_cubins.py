@@ -2,6 +2,7 @@
 
     .venv/bin/python scripts/prebuild_cubins.py --out /tmp/cubins                 every step module, sm_90
     .venv/bin/python scripts/prebuild_cubins.py --out /tmp/cubins --modules collision --arch 80
+    .venv/bin/python scripts/prebuild_cubins.py --out .warp-cache-gpu --prune    this tree's builds only
 
 Warp names a module's binary by a hash of its code and options, the same here as on a GPU machine with the same
 Warp, so copying the folders this writes into that machine's kernel cache (``wp.config.kernel_cache_dir``) makes
@@ -56,6 +57,23 @@ def build(out: Path, modules: list[str], arch: int) -> list[Path]:
     return written
 
 
+def prune(out: Path, modules: list[str], kept: list[Path]) -> list[Path]:
+    """Remove the folders under ``out`` of other builds of ``warpfem.kernels.<module>`` (older code, other options)
+    than ``kept``'s, so that a cache carried to the GPU machine holds this tree's modules only; returns them."""
+    import shutil
+
+    keep = {path.parent.name for path in kept}
+    stale = [
+        folder
+        for name in modules
+        for folder in out.glob(f"wp_warpfem.kernels.{name}_*")
+        if folder.is_dir() and folder.name not in keep
+    ]
+    for folder in stale:
+        shutil.rmtree(folder)
+    return stale
+
+
 def main(argv: list[str] | None = None) -> int:
     import warp as wp
 
@@ -66,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="folder to write the cache's module folders in")
     parser.add_argument("--modules", default=",".join(known), help=f"comma-separated, of: {', '.join(known)}")
     parser.add_argument("--arch", type=int, default=90, help="the GPU's compute capability, e.g. 80 or 90")
+    parser.add_argument(
+        "--prune", action="store_true", help="remove the folders of the modules' other builds from --out"
+    )
     args = parser.parse_args(argv)
     if not 50 <= args.arch <= 130:
         parser.error(f"--arch must be an SM version such as 80 or 90, got {args.arch}")
@@ -77,10 +98,13 @@ def main(argv: list[str] | None = None) -> int:
     wp.config.quiet = True
     wp.init()
     try:
-        build(args.out, modules, args.arch)
+        built = build(args.out, modules, args.arch)
     except Exception as err:  # Warp's NVRTC build raises a bare Exception
         print(f"prebuild_cubins: NVRTC could not build for sm_{args.arch}: {err}", file=sys.stderr)
         return 2
+    if args.prune:
+        for folder in prune(args.out, modules, built):
+            print(f"removed {folder.name}")
     return 0
 
 

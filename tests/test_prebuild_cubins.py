@@ -23,7 +23,12 @@ def test_a_module_is_built_in_every_block_size_under_the_names_warps_own_build_g
     from warpfem.sim.modules import STEP_MODULES
 
     monkeypatch.setitem(STEP_MODULES, approach.__name__, SPREAD_BLOCKS)
-    assert prebuild_cubins.main(["--out", str(tmp_path / "cache"), "--modules", "approach"]) == 0
+    stale, other = tmp_path / "cache" / f"wp_{approach.__name__}_0000000", tmp_path / "cache" / "wp_elsewhere_0000000"
+    for folder in (stale, other):  # an older build of the module, and a module not named
+        folder.mkdir(parents=True)
+    assert prebuild_cubins.main(["--out", str(tmp_path / "cache"), "--modules", "approach", "--prune"]) == 0
+    assert not stale.exists() and other.exists()
+    other.rmdir()
     module = wp.get_module(approach.__name__)
     reference = wp.compile_aot_module(module, arch=90, module_dir=tmp_path / "aot", use_ptx=False)[0]
     built = sorted((tmp_path / "cache").glob("*/*.sm90.cubin"))
