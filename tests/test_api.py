@@ -204,13 +204,14 @@ def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path, device)
     scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
     summary = warpfem.run(scene, out=tmp_path / "a.usdc", device=device, cache=False)
     stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
-    lowest, last = {}, {}
+    lowest, lowest_by_frame, last = {}, {}, {}
     for name in ("ball", "top"):
         mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}"))
         frames = [np.asarray(mesh.GetPointsAttr().Get(t)) for t in range(scene.frames + 1)]
         for t, points in enumerate(frames):  # the extent the device reduced is the points' bounds
             np.testing.assert_array_equal(mesh.GetExtentAttr().Get(t), [points.min(axis=0), points.max(axis=0)])
-        lowest[name] = min(points[:, 1].min() for points in frames)
+        lowest_by_frame[name] = [points[:, 1].min() for points in frames]
+        lowest[name] = min(lowest_by_frame[name])
         last[name] = (frames[-1].astype(np.float64), np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3))
     below = max(0.0, -min(lowest.values()))
     deepest = 0.0  # the last frame's bodies in each other, by libigl's exact winding numbers and distances
@@ -222,9 +223,42 @@ def test_run_reports_the_penetration_a_check_of_the_file_finds(tmp_path, device)
             deepest = max(deepest, float(np.abs(depth).max()) / np.linalg.norm(np.ptp(v, axis=0)))
     assert summary.penetration_end.relative == pytest.approx(deepest, abs=1e-5)
     assert summary.penetration.below_ground == pytest.approx(below, abs=1e-7)
+    # the frame it names is the first written frame that low (-1 where nothing went below the ground)
+    per_frame = np.min([lows for lows in lowest_by_frame.values()], axis=0)
+    first = int(np.flatnonzero(per_frame <= -below + 1e-7)[0]) if below > 0.0 else -1
+    assert summary.penetration.below_frame == first
     assert summary.penetration_end.below_ground <= summary.penetration.below_ground
     assert summary.penetration_frames >= 1 and summary.penetration.relative >= summary.penetration_end.relative
     assert summary.penetration.inside in ("", "ball in top", "top in ball")
+
+
+def test_run_names_the_frame_its_surfaces_sank_deepest_below_the_ground(tmp_path, device):
+    """On a soft ground with the penalties alone (no lift out of it), the balls' written dense points go below the
+    ground; the summary's ground figure names the first written frame as low as the lowest (NumPy on the file)."""
+    import dataclasses
+
+    from pxr import Usd, UsdGeom
+
+    scene = warpfem.load_scene(ROOT / "tests" / "data" / "golden" / "two_balls.toml")
+    scene = dataclasses.replace(
+        scene,
+        ground=dataclasses.replace(scene.ground, stiffness=3e3),
+        solver=dataclasses.replace(scene.solver, static_lift=False),
+    )
+    summary = warpfem.run(scene, out=tmp_path / "a.usdc", device=device, cache=False)
+    stage = Usd.Stage.Open(str(tmp_path / "a.usdc"))
+    lows = np.min(
+        [
+            [np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}")).GetPointsAttr().Get(t))[:, 1].min()
+             for t in range(scene.frames + 1)]
+            for name in ("ball", "top")
+        ],
+        axis=0,
+    )  # fmt: skip
+    assert lows.min() < -1e-3  # the soft ground let them sink
+    worst = summary.penetration
+    assert worst.below_ground == pytest.approx(-lows.min(), abs=1e-7)
+    assert worst.below_frame == int(np.flatnonzero(lows <= lows.min() + 1e-7)[0])
 
 
 def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path, device):
@@ -256,7 +290,21 @@ def test_run_body_check_at_the_end_is_a_check_of_the_written_last_frame(tmp_path
                 deepest, inside = relative, f"{inner} in {outer}"
     assert deepest > 0.01  # still well inside each other
     assert summary.penetration_end.relative == pytest.approx(deepest, abs=1e-5)
-    assert summary.penetration_end.inside == inside
+    assert summary.penetration_end.inside == inside and summary.penetration_end.frame == scene.frames
+    # the worst over the run names a frame it checked, and libigl finds that depth in that written frame
+    worst, seen = summary.penetration, 0.0
+    for inner, outer in (("ball", "top"), ("top", "ball")):
+        at = {}
+        for name in (inner, outer):
+            mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{name}"))
+            faces = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+            at[name] = (np.asarray(mesh.GetPointsAttr().Get(worst.frame), np.float64), faces)
+        (q, _), (v, f) = at[inner], at[outer]
+        held = q[igl.winding_number(v, f, q) > 0.5]
+        if len(held):
+            depth, *_ = igl.signed_distance(held, v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED)
+            seen = max(seen, float(np.abs(depth).max()) / np.linalg.norm(np.ptp(v, axis=0)))
+    assert 1 <= worst.frame <= scene.frames and worst.relative == pytest.approx(seen, abs=1e-5)
 
 
 def test_cg_stopping_at_its_cap_is_said_once_and_counted(ball_dir, capsys):

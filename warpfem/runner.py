@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -380,6 +380,7 @@ class _Check:
             obstacles = [o for o in obstacles if o.mesh is None]
         clock = time.perf_counter()
         result = self.body_check.measure(points, ground, obstacles, bodies=False, boxes=boxes)
+        result = replace(result, below_frame=frame if result.below_relative > 0.0 else -1)
         if meshes and due and frame > 0:
             self.next_mesh = self._next(frame, time.perf_counter() - clock)
         self.ground_worst = self.ground_worst.worst(result)
@@ -420,6 +421,7 @@ class _Check:
         if self.pending is None:
             return
         result = self.body_check.collect_bodies()
+        result = replace(result, frame=self.pending if result.relative > 0.0 else -1)
         self.body_worst = self.body_worst.worst(result)
         if self.pending == self.sim.scene.frames:
             self.body_end = result

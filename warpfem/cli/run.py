@@ -226,10 +226,14 @@ def _penetration_text(summary: Any) -> str:
     def body(p: Any) -> str:
         return f"{1e3 * p.depth:.2f} mm ({100 * p.relative:.2f} %{', ' + p.inside if p.inside else ''})"
 
+    def at(frame: int) -> str:
+        return f" at frame {frame}" if frame >= 0 else ""
+
     return (
-        f"bodies {body(worst)} over {summary.penetration_frames} frames checked, {body(end)} at the end; "
-        f"below the ground or in obstacles {1e3 * worst.below_ground:.2f} mm ({100 * worst.below_relative:.2f} %) "
-        f"over {summary.ground_frames} frames checked, {1e3 * end.below_ground:.2f} mm at the end"
+        f"bodies {body(worst)}{at(worst.frame)} over {summary.penetration_frames} frames checked, {body(end)} at "
+        f"the end; below the ground or in obstacles {1e3 * worst.below_ground:.2f} mm "
+        f"({100 * worst.below_relative:.2f} %){at(worst.below_frame)} over {summary.ground_frames} frames checked, "
+        f"{1e3 * end.below_ground:.2f} mm at the end"
     )
 
 

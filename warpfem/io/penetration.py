@@ -28,6 +28,8 @@ class Penetration:
         inside: ``"a in b"``: which body's vertex is inside which ("" if none).
         below_ground: Deepest dense point below the ground plane or inside a static obstacle (m); 0 if none.
         below_relative: That depth over the size of its body.
+        frame: The output frame of the body figures (-1: none given, or nothing inside another body).
+        below_frame: The output frame of the ground figures (-1: none given, or nothing below).
     """
 
     depth: float = 0.0
@@ -35,12 +37,17 @@ class Penetration:
     inside: str = ""
     below_ground: float = 0.0
     below_relative: float = 0.0
+    frame: int = -1
+    below_frame: int = -1
 
     def worst(self, other: Penetration) -> Penetration:
-        """The worse of the two for each measure (relative depths decide)."""
+        """The worse of the two for each measure (relative depths decide; the earlier where they tie)."""
         body = self if self.relative >= other.relative else other
         ground = self if self.below_relative >= other.below_relative else other
-        return Penetration(body.depth, body.relative, body.inside, ground.below_ground, ground.below_relative)
+        return Penetration(
+            body.depth, body.relative, body.inside, ground.below_ground, ground.below_relative, body.frame,
+            ground.below_frame,
+        )  # fmt: skip
 
 
 _BLOCKS = (1024, 64)
