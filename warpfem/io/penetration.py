@@ -41,7 +41,7 @@ class Penetration:
     below_frame: int = -1
 
     def worst(self, other: Penetration) -> Penetration:
-        """The worse of the two for each measure (relative depths decide; the earlier where they tie)."""
+        """The worse of the two for each measure (relative depths decide; ``self`` where they tie)."""
         body = self if self.relative >= other.relative else other
         ground = self if self.below_relative >= other.below_relative else other
         return Penetration(
