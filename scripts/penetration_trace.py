@@ -157,8 +157,7 @@ def dissect(sim, name: str, other: str) -> str:
     held = lowest.max(axis=1) >= 0.0
     rest_depth = _rest_depths(sim, theirs, cells, their_cells, lowest, w, faces)
     collider = sim.solver.collider
-    count = min(int(collider.count.numpy()[0]), collider.capacity)
-    contact_point, contact_cell = (a.numpy()[:count] for a in (collider.contact_point, collider.contact_cell))
+    contact_point, contact_cell = collider.contacts()
     without = ~np.isin(own[inside], contact_point[cell_body[contact_cell] == theirs])
     state = sim.states[0]
     fresh_point, fresh_cell = collider.contacts_at(state.x, state.v, sim.dt)

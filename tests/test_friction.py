@@ -144,3 +144,26 @@ def test_solves_converge_in_a_contrast_stack_with_scene_defaults():
     assert len(solves) > 100
     assert worst_residual(sim, solves) < 2.0 * sim.scene.solver.cg_tolerance
     assert warpfem.frame_penetration(sim).relative < 0.01
+
+
+def test_a_fresh_detection_between_frames_leaves_the_placed_marks_be():
+    """``Collider.contacts_at`` (a check between frames) rewrites the contact buffers but not the points' contact
+    marks, so the next step releases the same placed overlaps as a run without the check does."""
+    import dataclasses
+
+    from warpfem.presets import CONTACT_OFFSET, STATIC_OFFSET
+
+    scene = _bunny_stack((1e7, 3e5), cap=400, offset=STATIC_OFFSET, contact_offset=CONTACT_OFFSET)
+    scene = dataclasses.replace(
+        scene, objects=[dataclasses.replace(o, translate=(0.0, *o.translate[1:])) for o in scene.objects]
+    )
+    checked, plain = (warpfem.Simulation(scene, device="cpu") for _ in range(2))
+    for sim in (checked, plain):
+        sim.step_frame()
+    marked = checked.solver.collider.placed.numpy().copy()
+    assert marked.any()  # the overlap the run started with is still marked
+    state = checked.states[0]
+    assert len(checked.solver.collider.contacts_at(state.x, state.v, checked.dt)[0]) > 0
+    for sim in (checked, plain):
+        sim.step_frame()
+    np.testing.assert_array_equal(checked.solver.collider.placed.numpy(), plain.solver.collider.placed.numpy())

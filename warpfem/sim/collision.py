@@ -251,19 +251,29 @@ class Collider:
         self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
 
-    def contacts_at(self, x: wp.array, v: wp.array, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """The contacts a detection finds afresh at positions ``x``: (collision point, cell) of each, on the host.
+    def contacts(self) -> tuple[np.ndarray, np.ndarray]:
+        """The contacts in the buffers: (collision point, cell) of each, copied to the host.
 
-        For checks between frames: it rewrites the contact buffers and the points' contact marks, which the next
-        step clears and fills again (points placed inside another body keep their mark only where it finds a
-        contact). Reads the rotated distance gradients the last step left in ``grad``.
+        The last step's, or :meth:`contacts_at`'s (one host synchronisation).
         """
+        count = min(int(self.count.numpy()[0]), self.capacity)
+        return self.contact_point.numpy()[:count].copy(), self.contact_cell.numpy()[:count].copy()
+
+    def contacts_at(self, x: wp.array, v: wp.array, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The contacts a detection finds afresh at positions ``x``, as :meth:`contacts` gives them.
+
+        For checks between frames: it rewrites the contact buffers, which the next step clears and fills again;
+        the points' contact marks stay the last step's. Reads the rotated distance gradients the last step left
+        in ``grad``.
+        """
+        self._detect_afresh(x, v, dt)
+        return self.contacts()
+
+    def _detect_afresh(self, x: wp.array, v: wp.array, dt: float) -> None:
+        """Contacts at positions ``x`` into emptied buffers, outside a step (detection reads no contact marks)."""
         self.prepare(x, v)
-        self.point_contact.zero_()
         self.counts.zero_()
         self._detect(x, v, dt)
-        count = min(int(self.count.numpy()[0]), self.capacity)
-        return self.contact_point.numpy()[:count], self.contact_cell.numpy()[:count]
 
     def respond_late(
         self,
@@ -300,10 +310,7 @@ class Collider:
         """
         m = self.model
         self.rotate_gradients(wp.full(m.tet_count, wp.mat33(np.eye(3, dtype=np.float32)), device=m.device))
-        self.prepare(x, v)
-        self.point_contact.zero_()
-        self.counts.zero_()
-        self._detect(x, v, dt)
+        self._detect_afresh(x, v, dt)
         wp.launch(
             KC.mark_placed,
             dim=self.capacity,

@@ -480,6 +480,7 @@ def tet_slack(tet_count: int, *embeddings: tuple[np.ndarray | None, np.ndarray |
     for tet, bary in embeddings:
         if tet is not None and len(tet):
             w = np.asarray(bary).reshape(len(tet), 4)
+            # column by column: NumPy reduces axis 1 of an (n, 4) array several times slower
             lowest = np.minimum(np.minimum(w[:, 0], w[:, 1]), np.minimum(w[:, 2], w[:, 3]))
             outside = lowest < 0.0
             np.maximum.at(slack, np.asarray(tet)[outside], -lowest[outside].astype(np.float64))
