@@ -655,3 +655,83 @@ def detect_contacts_direct(
                         tet_face_ids, face_depth, surface, point_velocity, point_anchor, row_start, cols, depth,
                         grad, found_out, late,
                     )  # fmt: skip
+
+
+@wp.kernel
+def detect_carried(
+    # inputs: the contacts carried over from the step before
+    carried_count: wp.array(dtype=wp.int32),
+    carried_point: wp.array(dtype=wp.int32),
+    carried_cell: wp.array(dtype=wp.int32),
+    cell_body: wp.array(dtype=wp.int32),
+    # inputs: geometry
+    node_start: wp.array(dtype=wp.int32),
+    leaf_start: wp.array(dtype=wp.int32),
+    leaf_tets: wp.array(dtype=wp.vec4i),
+    node_lower: wp.array(dtype=wp.vec3),
+    node_upper: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    tets: wp.array(dtype=wp.vec4i),
+    cells: wp.array(dtype=wp.vec4i),
+    tet_inverse: wp.array(dtype=wp.mat33),
+    tet_origin: wp.array(dtype=wp.vec3),
+    tet_slack: wp.array(dtype=float),
+    tet_face_start: wp.array(dtype=wp.int32),
+    tet_faces: wp.array(dtype=wp.vec3i),
+    tet_face_ids: wp.array(dtype=wp.int32),
+    face_depth: wp.array(dtype=float),
+    surface: VisibleSurface,
+    points: wp.array(dtype=wp.vec3),
+    point_velocity: wp.array(dtype=wp.vec3),
+    point_body: wp.array(dtype=wp.int32),
+    point_anchor: wp.array(dtype=wp.vec3i),
+    row_start: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    depth: wp.array(dtype=float),
+    grad: wp.array(dtype=wp.vec3),
+    # outputs
+    found_out: Found,
+):
+    """:func:`detect_contacts` for the (point, body) pairs of the step before's contacts only.
+
+    Each carried contact's point walks the tree of the body it touched, at the positions the collision points
+    now have; a pair the step before did not have waits for the step's late look.
+    """
+    i = wp.tid()
+    if i >= wp.min(carried_count[0], carried_point.shape[0]):
+        return
+    p = carried_point[i]
+    body = cell_body[carried_cell[i]]
+    q = points[p]
+    same = body == point_body[p]
+    e, w, status, d, g, bound = walk_tree(
+        p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets, tet_inverse,
+        tet_origin, tet_slack, tet_face_start, tet_faces, tet_face_ids, face_depth, surface, point_velocity,
+        point_anchor, row_start, cols, depth, grad,
+    )  # fmt: skip
+    if e >= 0:
+        answer_pending(
+            p, q, e, w, same, status, d, g, bound, x, v, dt, tets, cells, tet_face_start, tet_faces, tet_face_ids,
+            face_depth, surface, point_velocity, point_anchor, row_start, cols, depth, grad, found_out, 0,
+        )  # fmt: skip
+
+
+@wp.kernel
+def keep_contacts(
+    count: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.int32),
+    contact_cell: wp.array(dtype=wp.int32),
+    carried_count: wp.array(dtype=wp.int32),
+    carried_point: wp.array(dtype=wp.int32),
+    carried_cell: wp.array(dtype=wp.int32),
+):
+    """Copies the step's contacts (point, cell) for the next step's :func:`detect_carried`."""
+    i = wp.tid()
+    n = wp.min(count[0], contact_point.shape[0])
+    if i == 0:
+        carried_count[0] = n
+    if i < n:
+        carried_point[i] = contact_point[i]
+        carried_cell[i] = contact_cell[i]

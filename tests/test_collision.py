@@ -647,3 +647,46 @@ def test_collision_settings_refuse_values_out_of_range(field, value):
     """A bad setting is refused where it is made, naming the field, before any solver is built on it."""
     with pytest.raises(ValueError, match=f"CollisionSettings.{field} must be"):
         CollisionSettings(**{field: value})
+
+
+def test_a_carried_look_finds_the_full_looks_contacts_of_the_pairs_it_kept(device, monkeypatch):
+    """A scene of many bodies starts a step from the step before's contacts: each kept (point, body) pair walked
+    again where the points now lie. After the bodies move, it finds exactly the contacts a look at every point
+    finds for those pairs, with the same cells, weights and depths, and none of the pairs it did not keep."""
+    monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 0)
+    b = ModelBuilder()
+    for k, (offset, rx, ry) in enumerate([((0.0, 0.0, 0.0), 0, 0), ((0.15, 0.12, 0.05), 30, 40)]):
+        verts, tets = _box((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), (3, 4, 3))
+        add_body(b, f"b{k}", verts @ _rotation(rx, ry).T + np.asarray(offset), tets, 1e5, 0.3, 1000.0,
+                 collision_spacing=0.04)  # fmt: skip
+    model = b.finalize(device)
+    solver = Solver(model, ground=None)
+    c = solver.collider
+    assert c.carries
+    c.rotate_gradients(wp.array(np.tile(np.eye(3), (model.tet_count, 1, 1)), dtype=wp.mat33, device=device))
+    tet_body = model.tet_body.numpy()
+
+    def look(x: np.ndarray, carried: bool) -> dict:
+        xs = wp.array(x, dtype=wp.vec3, device=device)
+        v = wp.zeros_like(xs)
+        c.prepare(xs, v)
+        c.respond(xs, v, 1 / 240, wp.zeros_like(xs), wp.zeros_like(solver.matrix), carried=carried)
+        n = int(c.count.numpy()[0])
+        point, cell = c.contact_point.numpy()[:n].copy(), c.contact_cell.numpy()[:n].copy()  # views on the CPU
+        rows = zip(point, cell, c.contact_bary.numpy()[:n].copy(), c.contact_depth.numpy()[:n].copy(), strict=True)
+        return {(int(p), int(tet_body[e])): (int(e), w, d) for p, e, w, d in rows}
+
+    x = model.rest_x.numpy()
+    kept = look(x, carried=False)
+    c.keep()
+    moved = x.copy()
+    second = np.unique(model.tets.numpy()[tet_body == 1])
+    moved[second] += np.array([-0.02, -0.01, 0.015])  # the second box further in
+    full = look(moved, carried=False)
+    carried = look(moved, carried=True)
+    assert kept and set(full) - set(kept)  # moving in made pairs the step before did not have
+    assert set(carried) == set(full) & set(kept)
+    for pair, (e, w, d) in carried.items():
+        assert full[pair][0] == e
+        np.testing.assert_allclose(full[pair][1], w, atol=1e-6)
+        assert full[pair][2] == pytest.approx(d, abs=1e-7)

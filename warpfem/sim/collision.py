@@ -180,6 +180,13 @@ class Collider:
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.direct = len(model.bodies) <= DIRECT_BODIES
         """Whether detection tests every body's box itself rather than querying a BVH of them."""
+        self.carries = not self.direct
+        """Whether a step may start from the step before's contacts (:meth:`respond`'s ``carried``): in scenes
+        of many bodies, where the start's look at every point is a fifth of a step."""
+        kept = self.capacity if self.carries else 0
+        self.carried_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.carried_point = wp.zeros(kept, dtype=wp.int32, device=dev)
+        self.carried_cell = wp.zeros(kept, dtype=wp.int32, device=dev)
         self.body_bvh = None
         if not self.direct:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
@@ -236,20 +243,42 @@ class Collider:
         self._bound(x)
 
     def respond(
-        self, x: wp.array, v: wp.array, dt: float, force_out: wp.array, matrix_out: wp.array, cleared: bool = False
+        self,
+        x: wp.array,
+        v: wp.array,
+        dt: float,
+        force_out: wp.array,
+        matrix_out: wp.array,
+        cleared: bool = False,
+        carried: bool = False,
     ) -> None:
         """Detect contacts at positions ``x`` and add their penalty forces and diagonal blocks to the outputs.
 
         Needs :meth:`prepare` at the same ``x`` and ``v`` first. Reads the rotated distance gradients in
         ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
         first. ``cleared``: ``point_contact`` and ``counts`` are zero already (a step clears them with its
-        own accumulators, in one launch).
+        own accumulators, in one launch). ``carried`` (where :attr:`carries`): only the (point, body) pairs of
+        the contacts :meth:`keep` kept, each walked again at ``x``; a new pair waits for the step's late look.
         """
         if not cleared:
             self.point_contact.zero_()
             self.counts.zero_()
-        self._detect(x, v, dt)
+        if carried and self.carries:
+            self._detect_carried(x, v, dt)
+        else:
+            self._detect(x, v, dt)
         self._answer(v, dt, force_out, matrix_out)
+
+    def keep(self) -> None:
+        """Keep the step's contacts (points and cells) for the next step's carried look (where :attr:`carries`)."""
+        if self.carries:
+            wp.launch(
+                K.keep_contacts,
+                dim=self.capacity,
+                inputs=[self.count, self.contact_point, self.contact_cell],
+                outputs=[self.carried_count, self.carried_point, self.carried_cell],
+                device=self.model.device,
+            )
 
     def contacts(self) -> tuple[np.ndarray, np.ndarray]:
         """The contacts in the buffers: (collision point, cell) of each, copied to the host.
@@ -459,6 +488,49 @@ class Collider:
                 lanes,
                 self.point_contact,
                 int(late),
+            ],
+            outputs=[self.found],
+            device=m.device,
+            block_dim=DETECT_BLOCK if m.device.is_cuda else WIDE_BLOCK,
+        )
+
+    def _detect_carried(self, x: wp.array, v: wp.array, dt: float) -> None:
+        """Contacts at positions ``x`` of the (point, body) pairs :meth:`keep` kept."""
+        m = self.model
+        wp.launch(
+            K.detect_carried,
+            dim=self.capacity,
+            inputs=[
+                self.carried_count,
+                self.carried_point,
+                self.carried_cell,
+                m.cell_body,
+                self.node_start,
+                self.leaf_start,
+                self.leaf_tets,
+                self.node_lower,
+                self.node_upper,
+                x,
+                v,
+                dt,
+                m.tets,
+                m.cells,
+                self.tet_inverse,
+                self.tet_origin,
+                m.tet_slack,
+                m.tet_face_start,
+                m.tet_faces,
+                m.tet_face_ids,
+                m.face_depth,
+                self.visible,
+                self.points,
+                self.point_velocity,
+                m.point_body,
+                m.point_anchor,
+                m.row_start,
+                m.cols,
+                m.vertex_depth,
+                self.grad,
             ],
             outputs=[self.found],
             device=m.device,

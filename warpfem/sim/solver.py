@@ -225,9 +225,12 @@ class Solver:
         self.gravity.assign(np.array([gravity], dtype=np.float32))
 
     def phases(
-        self, state_in: State, state_out: State, dt: float, overlap: bool = True
+        self, state_in: State, state_out: State, dt: float, overlap: bool = True, carried: bool = False
     ) -> list[tuple[str, Callable[[], None]]]:
         """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve.
+
+        ``carried``: the collision stage looks again only at the step before's contacts where the collider
+        carries them (``Collider.respond``); a frame's first step looks at every point.
 
         With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: collision points,
         tet inverses, trees, none of which the elastic launch touches) runs on a side stream alongside the
@@ -256,7 +259,9 @@ class Solver:
                 wp.get_stream(model.device).wait_stream(side)
             else:
                 self.collider.prepare(state_in.x, state_in.v)
-            self.collider.respond(state_in.x, state_in.v, dt, self.force, self.matrix_base, cleared=True)
+            self.collider.respond(
+                state_in.x, state_in.v, dt, self.force, self.matrix_base, cleared=True, carried=carried
+            )
 
         def solve() -> None:
             if self.drive is not None:
@@ -268,6 +273,8 @@ class Solver:
             if self.rotation_updates:
                 self._update_rotations(state_in, state_out, dt, 1)
             self._late_passes(state_in, state_out, dt)
+            if self.collider is not None:
+                self.collider.keep()
             if self.static_lift:
                 integrate.lift_points(model, state_out, self.colliders, model.skin_cell, model.skin_bary, *self._lift)
             if self.drive is not None:
