@@ -654,6 +654,7 @@ def test_a_carried_look_finds_the_full_looks_contacts_of_the_pairs_it_kept(devic
     again where the points now lie. After the bodies move, it finds exactly the contacts a look at every point
     finds for those pairs, with the same cells, weights and depths, and none of the pairs it did not keep."""
     monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 0)
+    monkeypatch.setattr("warpfem.sim.collision.CARRY_BODIES", 0)
     b = ModelBuilder()
     for k, (offset, rx, ry) in enumerate([((0.0, 0.0, 0.0), 0, 0), ((0.15, 0.12, 0.05), 30, 40)]):
         verts, tets = _box((-0.15, -0.15, -0.15), (0.3, 0.3, 0.3), (3, 4, 3))

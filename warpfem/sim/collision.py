@@ -23,7 +23,7 @@ from warpfem.kernels import collision as K
 from warpfem.kernels import contacts as KC
 from warpfem.presets import CONTACT_DAMPING, CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
-from warpfem.sim.launch import DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
+from warpfem.sim.launch import CARRY_BODIES, DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
 from warpfem.sim.surface import visible_surface
 
 
@@ -180,9 +180,9 @@ class Collider:
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.direct = len(model.bodies) <= DIRECT_BODIES
         """Whether detection tests every body's box itself rather than querying a BVH of them."""
-        self.carries = not self.direct
+        self.carries = len(model.bodies) > CARRY_BODIES
         """Whether a step may start from the step before's contacts (:meth:`respond`'s ``carried``): in scenes
-        of many bodies, where the start's look at every point is a fifth of a step."""
+        of many bodies, where the start's look at every point costs more than the carried contacts' walks."""
         kept = self.capacity if self.carries else 0
         self.carried_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self.carried_point = wp.zeros(kept, dtype=wp.int32, device=dev)
