@@ -11,9 +11,11 @@ size inside it, how many of that body's dense vertices and of its collision poin
 libigl's winding number, and of those points how many lie in none of the other body's tets, how many lie in
 them but outside its dense surface at rest (where its own parts overlap), how many have no contact with it
 in the last step, how many a detection run afresh on the frame's positions finds none for, and how many
-both (a point with none in the last step but one afresh came in during the step's last solve): whether a deep
-frame is a few points or a wide overlap, seen or missed. The fresh detection rewrites the contact buffers,
-which the next step fills again.
+both (a point with none in the last step but one afresh came in during the step's last solve); then how far
+the deepest dense vertex lies from the body's nearest collision point, and how many of the other body's
+collision points lie inside this one and how many of those have no contact: whether a deep frame is a few
+points or a wide overlap, seen or missed, or the dense surface between collision points. The fresh detection
+rewrites the contact buffers, which the next step fills again.
 
 ``--pile N`` runs scripts/bench.py's pile of N armadillos (``--assets``) instead of a scene file.
 
@@ -168,7 +170,37 @@ def dissect(sim, name: str, other: str) -> str:
         f"(where its own parts overlap), {int(without.sum())} with no contact, {int(unseen.sum())} with none "
         f"afresh ({int((without & unseen).sum())} both)"
     )
+    parts.append(_between(sim, mine, theirs, dense, dense_depth, points, contact_point, contact_cell))
     return f"{name} in {other}: " + ", ".join(parts)
+
+
+def _between(sim, mine: int, theirs: int, dense, dense_depth, points, contact_point, contact_cell) -> str:
+    """How far body ``mine``'s deepest dense vertex lies from its nearest collision point (% of the body's
+    size: a vertex between collision points sinks unseen by any contact), and how many of body ``theirs``'s
+    collision points lie inside body ``mine`` (winding number) and of those how many have no contact with it in
+    the last step's contact buffers (the other way round, which holds the two apart there as well)."""
+    import igl
+    import numpy as np
+
+    m = sim.model
+    own = np.asarray(dense[mine], np.float64)
+    size = float(np.linalg.norm(np.ptp(own, axis=0)))
+    deepest = own[int(np.argmax(dense_depth))]
+    gap = float(np.linalg.norm(points - deepest, axis=1).min())
+    cells, cell, bary, body, cell_body = (
+        a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body, m.cell_body)
+    )
+    x = sim.states[0].x.numpy().astype(np.float64)
+    their = np.flatnonzero(body == theirs)
+    their_points = np.einsum("nk,nkj->nj", bary[their].astype(np.float64), x[cells[cell[their]]])
+    faces = np.asarray(m.bodies[mine].dense_faces, np.int64)
+    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+    inside = their[igl.signed_distance(their_points, own, faces, kind)[0] < 0.0]
+    without = ~np.isin(inside, contact_point[cell_body[contact_cell] == mine])
+    return (
+        f"its deepest dense vertex {100 * gap / size:.2f} % of its size from its nearest collision point, "
+        f"{len(inside)} of the other's collision points inside it ({int(without.sum())} with no contact)"
+    )
 
 
 def _rest_depths(sim, body: int, cells: np.ndarray, their_cells: np.ndarray, lowest: np.ndarray, w: np.ndarray, faces):

@@ -353,8 +353,14 @@ def test_the_penetration_trace_script_checks_the_frames_asked(capsys):
     dense = pair.split(": ")[1].split(", ")[0]
     assert int(dense.split()[0]) > 0 and dense.endswith(f"(deepest {frame.split()[2]} %)")
     counts = pair.split(": ")[1].split(", ")[1:]
-    inside, outside, overlap, missing, unseen = (int(part.split()[0]) for part in counts)
+    inside, outside, overlap, missing, unseen = (int(part.split()[0]) for part in counts[:5])
     assert 0 < inside and 0 <= outside <= inside and 0 <= missing <= inside
+    # the deepest dense vertex lies within the sampling's cover of a collision point (every dense vertex within
+    # 0.8 % of the size of one at rest), and the lower ball's points pressed into the top ball are counted too
+    gap = counts[5].split()[4]
+    assert counts[5].startswith("its deepest dense vertex ") and 0.0 <= float(gap) <= 1.0
+    reverse, reverse_missing = int(counts[6].split()[0]), int(counts[6].split("(")[1].split()[0])
+    assert counts[6].endswith("with no contact)") and 0 < reverse and 0 <= reverse_missing <= reverse
     assert overlap == 0  # a ball's parts never overlap: a point in its tets inside it is inside it at rest too
     # a detection afresh at the frame's positions finds every point inside the other ball by winding number
     # (none lies outside its tets past their slack, nor where its parts overlap)
