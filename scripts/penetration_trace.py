@@ -124,8 +124,8 @@ def dissect(sim, name: str, other: str) -> str:
     the other's dense surface (libigl's fast winding number), the deepest of each (% of the other's size), and of
     those collision points how many lie in none of the other body's tets (which detection needs), how many lie
     in them but outside its dense surface at rest (its own parts overlapping there), how many have no contact
-    with it in the last step's contact buffers, how many a detection afresh finds none for, and how many both."""
-    import igl
+    with it in the last step's contact buffers, how many a detection afresh finds none for, and how many both;
+    then :func:`_between`'s figures."""
     import numpy as np
 
     mine, theirs = sim.body_names.index(name), sim.body_names.index(other)
@@ -133,19 +133,19 @@ def dissect(sim, name: str, other: str) -> str:
     faces = np.asarray(sim.model.bodies[theirs].dense_faces, np.int64)
     surface = np.asarray(dense[theirs], np.float64)
     size = float(np.linalg.norm(np.ptp(surface, axis=0)))
-    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
-
-    def depths(p: np.ndarray) -> np.ndarray:  # inside the other body's dense surface: positive
-        return -igl.signed_distance(p, surface, faces, kind)[0]
-
     m = sim.model
     cells, cell, bary, body, cell_body = (
         a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body, m.cell_body)
     )
     x = sim.states[0].x.numpy().astype(np.float64)
-    own = np.flatnonzero(body == mine)
-    points = np.einsum("nk,nkj->nj", bary[own].astype(np.float64), x[cells[cell[own]]])
-    dense_depth, point_depth = depths(np.asarray(dense[mine], np.float64)), depths(points)
+
+    def collision_points(b: int) -> tuple[np.ndarray, np.ndarray]:  # body b's: indices and world positions
+        idx = np.flatnonzero(body == b)
+        return idx, np.einsum("nk,nkj->nj", bary[idx].astype(np.float64), x[cells[cell[idx]]])
+
+    own, points = collision_points(mine)
+    dense_depth = _depth_inside(np.asarray(dense[mine], np.float64), surface, faces)
+    point_depth = _depth_inside(points, surface, faces)
     parts = [
         f"{int((d > 0).sum())} of {len(d)} {what} inside (deepest {100 * d.max() / size:.2f} %)"
         for what, d in (("dense vertices", dense_depth), ("collision points", point_depth))
@@ -170,37 +170,44 @@ def dissect(sim, name: str, other: str) -> str:
         f"(where its own parts overlap), {int(without.sum())} with no contact, {int(unseen.sum())} with none "
         f"afresh ({int((without & unseen).sum())} both)"
     )
-    parts.append(_between(sim, mine, theirs, dense, dense_depth, points, contact_point, contact_cell))
+    their, their_points = collision_points(theirs)
+    own_faces = np.asarray(m.bodies[mine].dense_faces, np.int64)
+    in_mine = contact_point[cell_body[contact_cell] == mine]  # the points with a contact with body mine
+    parts.append(
+        _between(np.asarray(dense[mine], np.float64), own_faces, dense_depth, points, their, their_points, in_mine)
+    )
     return f"{name} in {other}: " + ", ".join(parts)
 
 
-def _between(sim, mine: int, theirs: int, dense, dense_depth, points, contact_point, contact_cell) -> str:
-    """How far body ``mine``'s deepest dense vertex lies from its nearest collision point (% of the body's
-    size: a vertex between collision points sinks unseen by any contact), and how many of body ``theirs``'s
-    collision points lie inside body ``mine`` (winding number) and of those how many have no contact with it in
-    the last step's contact buffers (the other way round, which holds the two apart there as well)."""
-    import igl
+def _between(dense, faces, dense_depth, points, their, their_points, in_contact) -> str:
+    """How far a body's deepest dense vertex (``dense``: its dense surface, with ``faces``; ``dense_depth``: each
+    vertex's depth in the other body) lies from its nearest collision point (``points``), as % of the body's
+    size: a vertex between collision points sinks unseen by any contact. Then how many of the other body's
+    collision points (indices ``their`` at ``their_points``) lie inside this body's dense surface, and of those
+    how many are not among the points ``in_contact`` with it in the last step: the other way round, which holds
+    the two apart there as well."""
     import numpy as np
 
-    m = sim.model
-    own = np.asarray(dense[mine], np.float64)
-    size = float(np.linalg.norm(np.ptp(own, axis=0)))
-    deepest = own[int(np.argmax(dense_depth))]
-    gap = float(np.linalg.norm(points - deepest, axis=1).min())
-    cells, cell, bary, body, cell_body = (
-        a.numpy() for a in (m.cells, m.point_cell, m.point_bary, m.point_body, m.cell_body)
-    )
-    x = sim.states[0].x.numpy().astype(np.float64)
-    their = np.flatnonzero(body == theirs)
-    their_points = np.einsum("nk,nkj->nj", bary[their].astype(np.float64), x[cells[cell[their]]])
-    faces = np.asarray(m.bodies[mine].dense_faces, np.int64)
-    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
-    inside = their[igl.signed_distance(their_points, own, faces, kind)[0] < 0.0]
-    without = ~np.isin(inside, contact_point[cell_body[contact_cell] == mine])
+    size = float(np.linalg.norm(np.ptp(dense, axis=0)))
+    gap = float(np.linalg.norm(points - dense[int(np.argmax(dense_depth))], axis=1).min())
+    inside = their[_depth_inside(their_points, dense, faces) > 0.0]
+    without = ~np.isin(inside, in_contact)
     return (
         f"its deepest dense vertex {100 * gap / size:.2f} % of its size from its nearest collision point, "
         f"{len(inside)} of the other's collision points inside it ({int(without.sum())} with no contact)"
     )
+
+
+def _depth_inside(points: np.ndarray, surface: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each point's depth (m) inside the closed dense ``surface`` (``faces``) by libigl's fast winding number:
+    positive inside, negative outside."""
+    import igl
+    import numpy as np
+
+    if len(points) == 0:
+        return np.zeros(0)
+    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+    return -igl.signed_distance(points, surface, faces, kind)[0]
 
 
 def _rest_depths(sim, body: int, cells: np.ndarray, their_cells: np.ndarray, lowest: np.ndarray, w: np.ndarray, faces):
@@ -208,7 +215,6 @@ def _rest_depths(sim, body: int, cells: np.ndarray, their_cells: np.ndarray, low
     the cell of ``their_cells`` (the body's) it lies least outside of (``lowest``: per point and such cell, its
     lowest weight; ``w``: the weights of corners 1-3; ``cells``: every cell's nodes): where that body's parts
     do not overlap, the same side as in the world."""
-    import igl
     import numpy as np
 
     m = sim.model
@@ -221,8 +227,7 @@ def _rest_depths(sim, body: int, cells: np.ndarray, their_cells: np.ndarray, low
     w3 = w[np.arange(len(best)), best]
     weights = np.concatenate([1.0 - w3.sum(axis=1, keepdims=True), w3], axis=1)
     points = np.einsum("nk,nkj->nj", weights, rest[their_cells[best]])
-    kind = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
-    return -igl.signed_distance(points, surface, faces, kind)[0] if len(points) else np.zeros(0)
+    return _depth_inside(points, surface, faces)
 
 
 def lowest_point(sim) -> str:
