@@ -18,9 +18,9 @@ skin points in space order on CUDA (``warpfem.sim.model.ModelBuilder.finalize``;
 
 CARRY_BODIES = 64
 """Scenes of more than this many bodies start a frame's later steps from the step before's contacts (the
-carried look) instead of a look at every collision point: it pays where that look walks over a million points
-(256 armadillos: 0.87x the frame) and costs smaller scenes, whose full look is cheaper than the carried
-contacts' walks and dense queries (64 armadillos 1.03x, 16 1.15x; docs/decisions.md)."""
+carried look) instead of a look at every collision point: it pays where that look walks millions of points,
+and costs smaller scenes, whose full look is cheaper than the carried contacts' walks and dense queries
+(measured in docs/decisions.md, "Start contacts the step before already had")."""
 
 SPREAD_BLOCKS = (WARP_THREADS, WIDE_BLOCK)
 """The block sizes :func:`spread_block_dim` chooses from. Warp compiles a module once per block size it is
