@@ -50,6 +50,9 @@ class BodyGeometry:
         skin_tet: (s,) int32 tet of each point the static colliders act on besides the tet vertices inside
             the visible surface (with a dense surface: :attr:`SurfaceSamples.skin`); empty: none given.
         skin_bary: (s, 4) its barycentric weights there.
+        point_normal: (c, 3) the visible surface's outward unit normal at each collision point, along which
+            the collider lifts it by the contact offset; zero where the tets' surface is the visible one, or
+            where not given.
     """
 
     surface_faces: np.ndarray
@@ -65,6 +68,7 @@ class BodyGeometry:
     dense_points: bool = False
     skin_tet: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     skin_bary: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    point_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def face_lattice(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -118,6 +122,7 @@ def body_geometry(
     if vertex_depth is None or vertex_grad is None:
         vertex_depth, vertex_grad = distance_field(vertices, vertices, faces)
     skin = None
+    normals = None
     if dense is None:
         points = surface_points(tets, faces, vertices, collision_spacing)
     else:
@@ -131,6 +136,8 @@ def body_geometry(
                 raise ValueError("samples on the dense triangles need dense_faces")
             points = _joined(points, face_samples(samples, dense[0], dense_faces, vertices, tets, faces))
         skin = dense_samples(samples.skin, dense[1], dense[2], tets)
+        if dense_faces is not None:
+            normals = surface_normals(dense[0], dense_faces, samples)
     start, flat = tet_surface_faces(tets, faces, len(vertices))
     return BodyGeometry(
         surface_faces=faces,
@@ -145,7 +152,26 @@ def body_geometry(
         face_depth=np.zeros((len(faces), LATTICE_POINTS)) if face_depth is None else np.asarray(face_depth, np.float64),
         dense_points=dense is not None,
         **({} if skin is None else dict(skin_tet=skin.tet, skin_bary=skin.bary)),
+        point_normal=np.zeros((len(points.tet), 3)) if normals is None else normals,
     )
+
+
+def surface_normals(dense_x: np.ndarray, dense_faces: np.ndarray, samples: SurfaceSamples) -> np.ndarray:
+    """The outward unit normal of the dense surface at each collision point of ``samples`` (vertices, then faces).
+
+    A vertex's is the area-weighted mean of its faces' normals; a point on a face, the face's. Outward: the
+    faces are turned so the surface encloses a positive volume.
+    """
+    x = np.asarray(dense_x, np.float64)
+    f = np.asarray(dense_faces, np.int64)
+    face_n = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])  # twice the area, along the normal
+    if np.einsum("ij,ij->", x[f[:, 0]], face_n) < 0.0:  # six times the enclosed volume
+        face_n = -face_n
+    corner = f.reshape(-1)
+    vertex_n = np.stack([np.bincount(corner, np.repeat(face_n[:, d], 3), minlength=len(x)) for d in range(3)], axis=1)
+    n = np.concatenate([vertex_n[np.asarray(samples.collision, np.int64)], face_n[np.asarray(samples.face, np.int64)]])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0.0)
 
 
 def tet_tree(tets: np.ndarray, x: np.ndarray) -> np.ndarray:

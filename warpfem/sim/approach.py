@@ -72,7 +72,7 @@ class ApproachWatch:
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]
-        closing_in = [*contacts, state.v, m.cells, m.point_cell, m.point_bary, m.vertex_body, m.body_size, step_dt]
+        closing_in = [*contacts, state.v, m.cells, m.point_cell, c.point_bary, m.vertex_body, m.body_size, step_dt]
         below = (self.substeps, *self.levels[:-1])
         for k, fewer in enumerate(below):
             limit, flag = self.limit * fewer / self.substeps, self.flags[k : k + 1]

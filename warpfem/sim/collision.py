@@ -24,6 +24,7 @@ from warpfem.kernels import contacts as KC
 from warpfem.presets import CONTACT_DAMPING, CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.launch import CARRY_BODIES, DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
+from warpfem.sim.model import Model
 from warpfem.sim.surface import visible_surface
 
 
@@ -75,11 +76,19 @@ smallest colliding body's size: deeper, the penalty is undoing an overlap rather
 friction in proportion to it holds overlapping bodies in place (they tangle instead of coming apart). Chosen
 by measurement (docs/decisions.md, "Friction from the load, not the overlap")."""
 
+LIFT_SHARE = 0.3
+"""The share of the contact offset by which the collision points stand off their visible surface; the depth a
+contact measures adds the rest, capped by the other body's cage margin over its visible surface, since
+detection only sees points in its tets (``kernels.surface.contact_offset``). Lifted, a point reaches the
+other body's tets, and its contact starts, at least this share of the offset outside that body's visible
+surface even where the cage touches it; a point lifted by the whole offset passes through thin parts of the
+other body sooner, whose nearest surface then lies behind it. Chosen by measurement (docs/decisions.md,
+"Collision points lifted off the visible surface")."""
+
 LATE_SOLVE_SHARE = 0.5
 """A late contact asks for a second solve only where the step's answer ends it deeper than this share of the
-contact offset (counted from where the offset starts): a shallower one has not reached the visible surface, or
-is within half the offset of it where the cage caps the offset (``kernels.surface.contact_offset``), and the
-next step answers it from its start. A pile at rest finds a few such grazing contacts in most steps, and each
+contact offset (counted from where the offset starts): a shallower one has not reached the visible surface, and
+the next step answers it from its start. A pile at rest finds a few such grazing contacts in most steps, and each
 would otherwise re-solve the whole scene."""
 
 DETECT_LANES = 4
@@ -110,6 +119,24 @@ DETECT_BLOCK = WARP_THREADS
 """Threads per block of contact detection (CUDA). The kernel's registers (and, through the body BVH, Warp's
 query stack in shared memory, sized by the block) let an SM hold a single block of 256; blocks of one warp
 let it hold more warps to hide the walks' loads (docs/decisions.md)."""
+
+
+def lifted_weights(model: Model, lift: float) -> wp.array:
+    """The collision points' weights with each point lifted off the visible surface by ``lift`` (m), at rest.
+
+    Along the surface's outward normal there (``Model.point_normal``; points without one stay), in the cell
+    that carries the point, beyond its faces if the lift leaves it: a point of one body then reaches another's
+    tets, and its contact starts, ``lift`` outside that body's visible surface wherever the cage lies, which
+    touches the visible surface in places. The model's own weights where nothing moves.
+    """
+    normal = model.point_normal.numpy().astype(np.float64)
+    if lift == 0.0 or not normal.any():
+        return model.point_bary
+    corners = model.rest_x.numpy().astype(np.float64)[model.cells.numpy()[model.point_cell.numpy()]]
+    edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns x1 - x0, x2 - x0, x3 - x0
+    w = np.linalg.solve(edges, lift * normal[:, :, None])[:, :, 0]  # the weights are affine in the position
+    bary = model.point_bary.numpy().astype(np.float64) + np.concatenate([-w.sum(axis=1, keepdims=True), w], axis=1)
+    return wp.array(bary.astype(np.float32), dtype=wp.vec4, device=model.device)
 
 
 class Collider:
@@ -194,8 +221,12 @@ class Collider:
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
         size = min(b.size for b in model.bodies)
         offset = settings.offset * size
-        self.visible, self._dense_meshes = visible_surface(model, offset)
+        lift = LIFT_SHARE * offset
+        self.visible, self._dense_meshes = visible_surface(model, offset - lift)
         """Each body's dense rest surface, for the exact depth of contacts near the surface."""
+        self.point_bary = lifted_weights(model, lift)
+        """The collision points' weights, lifted off the visible surface by a share of the offset
+        (:data:`LIFT_SHARE`, :func:`lifted_weights`); the depth a contact measures adds the rest of it."""
         self._friction_depth = offset + FRICTION_LOAD_DEPTH * size
         """The deepest a contact carries friction from (m)."""
         self.solve_depth = LATE_SOLVE_SHARE * offset
@@ -236,7 +267,7 @@ class Collider:
         wp.launch(
             K.collision_points,
             dim=self.points.shape[0],
-            inputs=[m.cells, x, v, m.point_cell, m.point_bary, m.point_body, self.count, self.capacity],
+            inputs=[m.cells, x, v, m.point_cell, self.point_bary, m.point_body, self.count, self.capacity],
             outputs=[self.points, self.point_velocity, self.speed_max, self._first[late]],
             device=m.device,
         )
@@ -383,7 +414,7 @@ class Collider:
                 v,
                 m.cells,
                 m.point_cell,
-                m.point_bary,
+                self.point_bary,
                 self.point_stiffness,
                 m.point_mass,
                 self.damping,

@@ -112,6 +112,7 @@ class Model:
     point_anchor: wp.array  # vec3i, global vertices it lies on (-1: none), for the self-collision rule
     point_body: wp.array  # int32
     point_mass: wp.array  # float, mass a collision point stands for (kg): a share, or the interpolated lumped mass
+    point_normal: wp.array  # vec3, the visible surface's outward unit normal at rest at each collision point (0: none)
     skin_cell: wp.array  # int32, global cell of each skin point (static colliders): a dense surface sample
     skin_bary: wp.array  # vec4, its barycentric weights there (extrapolated outside the tets)
     skin_mass: wp.array  # float, the mass its penalty stands for (kg): a share, or its tet corners' interpolated
@@ -296,7 +297,7 @@ def _spatially_ordered(flat: dict[str, np.ndarray], cells: np.ndarray) -> None:
     Each body's points of each kind follow :func:`space_order` of their rest positions; the bodies keep their
     order.
     """
-    for prefix, keys in (("point", ("anchor", "mass")), ("skin", ("mass",))):
+    for prefix, keys in (("point", ("anchor", "mass", "normal")), ("skin", ("mass",))):
         cell, body = flat[f"{prefix}_cell"], flat[f"{prefix}_body"]
         if len(cell) == 0:
             continue
@@ -357,6 +358,12 @@ def _embedded_points(
     )
 
 
+def _point_normals(g: BodyArrays) -> np.ndarray:
+    """A body's collision points' outward normals (c, 3): zeros where its geometry gives none."""
+    normals = np.asarray(g.point_normal, np.float64).reshape(-1, 3)
+    return normals if len(normals) == len(g.point_tet) else np.zeros((len(g.point_tet), 3))
+
+
 def _checked_tets(
     name: str, vertices: np.ndarray, tets: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -408,6 +415,7 @@ class BodyArrays(Protocol):
         vertex_depth: (p,) distance of each tet vertex below the surface (m).
         vertex_grad: (p, 3) outward unit gradient of that distance at rest.
         point_tet, point_bary, point_anchor: Collision points: tet, barycentric weights, vertices they lie on.
+        point_normal: (c, 3) the visible surface's outward unit normal at each (zero or empty: none).
         tet_face_start, tet_faces: CSR, the surface faces touching each tet's corners.
         face_depth: (l, LATTICE_POINTS) depth of the visible surface below each surface face's lattice points (m).
         leaf_tets: (L, 4) leaves of the body's tree of tets (-1: none), L a power of two.
@@ -419,6 +427,7 @@ class BodyArrays(Protocol):
     point_tet: np.ndarray
     point_bary: np.ndarray
     point_anchor: np.ndarray
+    point_normal: np.ndarray
     tet_face_start: np.ndarray
     tet_faces: np.ndarray
     leaf_tets: np.ndarray
@@ -450,6 +459,7 @@ _FLAT_FIELDS = {
     "point_anchor": ("point_anchor", wp.vec3i, np.int32),
     "point_body": ("point_body", wp.int32, np.int32),
     "point_mass": ("point_mass", float, np.float32),
+    "point_normal": ("point_normal", wp.vec3, np.float32),
     "skin_cell": ("skin_cell", wp.int32, np.int32),
     "skin_bary": ("skin_bary", wp.vec4, np.float32),
     "skin_mass": ("skin_mass", float, np.float32),
@@ -578,6 +588,7 @@ class ModelBuilder:
                 size=size,
                 self_collision=bool(self_collision),
                 point_anchor=np.asarray(g.point_anchor, np.int32),
+                point_normal=_point_normals(g),
                 tet_extent=np.abs(d).max(axis=(1, 2)),
                 surface_faces=np.asarray(g.surface_faces, np.int32),
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
@@ -666,6 +677,7 @@ class ModelBuilder:
                 "grad",
                 "point_bary",
                 "point_mass",
+                "point_normal",
                 "tet_extent",
                 "skin_bary",
                 "skin_mass",
