@@ -6,6 +6,7 @@ import warp as wp
 
 import warpfem
 from warpfem.presets import CONTACT_OFFSET
+from warpfem.sim.collision import LIFT_SHARE
 
 
 def _thrown(speed: float, obstacle: dict | None = None) -> dict:
@@ -431,7 +432,8 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     out of the coarse ones at every edge) stacked on a third whose base is pinned, scene defaults otherwise:
     after 2 s the stack stands where it was put, at rest, and no dense vertex is deeper than 0.3 % of the size
     inside another body (winding numbers on the dense meshes). Each body rests on the one below: its dense
-    surface within 0.1 % of the size plus twice the contacts' offset of the other's (libigl's signed distance)."""
+    surface within 0.1 % of the size plus twice the contacts' offset of the other's, and no nearer than the
+    collision points' lift (libigl's signed distance)."""
     import igl
     import trimesh
 
@@ -466,6 +468,9 @@ def test_a_stack_comes_to_rest_with_its_dense_surfaces_apart(device, tmp_path, p
     for upper in (1, 2):
         gap = float(igl.signed_distance(points[upper], points[upper - 1], faces[upper - 1])[0].min())
         assert gap < (0.001 + 2.0 * CONTACT_OFFSET) * size, gap / size
+        # its contacts start at least the collision points' lift outside the other's surface, where the cage
+        # touches it too (the rounded boxes' cages hug their edges): it rests at least that far above
+        assert gap > LIFT_SHARE * CONTACT_OFFSET * size, gap / size
 
 
 @pytest.mark.parametrize("elements", ["linear", "quadratic"])
@@ -538,6 +543,36 @@ def test_a_resting_body_floats_by_the_offset_and_never_below(device, collider):
     assert 0.0 <= base <= 0.001 * size, (base, size)
     assert 0.0 <= raised <= 0.003 * size, (raised, size)
     assert raised - base == pytest.approx(0.002 * size, rel=0.1), (base, raised, size)
+
+
+def test_collision_points_stand_the_lift_off_their_own_dense_surface(tmp_path, prep_cache):
+    """Two spheres of 0.2 m (20k dense faces, a 300-face cage): at rest every collision point of each lies
+    ``LIFT_SHARE`` of the contact offset outside its own dense surface (libigl's signed distance), and the
+    points the model embeds lie on it."""
+    import igl
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.2)
+    mesh = _dense_obj(tmp_path / "sphere.obj", sphere.vertices, sphere.faces)
+    common = {"mesh": mesh, "faces": 300, "young": 1e6}
+    doc = {
+        "scene": {"frames": 1},
+        "ground": {"enabled": False},
+        "object": [{"name": "a", **common}, {"name": "b", "translate": [1.0, 0, 0], **common}],
+    }
+    sim = warpfem.Simulation(warpfem.Scene.from_dict(doc, name="spheres"), device="cpu", cache_dir=prep_cache)
+    m = sim.model
+    rest, cells = m.rest_x.numpy().astype(np.float64), m.cells.numpy()[m.point_cell.numpy()]
+    body = m.point_body.numpy()
+    lift = LIFT_SHARE * CONTACT_OFFSET * min(b.size for b in m.bodies)
+    dense = sim.dense_points()
+    for k, b in enumerate(m.bodies):
+        faces = np.asarray(b.dense_faces, np.int64).reshape(-1, 3)
+        own = body == k
+        for bary, expected in ((m.point_bary.numpy(), 0.0), (sim.solver.collider.point_bary.numpy(), lift)):
+            points = np.einsum("nk,nkj->nj", bary[own].astype(np.float64), rest[cells[own]])
+            distance = igl.signed_distance(points, dense[k].astype(np.float64), faces)[0]
+            np.testing.assert_allclose(distance, expected, atol=0.02 * lift + 1e-6)
 
 
 def test_low_poly_boxes_crossing_edge_first_do_not_pass_through(device, tmp_path, prep_cache):
