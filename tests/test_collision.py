@@ -691,3 +691,21 @@ def test_a_carried_look_finds_the_full_looks_contacts_of_the_pairs_it_kept(devic
         assert full[pair][0] == e
         np.testing.assert_allclose(full[pair][1], w, atol=1e-6)
         assert full[pair][2] == pytest.approx(d, abs=1e-7)
+
+
+def test_collision_point_normals_of_the_wrong_count_are_an_input_error():
+    """A body's geometry with a normal row per collision point is taken; with another count the model refuses
+    it, naming the body, rather than lifting the points along the wrong normals."""
+    import dataclasses
+
+    from warpfem.errors import InputError
+    from warpfem.prep.geometry import body_geometry
+
+    V, T = box_tet_mesh((0, 0, 0), (0.3, 0.2, 0.1), (3, 2, 1))
+    geometry = body_geometry(V, T, 0.0)
+    assert geometry.point_normal.shape == (len(geometry.point_tet), 3) and not geometry.point_normal.any()
+    builder = ModelBuilder()
+    builder.add_body("a", V, T, geometry, 1e7, 0.3, 1000.0)
+    wrong = dataclasses.replace(geometry, point_normal=np.ones((len(geometry.point_tet) - 1, 3)))
+    with pytest.raises(InputError, match="body 'b': point_normal has"):
+        builder.add_body("b", V + 1.0, T, wrong, 1e7, 0.3, 1000.0)

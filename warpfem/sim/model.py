@@ -358,10 +358,14 @@ def _embedded_points(
     )
 
 
-def _point_normals(g: BodyArrays) -> np.ndarray:
-    """A body's collision points' outward normals (c, 3): zeros where its geometry gives none."""
+def _point_normals(name: str, g: BodyArrays) -> np.ndarray:
+    """A body's collision points' outward normals (c, 3): zeros where its geometry gives none (empty)."""
     normals = np.asarray(g.point_normal, np.float64).reshape(-1, 3)
-    return normals if len(normals) == len(g.point_tet) else np.zeros((len(g.point_tet), 3))
+    if len(normals) == 0:
+        return np.zeros((len(g.point_tet), 3))
+    if len(normals) != len(g.point_tet):
+        raise InputError(f"body '{name}': point_normal has {len(normals)} rows for {len(g.point_tet)} collision points")
+    return normals
 
 
 def _checked_tets(
@@ -588,7 +592,7 @@ class ModelBuilder:
                 size=size,
                 self_collision=bool(self_collision),
                 point_anchor=np.asarray(g.point_anchor, np.int32),
-                point_normal=_point_normals(g),
+                point_normal=_point_normals(name, g),
                 tet_extent=np.abs(d).max(axis=(1, 2)),
                 surface_faces=np.asarray(g.surface_faces, np.int32),
                 tet_faces=(np.asarray(g.tet_face_start), np.asarray(g.tet_faces)),
