@@ -165,7 +165,7 @@ class VisibleSurface:
     mesh_origin: wp.array(dtype=wp.vec3)  # per body
     mesh_scale: wp.array(dtype=float)  # per body, m per mesh unit
     reach: wp.array(dtype=float)  # per body, the farthest the query looks (mesh units)
-    offset: float  # how far outside a body's dense surface a contact with it starts (m): bodies with one
+    offset: float  # added to a contact's depth in a body with a dense surface (m), capped by the cage's margin
 
 
 @wp.func

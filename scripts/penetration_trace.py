@@ -120,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def dissect(sim, name: str, other: str) -> str:
-    """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points inside
+    """How much of body ``name`` lies inside body ``other``: its dense vertices and its collision points (on its
+    dense surface, where the model embeds them; detection tests them lifted off it, deeper still) inside
     the other's dense surface (libigl's fast winding number), the deepest of each (% of the other's size), and of
     those collision points how many lie in none of the other body's tets (which detection needs), how many lie
     in them but outside its dense surface at rest (its own parts overlapping there), how many have no contact

@@ -87,9 +87,10 @@ other body sooner, whose nearest surface then lies behind it. Chosen by measurem
 
 LATE_SOLVE_SHARE = 0.5
 """A late contact asks for a second solve only where the step's answer ends it deeper than this share of the
-contact offset (counted from where the offset starts): a shallower one has not reached the visible surface, and
-the next step answers it from its start. A pile at rest finds a few such grazing contacts in most steps, and each
-would otherwise re-solve the whole scene."""
+contact offset (counted from where the offset starts): a shallower one has not reached the visible surface, or
+is within half the offset of it where the cage caps the part of the offset past the lift
+(``kernels.surface.contact_offset``), and the next step answers it from its start. A pile at rest finds a few
+such grazing contacts in most steps, and each would otherwise re-solve the whole scene."""
 
 DETECT_LANES = 4
 """The most threads per collision point of contact detection on CUDA, each walking every ``lanes``-th of the

@@ -26,7 +26,9 @@ COPY_TOLERANCE = 1.0e-6
 def visible_surface(model: Model, offset: float = 0.0) -> tuple[VisibleSurface, list[wp.Mesh]]:
     """The model's :class:`VisibleSurface` and the meshes it names (keep them alive with it).
 
-    ``offset`` (m): how far outside a body's dense surface a contact with it starts (bodies with one only).
+    ``offset`` (m): what a contact in a body with a dense surface adds to its depth, capped by the cage's margin
+    (``kernels.surface.contact_offset``): with the collision points' lift, how far outside that surface a contact
+    of a point on another body's surface starts.
     """
     dev = model.device
     rest, tets = model.rest_x.numpy().astype(np.float64), model.tets.numpy()
