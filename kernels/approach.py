@@ -11,6 +11,8 @@ import warp as wp
 from .embedding import interpolate
 from .grid import warp_sum_at
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.kernel
 def clear_bodies(

@@ -1,35 +1,22 @@
 """Block-Jacobi preconditioned conjugate gradients on a 3x3-block CSR matrix, as fused kernels.
 
-The iteration is Chronopoulos and Gear's single-reduction form of PCG: each iteration is two launches,
-``cg_update`` (p, s = A p, x, r, u = M^-1 r and the dot r.u) and ``cg_apply`` (w = A u and the dot u.w),
-against four launches and two reductions of the textbook form. The scalars follow from the two dots:
-``beta_k = gamma_k / gamma_{k-1}``, ``alpha_k = gamma_k / (delta_k - beta_k gamma_k / alpha_{k-1})``.
+The iteration is Chronopoulos and Gear's single-reduction form of PCG (one reduction of two dots per iteration:
+``beta_k = gamma_k / gamma_{k-1}``, ``alpha_k = gamma_k / (delta_k - beta_k gamma_k / alpha_{k-1})``), run either
+as two launches per iteration (``cg_update``: p, s = A p, x, r, u = M^-1 r and r.u; ``cg_apply``: w = A u and
+u.w) under ``wp.capture_while``, with per-iteration scalars in device arrays and no host synchronisation, or as
+one persistent launch whose blocks meet at grid-wide barriers (:func:`grid_total`), the default
+(``warpfem.sim.cg.DEFAULT_MODE``; one thread on the CPU). The product (chunks of a few blocks of a row, gathered
+or scattered, and the coupling pairs of contacts) is in :mod:`warpfem.kernels.product`. Rows with ``free == 0``
+(pinned vertices) keep their initial value.
 
-``cg_apply`` runs one thread per chunk of at most a few blocks of a row (more threads and shorter dependent
-loops than a thread per row: small systems are latency bound, large ones read the blocks in nearly coalesced
-runs); the product itself, gathered or scattered, and the coupling pairs (contacts, applied by extra threads
-of the same launch) are in :mod:`warpfem.kernels.product`. Dot products are reduced per block (a tile sum,
-then one atomic add per block). All per-iteration scalars live in device arrays indexed by the device-side
-iteration counter plus the unrolled step, so the loop needs no host synchronisation and can be captured with
-``wp.capture_while``; an iteration past convergence or past the cap changes nothing. Rows with ``free == 0``
-(pinned vertices) are held at their initial value.
+The start is x + theta d, the given x moved along a direction d (the last step's velocity change) by the step
+that minimises the A-norm error along d, clamped to [0, 1] and taken only along a smooth direction
+(:func:`line_step`): never a worse start than x.
 
-The start is x + theta d, the given x moved along a direction d (the solver passes the last step's
-velocity change) by the step that minimises the A-norm error along d, clamped to [0, 1] and taken only
-along a smooth direction (see :func:`line_step`): never a worse start than x, and in a free fall or a steady
-push nearly the answer. It costs one more product and one more reduction.
-
-``cg_solve`` runs the same iteration as one persistent launch: a few blocks, all resident at once, meet at
-grid-wide barriers (an arrival count in global memory, :func:`grid_total`) instead of at kernel boundaries, so an
-iteration costs two barriers rather than two launches. It is the default (``warpfem.sim.cg.DEFAULT_MODE``): a
-barrier is cheaper than a launch, which matters most on small, latency-bound systems. On the CPU the same
-kernel runs as a single thread.
-
-Where every chunk of a gathered product has a thread of its own (small systems, the latency-bound ones),
-``cg_solve_held`` runs instead: each thread keeps its chunk's columns and blocks (or a corner of its first
-contact pair) in registers for the whole solve, and the iteration meets at one barrier instead of two (the
-threads advance the rows they read themselves; see its docstring). Where blocks of 256 threads, one an SM, are
-too few for the chunks, ``cg_solve_held_wide`` runs the same kernel in wider blocks.
+The persistent solve comes in three forms by size: ``cg_solve_held`` (and ``cg_solve_held_wide`` in wider
+blocks) where every chunk has a thread, which keeps it in registers and meets at one barrier an iteration;
+``cg_solve_shared`` where each thread's few chunks fit the block's shared memory; else ``cg_solve``, which reads
+the matrix every iteration.
 """
 
 import warp as wp
@@ -37,6 +24,8 @@ import warp as wp
 from .grid import grid_total, load_coherent, warp_sum_add
 from .product import (
     PAIR_LANES,
+    SHARED_BLOCK,
+    SHARED_ROWS,
     BlockMatrix,
     OwnChunk,
     Pairs,
@@ -45,12 +34,17 @@ from .product import (
     chunk_product,
     held_corner_phase,
     held_terms,
+    hold_chunks,
+    hold_pair,
     live_pairs,
     own_chunk,
     pair_corner,
     pair_product,
     partial_product,
+    shared_product,
 )
+
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
 
 
 @wp.func
@@ -195,10 +189,7 @@ at float32's limit) is not extrapolated, since moving along it feeds energy into
 
 @wp.func
 def line_step(dr: float, dad: float, dmd: float) -> float:
-    """The step along the direction d that minimises the A-norm error of x + theta d, clamped to [0, 1].
-
-    0 where d.A d is not positive or exceeds :data:`SMOOTH` d.M d.
-    """
+    """The step along d minimising the A-norm error of x + theta d, in [0, 1]; 0 unless 0 < d.A d <= SMOOTH d.M d."""
     theta = float(0.0)
     if dad > 0.0 and dad <= SMOOTH * dmd:
         theta = wp.clamp(dr / dad, 0.0, 1.0)
@@ -503,11 +494,7 @@ def solve_start(
     w_out: wp.array(dtype=wp.vec3),
     stalled_out: wp.array(dtype=wp.int32),
 ) -> wp.vec2:
-    """The start of a persistent solve: three grid barriers, (r.u, b.M^-1 b) returned.
-
-    A x and A d, the line step along d, then x moved along it, r = b - A x and u = M^-1 r (:func:`init_row`).
-    Uses words 0 to 2 and side sums 0 to 2.
-    """
+    """A persistent solve's start (words, side sums 0-2): x moved along d, r = b - A x, u = M^-1 r; (r.u, b.M^-1 b)."""
     n = free.shape[0]
     partial_product(lane, threads, held, own, matrix, pairs, x_out, w_out)
     partial_product(lane, threads, held, own, matrix, pairs, direction, s_out)
@@ -557,12 +544,9 @@ def cg_solve(
     residual_max_out: wp.array(dtype=float),
     stalled_out: wp.array(dtype=wp.int32),
 ):
-    """The whole solve in one persistent launch of ``blocks`` resident blocks (``threads`` threads in all).
+    """The whole solve in one persistent launch of ``blocks`` resident blocks (one thread on the CPU).
 
-    The same iteration as ``cg_update`` + ``cg_apply``, with two grid barriers per iteration (each also
-    reducing a dot into its own slot of ``words``) instead of launches; the start takes three
-    (:func:`solve_start`). On the CPU the launch is one thread and the barriers vanish. Counts the solve as
-    ``cg_finish`` does (:func:`record_solve`). Where every chunk has a thread, :func:`cg_solve_held` runs instead.
+    The iteration of ``cg_update`` + ``cg_apply``, meeting at two grid barriers instead of launches.
     """
     lane = wp.tid()
     n = free.shape[0]
@@ -580,6 +564,73 @@ def cg_solve(
     a_prev = float(0.0)
     while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
         part = partial_product(lane, threads, 0, own, matrix, pairs, u_out, w_out)
+        delta = grid_total(part, words, 3 + 2 * k, blocks, stalled_out)
+        a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
+        if a <= 0.0:
+            break
+        ru = float(0.0)
+        for i in range(lane, n, threads):
+            ru += update_row(i, a, beta, diag_inv, free, x_out, r_out, u_out, p_out, s_out, w_out)
+        gamma_prev = gamma
+        a_prev = a
+        gamma = grid_total(ru, words, 4 + 2 * k, blocks, stalled_out)
+        k += 1
+    if lane == 0:
+        record_solve(k, gamma, bz, tolerance[0], counts_out, residual_max_out)
+
+
+@wp.kernel
+def cg_solve_shared(
+    threads: int,
+    blocks: int,
+    matrix: BlockMatrix,
+    pairs: Pairs,
+    diag_inv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    tolerance: wp.array(dtype=float),
+    max_iterations: wp.array(dtype=wp.int32),
+    words: wp.array(dtype=wp.uint64),
+    totals: wp.array(dtype=float),
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    u_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+    s_out: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+    counts_out: wp.array(dtype=wp.int32),
+    residual_max_out: wp.array(dtype=float),
+    stalled_out: wp.array(dtype=wp.int32),
+):
+    """``cg_solve`` with each thread's chunks held for the whole solve, where blocks of them fit in shared memory.
+
+    Each thread keeps up to ``kernels.product.SHARED_SLOTS`` chunks of a gathered product, their blocks in its
+    column of the block's shared tile and their rows and columns in registers (:func:`hold_chunks`), and its first
+    coupling pair in registers (:func:`hold_pair`), so an iteration's product reads only the vector from global
+    memory (:func:`shared_product`). Launched in blocks of :data:`SHARED_BLOCK` threads, one an SM (the tile takes
+    most of its shared memory); CUDA only.
+    """
+    lane = wp.tid()
+    n = free.shape[0]
+    held = wp.tile_zeros(shape=(SHARED_ROWS, SHARED_BLOCK), dtype=wp.mat33, storage="shared")
+    chunks = hold_chunks(held, lane, threads, matrix)
+    pair = hold_pair(lane, blocks, pairs)
+    own = own_chunk(0, lane, matrix)
+    start = solve_start(
+        lane, threads, blocks, 0, own, matrix, pairs, diag_inv, free, b, direction, mass, words, totals,
+        x_out, r_out, u_out, p_out, s_out, w_out, stalled_out,
+    )  # fmt: skip
+    gamma = start[0]
+    bz = start[1]
+    tol2 = tolerance[0] * tolerance[0]
+    max_k = max_iterations[0]
+    k = int(0)
+    gamma_prev = float(0.0)
+    a_prev = float(0.0)
+    while k < max_k and gamma > 0.0 and gamma > tol2 * bz:
+        part = shared_product(held, chunks, pair, threads, lane % SHARED_BLOCK, pairs, u_out, w_out)
         delta = grid_total(part, words, 3 + 2 * k, blocks, stalled_out)
         a, beta = step_sizes(k, gamma, gamma_prev, delta, a_prev)
         if a <= 0.0:

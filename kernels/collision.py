@@ -29,6 +29,8 @@ from .surface import (
     visible_depth,
 )
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.kernel
 def accumulate_gradients(

@@ -9,6 +9,8 @@ import warp as wp
 
 from .integrate import tie_friction
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.func
 def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.vec4i, w_t: wp.vec4) -> wp.vec3:

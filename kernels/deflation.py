@@ -15,6 +15,8 @@ import warp as wp
 
 from .cg import block_sum, is_active, iteration_step, update_row
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.func
 def lever(x: wp.array(dtype=wp.vec3), body_first: wp.array(dtype=wp.int32), b: int, i: int) -> wp.vec3:

@@ -8,6 +8,8 @@ The simulation's depths below the visible surface are in :mod:`warpfem.kernels.s
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.kernel
 def surface_distance(

@@ -10,6 +10,8 @@ so a frame of steps half as long keeps the motions' time), so a captured frame n
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.struct
 class Tracks:

@@ -8,6 +8,8 @@ with l = Dm^-1 (p - a), Dm = [b-a, c-a, d-a]. It lies in the tet when all four a
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 CELLS_PER_QUADRATIC_TET = wp.constant(8)
 """Sub-tets a quadratic tet is cut into (``warpfem.sim.cells``): cell ``8 e + s`` is sub-tet ``s`` of tet ``e``."""
 

@@ -16,9 +16,9 @@ from .embedding import deformation_gradient
 from .grid import warp_sum_at
 from .surface import add_rotated_gradients
 
-wp.set_module_options({"max_unroll": 4})
+wp.set_module_options({"max_unroll": 4, "enable_backward": False})
 """Unroll the four corners' and four quadrature points' loops, not the ten nodes' (fully unrolled, a quadratic
-tet's 10 x 10 x 4 blocks take minutes to compile)."""
+tet's 10 x 10 x 4 blocks take minutes to compile); nothing here is differentiated."""
 
 
 @wp.func

@@ -15,6 +15,8 @@ from .embedding import interpolate
 from .grid import warp_max_at, warp_sum_at
 from .rigid import mark_pair
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 # static collider kinds
 PLANE = wp.constant(0)
 SPHERE = wp.constant(1)

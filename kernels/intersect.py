@@ -8,6 +8,8 @@ sharing an edge are neighbours and are not tested; nor are coplanar pairs. Posit
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 COPLANAR = wp.constant(wp.float64(1.0e-12))
 """Relative orientation (to the product of the lengths involved) below which a point is in a plane."""
 

@@ -9,6 +9,8 @@ a closed obstacle mesh or behind an open one, folded into the body's deepest (an
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 DEPTH_BITS = wp.constant(40)
 """Bits of the packed depth: its fraction of the body's reach, so a resolution of 2^-40 of the body's size."""
 

@@ -490,3 +490,156 @@ def held_corner_phase(
     wp.atomic_add(m3, out + vert_a, diag_inv[vert_a] * da)
     wp.atomic_add(m3, out + vert_b, diag_inv[vert_b] * db)
     return wp.dot(ua, da) + wp.dot(ub, db)
+
+
+SHARED_BLOCK = 256
+"""Threads per block of the shared-held solve (``kernels.cg.cg_solve_shared``): its tile has a column per thread."""
+
+SHARED_SLOTS = 6
+"""Chunks a thread of the shared-held solve keeps: ``lane``, ``lane + threads``, ... (at most this many)."""
+
+SHARED_ROWS = wp.constant(SHARED_SLOTS * GROUP)
+"""Rows of the shared-held solve's tile of blocks: a thread's chunk k takes rows ``k * GROUP`` to ``k * GROUP + 3``."""
+
+SHARED_BYTES = SHARED_SLOTS * GROUP * SHARED_BLOCK * 36
+"""Shared memory a block of the shared-held solve asks for (its tile of 3x3 float32 blocks)."""
+
+slot_rows = wp.types.vector(length=SHARED_SLOTS, dtype=wp.int32)
+"""A thread's held chunks' rows, -1 where it has no such chunk."""
+
+slot_cols = wp.types.vector(length=SHARED_SLOTS * GROUP, dtype=wp.int32)
+"""A thread's held chunks' columns, ``GROUP`` a chunk (unused entries repeat the chunk's row, with a zero block)."""
+
+
+@wp.struct
+class SlotChunks:
+    """The columns of a thread's chunks of the shared-held solve, in registers for a whole solve."""
+
+    rows: slot_rows
+    cols: slot_cols
+
+
+@wp.func
+def hold_chunks(
+    held: wp.tile(dtype=wp.mat33, shape=(SHARED_ROWS, SHARED_BLOCK)),
+    lane: int,
+    threads: int,
+    matrix: BlockMatrix,
+) -> SlotChunks:
+    """Load a thread's chunks of a gathered product once: blocks into its column of ``held``, rows and columns returned.
+
+    A mirrored entry's block is stored transposed, so the product reads every block the same way; an unused
+    entry is a zero block at the chunk's row. Every thread of the block makes the same number of stores (each
+    a block-wide barrier).
+    """
+    n_chunks = matrix.chunk_row.shape[0]
+    column = lane % SHARED_BLOCK
+    out = SlotChunks()
+    for k in range(SHARED_SLOTS):
+        i = lane + k * threads
+        row = int(-1)
+        first = int(0)
+        end = int(0)
+        if i < n_chunks:
+            row = matrix.chunk_row[i]
+            first = matrix.chunk_start[i]
+            end = matrix.chunk_end[i]
+        out.rows[k] = row
+        for e in range(GROUP):
+            A = wp.mat33()
+            col = wp.max(row, 0)
+            if first + e < end:
+                slot = matrix.entry_slot[first + e]
+                col = matrix.entry_col[first + e]
+                A = matrix.values[stored(slot)]
+                if slot < 0:
+                    A = wp.transpose(A)
+            out.cols[k * GROUP + e] = col
+            held[k * GROUP + e, column] = A
+    return out
+
+
+@wp.func
+def held_slot(
+    held: wp.tile(dtype=wp.mat33, shape=(SHARED_ROWS, SHARED_BLOCK)),
+    column: int,
+    k: int,
+    chunks: SlotChunks,
+    u: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """Held chunk k's share of its row of A u (zero where the thread has no chunk k)."""
+    b = k * GROUP
+    acc = held[b, column] * u[chunks.cols[b]]
+    acc += held[b + 1, column] * u[chunks.cols[b + 1]]
+    acc += held[b + 2, column] * u[chunks.cols[b + 2]]
+    acc += held[b + 3, column] * u[chunks.cols[b + 3]]
+    return acc
+
+
+slot_sums = wp.types.matrix(shape=(SHARED_SLOTS, 3), dtype=wp.float32)
+"""A thread's held chunks' shares of A u, one per row."""
+
+
+@wp.struct
+class HeldPair:
+    """A thread's first coupling pair in the shared-held solve, in registers for a whole solve (c = -1: none)."""
+
+    c: int
+    verts_a: wp.vec4i
+    weights_a: wp.vec4
+    verts_b: wp.vec4i
+    weights_b: wp.vec4
+    C: wp.mat33
+
+
+@wp.func
+def hold_pair(lane: int, blocks: int, pairs: Pairs) -> HeldPair:
+    """The first pair of a thread of the shared-held solve: thread t of block b takes pair ``t * blocks + b``.
+
+    Pairs spread over every block this way (each takes a share), where consecutive pairs on consecutive
+    threads would load a few SMs with all of them while the grid barrier waits for those.
+    """
+    held = HeldPair()
+    held.c = (lane % SHARED_BLOCK) * blocks + lane // SHARED_BLOCK
+    if held.c >= live_pairs(pairs):
+        held.c = -1
+        return held
+    held.verts_a = pairs.verts_a[held.c]
+    held.weights_a = pairs.weights_a[held.c]
+    held.verts_b = pairs.verts_b[held.c]
+    held.weights_b = pairs.weights_b[held.c]
+    held.C = pairs.matrix[held.c]
+    return held
+
+
+@wp.func
+def shared_product(
+    held: wp.tile(dtype=wp.mat33, shape=(SHARED_ROWS, SHARED_BLOCK)),
+    chunks: SlotChunks,
+    pair: HeldPair,
+    threads: int,
+    column: int,
+    pairs: Pairs,
+    u: wp.array(dtype=wp.vec3),
+    w_out: wp.array(dtype=wp.vec3),
+) -> float:
+    """:func:`partial_product` from the held chunks and pair: the chunks' loads, the pairs, then the chunks' adds.
+
+    Pairs past a thread's first (``pair.c + threads``, ...) are read as in the two-barrier solve. A load
+    after an atomic add to a buffer that may alias ``u`` waits for it, so the chunks' adds come last.
+    """
+    sums = slot_sums()
+    dot = float(0.0)
+    for k in range(SHARED_SLOTS):
+        acc = held_slot(held, column, k, chunks, u)
+        sums[k] = acc
+        row = chunks.rows[k]
+        dot += wp.where(row >= 0, wp.dot(u[wp.max(row, 0)], acc), 0.0)
+    if pair.c >= 0:
+        dot += embedded_product(pair.verts_a, pair.weights_a, pair.verts_b, pair.weights_b, pair.C, u, w_out)
+        for c in range(pair.c + threads, live_pairs(pairs), threads):
+            dot += pair_product(c, pairs, u, w_out)
+    for k in range(SHARED_SLOTS):
+        if chunks.rows[k] >= 0:
+            wp.atomic_add(w_out, chunks.rows[k], sums[k])
+    return dot

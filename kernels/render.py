@@ -8,6 +8,8 @@ ground, fog toward the horizon, sRGB-like gamma, 8-bit RGB out.
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.kernel
 def zero_normals(normals_out: wp.array(dtype=wp.vec3)):

@@ -11,6 +11,8 @@ import warp as wp
 
 from .product import mat43, pair_terms
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.func
 def mark_pair(

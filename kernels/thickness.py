@@ -2,6 +2,8 @@
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated
+
 
 @wp.kernel
 def inward_ray(

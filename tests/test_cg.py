@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 from warpfem.kernels.cg import HELD_WIDE_BLOCK, cg_solve_held_wide
-from warpfem.kernels.product import PAIR_LANES
+from warpfem.kernels.product import PAIR_LANES, SHARED_SLOTS
 
 from warpfem.prep.shapes import box_tet_mesh
 from warpfem.sim import cg as cg_module
@@ -184,6 +184,30 @@ def test_more_chunks_than_a_block_of_256_held_in_wider_blocks(device):
     assert coupled.held == on_cuda
     if on_cuda:  # one block of chunks, one of pairs
         assert coupled.held_kernel is cg_solve_held_wide and coupled.pair_lanes == HELD_WIDE_BLOCK
+
+
+@pytest.mark.parametrize("blocks", [1, 2])
+def test_more_chunks_than_threads_held_in_shared_memory(device, blocks):
+    """Where even blocks of ``HELD_WIDE_BLOCK`` threads are too few for the chunks but ``SHARED_SLOTS`` chunks a
+    thread are not (here about 1,100 chunks on one or two blocks of 256), each thread keeps its chunks, their
+    blocks in shared memory (``cg_solve_shared``, CUDA only); the answer is NumPy's dense solve, with and
+    without coupling pairs."""
+    on_cuda = wp.get_device(device).is_cuda
+    a, A, _, rng = _system(device, seed=5, cells=(6, 6, 6))
+    n = A.shape[0] // 3
+    cg = CGSolver(a["row_start"], a["cols"], a["free"], 800, device, mode="grid", grid_blocks=blocks)
+    assert not cg.held and cg.shared == on_cuda
+    if on_cuda:
+        assert HELD_WIDE_BLOCK * blocks < cg.chunk_row.shape[0] <= SHARED_SLOTS * cg.grid_threads
+    b = rng.normal(size=(n, 3))
+    cg.configure(800, 1e-6)
+    x = wp.zeros(n, dtype=wp.vec3, device=device)
+    cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
+    reference = np.linalg.solve(A, b.ravel())
+    assert cg.read_stats().residual_max <= 1e-6
+    np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
+    coupled = _check_coupled_solve(device, 40, 64, dict(mode="grid", grid_blocks=blocks), cells=(6, 6, 6))
+    assert coupled.shared == on_cuda
 
 
 def _check_coupled_solve(device, pairs: int, capacity: int, options: dict, cells=(2, 2, 2)) -> CGSolver:

@@ -15,7 +15,15 @@ import warp as wp
 
 from warpfem.kernels import cg as K
 from warpfem.kernels import deflation as KD
-from warpfem.kernels.product import OWN_CHUNK_ENTRIES, PAIR_LANES, BlockMatrix, Pairs
+from warpfem.kernels.product import (
+    OWN_CHUNK_ENTRIES,
+    PAIR_LANES,
+    SHARED_BLOCK,
+    SHARED_BYTES,
+    SHARED_SLOTS,
+    BlockMatrix,
+    Pairs,
+)
 from warpfem.sim.contacts import Coupling
 from warpfem.sim.deflation import RigidDeflation
 
@@ -45,6 +53,9 @@ HELD_PAIR_SHARE = 8
 """Blocks of chunks per block of pairs above :data:`HELD_PAIR_BLOCKS`, within the SMs the chunks leave: contacts
 grow with the bodies, and a pair group that takes turns over several pairs holds every block up at each barrier.
 Chosen by measurement on an H200 (see docs/decisions.md)."""
+
+SHARED_SLACK = 1024
+"""Shared memory a block of ``kernels.cg.cg_solve_shared`` needs beyond its tile (the grid barrier's word)."""
 
 GATHER_MAX_ROWS = 131_072
 """The largest system (rows) whose product gathers by default on CUDA; larger ones, and all on the CPU
@@ -252,6 +263,9 @@ class CGSolver:
         """Threads per block of the grid solve's launch."""
         self.held_kernel = None
         """The held solve's kernel (``cg_solve_held`` or, for more chunks, ``cg_solve_held_wide``), or None."""
+        self.shared = False
+        """Whether the two-barrier solve holds each thread's chunks, their blocks in shared memory
+        (``kernels.cg.cg_solve_shared``): where the chunks outnumber the threads but fit the SMs' shared memory."""
         if not self.device.is_cuda:
             self.grid_blocks, self.grid_threads, self.pair_lanes = 1, 1, 0
             return
@@ -274,6 +288,11 @@ class CGSolver:
             )
             self.grid_blocks = max(1, min(int(wanted), self.device.sm_count))
             self.pair_lanes = 0
+            self.shared = (
+                holdable
+                and self.device.max_shared_memory_per_block >= SHARED_BYTES + SHARED_SLACK
+                and self.grid_blocks * SHARED_BLOCK * SHARED_SLOTS >= chunks
+            )
         self.grid_threads = self.grid_blocks * self.grid_block
         if self.held:  # the one-barrier iteration's vectors: u and q = M^-1 s in two buffers, m = M^-1 A u in three
             self.u2 = wp.zeros(2 * n, dtype=wp.vec3, device=self.device)
@@ -417,7 +436,7 @@ class CGSolver:
             shape.append(self.pair_lanes)
             outputs = [x, self.r, self.p, self.s, self.w, self.u2, self.q2, self.m3, *stats]
         else:
-            kernel = K.cg_solve
+            kernel = K.cg_solve_shared if self.shared else K.cg_solve
             outputs = [x, self.r, self.u, self.p, self.s, self.w, *stats]
         solve = wp.launch(
             kernel,
