@@ -51,10 +51,10 @@ FIXED_CG_ITERATIONS = 100
 """CG's iteration count in ``cg_mode = "fixed"`` where the scene gives none (``cg_iterations``' default, 400, is
 a cap meant for tolerance mode, which a converging solve never reaches)."""
 
-APPROACH_LIMIT = 0.02
+APPROACH_LIMIT = 0.03
 """The most two bodies may close on each other in one step by default, as a share of the smaller one's size,
 before a frame runs more substeps (``[collision] approach_limit``). Chosen by measurement (docs/decisions.md,
-"Frames of fast approach at twice the substeps", "Refined frames at 1.5 times the substeps where that is enough")."""
+"Frames of fast approach at twice the substeps", "The approach limit at 3 % with lifted collision points")."""
 
 CONTACT_DAMPING = 20.0
 """The damping of a contact between bodies that closes fast, as a ratio to critical for its point's mass on its
