@@ -8,6 +8,7 @@ CUDA. The tolerance and the iteration count live in device arrays: changing them
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,10 @@ from warpfem.sim.deflation import RigidDeflation
 
 BLOCK = 256
 """Threads per block of the kernels that reduce dot products."""
+
+# Where a block gets less shared memory than cg_solve_shared's tile (GPUs before the H100 class), Warp warns at every
+# load of the CG module that it could not size the kernel; the solver never launches it there (CGSolver.shared).
+warnings.filterwarnings("ignore", message=r"Failed to configure dynamic shared memory for kernel 'cg_solve_shared'")
 
 CHUNK = {"cuda": 4, "cpu": 64}
 """Nonzero blocks per thread of the matrix product, per device kind (the CPU runs one thread at a time)."""
