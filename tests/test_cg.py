@@ -167,19 +167,12 @@ def test_more_chunks_than_a_block_of_256_held_in_wider_blocks(device):
     shared memory on CUDA); the answer is NumPy's dense solve, with and without coupling pairs."""
     on_cuda = wp.get_device(device).is_cuda
     a, A, _, rng = _system(device, seed=4, cells=(3, 4, 4))
-    n = A.shape[0] // 3
     cg = CGSolver(a["row_start"], a["cols"], a["free"], 500, device, mode="grid", grid_blocks=1)
     assert cg.held == on_cuda
     if on_cuda:
         assert BLOCK < cg.chunk_row.shape[0] <= HELD_WIDE_BLOCK == cg.grid_threads
         assert cg.held_kernel is cg_solve_held_wide
-    b = rng.normal(size=(n, 3))
-    cg.configure(500, 1e-6)
-    x = wp.zeros(n, dtype=wp.vec3, device=device)
-    cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
-    reference = np.linalg.solve(A, b.ravel())
-    assert cg.read_stats().residual_max <= 1e-6
-    np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
+    _check_random_solve(device, cg, a, A, rng, 500)
     coupled = _check_coupled_solve(device, 5, 8, dict(mode="grid", grid_blocks=2), cells=(3, 4, 4))
     assert coupled.held == on_cuda
     if on_cuda:  # one block of chunks, one of pairs
@@ -194,20 +187,25 @@ def test_more_chunks_than_threads_held_in_shared_memory(device, blocks):
     without coupling pairs."""
     on_cuda = wp.get_device(device).is_cuda
     a, A, _, rng = _system(device, seed=5, cells=(6, 6, 6))
-    n = A.shape[0] // 3
     cg = CGSolver(a["row_start"], a["cols"], a["free"], 800, device, mode="grid", grid_blocks=blocks)
     assert not cg.held and cg.shared == on_cuda
     if on_cuda:
         assert HELD_WIDE_BLOCK * blocks < cg.chunk_row.shape[0] <= SHARED_SLOTS * cg.grid_threads
+    _check_random_solve(device, cg, a, A, rng, 800)
+    coupled = _check_coupled_solve(device, 40, 64, dict(mode="grid", grid_blocks=blocks), cells=(6, 6, 6))
+    assert coupled.shared == on_cuda
+
+
+def _check_random_solve(device, cg: CGSolver, a: dict, A: np.ndarray, rng, cap: int) -> None:
+    """Solve ``A x = b`` for a random b to 1e-6 within ``cap`` iterations; check x against NumPy's dense solve."""
+    n = A.shape[0] // 3
     b = rng.normal(size=(n, 3))
-    cg.configure(800, 1e-6)
+    cg.configure(cap, 1e-6)
     x = wp.zeros(n, dtype=wp.vec3, device=device)
     cg.solve(a["values"], a["diag_inv"], wp.array(b.astype(np.float32), dtype=wp.vec3, device=device), x)
     reference = np.linalg.solve(A, b.ravel())
     assert cg.read_stats().residual_max <= 1e-6
     np.testing.assert_allclose(x.numpy().ravel(), reference, atol=1e-4 * np.abs(reference).max())
-    coupled = _check_coupled_solve(device, 40, 64, dict(mode="grid", grid_blocks=blocks), cells=(6, 6, 6))
-    assert coupled.shared == on_cuda
 
 
 def _check_coupled_solve(device, pairs: int, capacity: int, options: dict, cells=(2, 2, 2)) -> CGSolver:
