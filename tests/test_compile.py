@@ -166,3 +166,19 @@ def test_warmup_refuses_an_unknown_device_in_one_line(capsys):
     assert main(["warmup", "--device", "cuda:77"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [err[0]] and err[0].startswith("warpfem: error: --device cuda:77: no such device")
+
+
+def test_no_kernel_module_compiles_backward_code():
+    """Nothing in warpfem is differentiated: every module of ``warpfem.kernels`` that defines a kernel turns Warp's
+    backward code off, which would otherwise be most of a first run's compile time (and ask ``cg_solve_shared`` for
+    twice its shared memory)."""
+    import importlib
+
+    kernels = Path(warpfem.__file__).resolve().parents[1] / "kernels"
+    with_kernels = []
+    for path in sorted(kernels.glob("*.py")):
+        module = importlib.import_module(f"warpfem.kernels.{path.stem}")
+        if any(isinstance(value, wp.Kernel) for value in vars(module).values()):
+            with_kernels.append(path.stem)
+            assert wp.get_module(module.__name__).options["enable_backward"] is False, path.stem
+    assert {"cg", "collision", "fem", "integrate"} <= set(with_kernels)
