@@ -141,8 +141,10 @@ class CGSolver:
             rows, else scatter.
         hold_chunks: Let a "grid" solve whose gathered product has a thread for every chunk keep each
             chunk's columns and blocks in registers for the whole solve and meet at one barrier per iteration
-            (``kernels.cg.cg_solve_held``; the ``held`` attribute says whether it does); False: the two-barrier
-            solve that reads them every iteration (for tests of that path).
+            (``kernels.cg.cg_solve_held``; the ``held`` attribute says whether it does), and one with more chunks
+            keep each thread's few in shared memory where the device has room (``kernels.cg.cg_solve_shared``;
+            the ``shared`` attribute); False: the two-barrier solve that reads them every iteration (for tests
+            of that path).
         chunk: Nonzero blocks per thread of the product; None: :data:`CHUNK` for the device kind.
     """
 
@@ -255,7 +257,9 @@ class CGSolver:
         solve (``cg_solve_held``): an iteration loads only the vector and meets at one barrier instead of two.
         It tries blocks of :data:`BLOCK` threads, then of ``HELD_WIDE_BLOCK`` (``cg_solve_held_wide``); the
         coupling pairs get :data:`HELD_PAIR_BLOCKS` blocks, or one per :data:`HELD_PAIR_SHARE` blocks of chunks
-        where the SMs the chunks leave allow, and no more than their capacity fills.
+        where the SMs the chunks leave allow, and no more than their capacity fills. Where no held solve fits,
+        the two-barrier solve keeps up to ``kernels.product.SHARED_SLOTS`` chunks a thread in shared memory
+        (``shared``) if the device gives a block room for them.
         """
         holdable = (
             hold_chunks
@@ -295,6 +299,7 @@ class CGSolver:
             self.pair_lanes = 0
             self.shared = (
                 holdable
+                and self.grid_block == SHARED_BLOCK
                 and self.device.max_shared_memory_per_block >= SHARED_BYTES + SHARED_SLACK
                 and self.grid_blocks * SHARED_BLOCK * SHARED_SLOTS >= chunks
             )
