@@ -61,6 +61,8 @@ def test_run_writes_valid_usd_matching_the_simulation(scene_dir, device, capsys)
     assert _run(["run", scene_dir / "scene.toml", "--out", out, "--device", device, "--no-cache", "--quiet"]) == 0
     summary = capsys.readouterr().out
     assert "frames" in summary and "tets" in summary and "dense triangles" in summary
+    penetration = next(line for line in summary.splitlines() if line.startswith("penetration"))
+    assert "bodies - (a single body); below the ground" in penetration  # no figure for a check never made
     stage, attr, frames = _stage_points(out)
     assert len(frames) == 7 and stage.GetEndTimeCode() == 6  # frame 0 (initial pose) plus 6 frames
     ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())

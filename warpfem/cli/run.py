@@ -229,9 +229,12 @@ def _penetration_text(summary: Any) -> str:
     def at(frame: int) -> str:
         return f" at frame {frame}" if frame >= 0 else ""
 
+    checked = summary.penetration_frames
+    bodies = "bodies - (a single body)"
+    if checked:
+        bodies = f"bodies {body(worst)}{at(worst.frame)} over {checked} frames checked, {body(end)} at the end"
     return (
-        f"bodies {body(worst)}{at(worst.frame)} over {summary.penetration_frames} frames checked, {body(end)} at "
-        f"the end; below the ground or in obstacles {1e3 * worst.below_ground:.2f} mm "
+        f"{bodies}; below the ground or in obstacles {1e3 * worst.below_ground:.2f} mm "
         f"({100 * worst.below_relative:.2f} %){at(worst.below_frame)} over {summary.ground_frames} frames checked, "
         f"{1e3 * end.below_ground:.2f} mm at the end"
     )
