@@ -63,6 +63,8 @@ def test_run_writes_valid_usd_matching_the_simulation(scene_dir, device, capsys)
     assert "frames" in summary and "tets" in summary and "dense triangles" in summary
     penetration = next(line for line in summary.splitlines() if line.startswith("penetration"))
     assert "bodies - (a single body); below the ground" in penetration  # no figure for a check never made
+    cg = next(line for line in summary.splitlines() if line.startswith("CG iterations"))
+    assert "every solve within its tolerance before its cap" in cg  # 60 iterations reach 1e-5 on a ball
     stage, attr, frames = _stage_points(out)
     assert len(frames) == 7 and stage.GetEndTimeCode() == 6  # frame 0 (initial pose) plus 6 frames
     ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())

@@ -266,9 +266,13 @@ def _report(
         (
             "CG iterations per step",
             f"{summary.cg_iterations_per_step:.1f} in {summary.cg_solves_per_step:.2f} solves (max residual "
-            f"{summary.cg_residual_max:.2g}, float32 floor about {summary.cg_float32_floor:.1g}; at its cap above "
-            f"its tolerance in {summary.cg_short_solves} solves over {summary.cg_capped_frames} of {summary.frames} "
-            "frames)",
+            f"{summary.cg_residual_max:.2g}, float32 floor about {summary.cg_float32_floor:.1g}; "
+            + (
+                f"at its cap above its tolerance in {summary.cg_short_solves} solves over {summary.cg_capped_frames} "
+                f"of {summary.frames} frames)"
+                if summary.cg_short_solves
+                else "every solve within its tolerance before its cap)"
+            ),
         ),
         ("frames at more substeps", f"{summary.refined_frames} of {summary.frames} (bodies closing fast)"),
         ("step phases per frame", ", ".join(f"{k} {v:.2f} ms" for k, v in summary.step_ms.items()) or "n/a"),
