@@ -150,9 +150,16 @@ class Collider:
 
     def __init__(self, model, settings: CollisionSettings) -> None:
         self.model = model
-        dev = model.device
         n_points = model.point_cell.shape[0]
         self.capacity = max(64, int(settings.contacts_per_point * n_points))
+        self._contact_buffers(n_points)
+        self._tree_buffers(model)
+        self._surface_terms(model, settings, n_points)
+        self.set_response(settings.stiffness, settings.friction)
+
+    def _contact_buffers(self, n_points: int) -> None:
+        """The per-point and per-contact buffers detection fills and the response reads."""
+        model, dev = self.model, self.model.device
         self.points = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.point_velocity = wp.zeros(n_points, dtype=wp.vec3, device=dev)
         self.grad = wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev)
@@ -195,6 +202,10 @@ class Collider:
         come out of that depth since: their contacts carry no friction (:meth:`mark_placed`)."""
         self.placed_any = False
         """Whether :meth:`mark_placed` marked any point (else a step releases none)."""
+
+    def _tree_buffers(self, model) -> None:
+        """The tets' rest frames, the per-body tet trees' boxes and the bodies' boxes (and their BVH)."""
+        dev = model.device
         self.tet_inverse = wp.zeros(model.tet_count, dtype=wp.mat33, device=dev)
         self.tet_origin = wp.zeros(model.tet_count, dtype=wp.vec3, device=dev)
         starts = np.array([b.tet_start for b in model.bodies] + [model.tet_count], dtype=np.int32)
@@ -220,6 +231,9 @@ class Collider:
             self._bound(model.rest_x)  # the body boxes the BVH is built from
             # median splits: a balanced tree (Warp's BVH queries keep a fixed 32-entry traversal stack)
             self.body_bvh = wp.Bvh(self.body_lowers, self.body_uppers, constructor="median")
+
+    def _surface_terms(self, model, settings: CollisionSettings, n_points: int) -> None:
+        """The visible surfaces, the lifted collision points and the depths set by the contact offset."""
         size = min(b.size for b in model.bodies)
         offset = settings.offset * size
         lift = LIFT_SHARE * offset
@@ -233,14 +247,13 @@ class Collider:
         self.solve_depth = LATE_SOLVE_SHARE * offset
         """How deep (m, counted from the offset's start) a late contact must end its step to ask for a second solve:
         see :data:`LATE_SOLVE_SHARE`."""
-        self.lanes = detect_lanes(n_points, dev)
+        self.lanes = detect_lanes(n_points, model.device)
         """Threads per collision point in contact detection (any count finds the same contacts)."""
         self.damping = float(settings.damping)
         """Damping of contacts closing fast, a ratio to critical (:class:`CollisionSettings`)."""
         self.closing_depth = offset
         """How far (m) a contact must close in a step to be damped: the offset, the room the penalty has before
         the visible surface."""
-        self.set_response(settings.stiffness, settings.friction)
 
     def set_response(self, stiffness: float, friction: float) -> None:
         """Set the penalty stiffness per unit mass (1/s^2) and the friction coefficient (device arrays).
