@@ -3,7 +3,7 @@
 A scan with non-manifold edges (the stanford bunny with two flaps welded on), the same scan with flipped
 faces, a triangle-strip PLY (the bunny), a sharp CAD part (an angle bracket), a flat open sheet, models of
 44 shells (overlapping, and apart), two tets sharing an edge. Each run is a separate
-`python -m warpfem prepare MESH --faces N --no-cache` process (scripts/sweep_assets.py's run_one), timed
+`python -m warpfem prepare MESH --faces N --no-cache --json` process (scripts/sweep_assets.py's run_one), timed
 whole, Python start-up included.
 
     .venv/bin/python scripts/prep_kinds.py [--faces 400 1000 2500] [--limit 300]

@@ -1,6 +1,6 @@
 """Run `warpfem prepare` on every shared asset at several face counts and record what came out.
 
-Each run is a separate `python -m warpfem prepare MESH --faces N --no-cache` process, so the sweep checks
+Each run is a separate `python -m warpfem prepare MESH --faces N --no-cache --json` process, so the sweep checks
 exactly what a user gets: exit code 0 with stats, or a non-zero exit with one line on stderr (never a
 traceback, never a crash, never a hang: a run over --limit seconds counts as a hang).
 
@@ -25,17 +25,13 @@ ASSETS = ROOT.parent / "shared" / "assets"
 MESHES = ("armadillo.off", "horse.ply", "stanford-bunny.obj", "spot.obj", "cow.obj", "homer.obj")
 
 
-def parse_stats(stdout: str) -> dict[str, str]:
-    stats = {}
-    for line in stdout.splitlines():
-        key, _, value = line.partition("  ")
-        if key and value:
-            stats[key.strip()] = value.strip()
-    return stats
+def number(value) -> str:
+    """A statistic as the table shows it: floats to four significant digits."""
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
 def run_one(mesh: Path, faces: int, limit: float) -> dict:
-    cmd = [sys.executable, "-m", "warpfem", "prepare", str(mesh), "--faces", str(faces), "--no-cache"]
+    cmd = [sys.executable, "-m", "warpfem", "prepare", str(mesh), "--faces", str(faces), "--no-cache", "--json"]
     clock = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=limit, cwd=ROOT)
@@ -45,7 +41,7 @@ def run_one(mesh: Path, faces: int, limit: float) -> dict:
     errors = [line for line in proc.stderr.splitlines() if line.startswith("warpfem:") or "Traceback" in line]
     record = {"mesh": mesh.name, "faces": faces, "rc": proc.returncode, "wall_s": round(wall, 2)}
     if proc.returncode == 0:
-        record.update(outcome="ok", stats=parse_stats(proc.stdout))
+        record.update(outcome="ok", stats=json.loads(proc.stdout))
     else:
         clean = proc.returncode > 0 and "Traceback" not in proc.stderr and len(errors) == 1
         record.update(outcome="error" if clean else "crash", message=errors[-1] if errors else proc.stderr[-500:])
@@ -63,9 +59,10 @@ def table(records: list[dict]) -> str:
         if r["outcome"] == "ok":
             rows.append(
                 f"| {r['mesh']} | {r['faces']} | ok | {s['rung'].split(' ')[0]} | {s['tets']} |"
-                f" {s['tet_min_dihedral_deg']} | {s['volume_ratio']} | {s['hausdorff_relative']} |"
+                f" {number(s['tet_min_dihedral_deg'])} | {number(s['volume_ratio'])} |"
+                f" {number(s['hausdorff_relative'])} |"
                 f" {float(s['seconds_simplify']) + float(s.get('seconds_outer', 0)):.3g} |"
-                f" {s['seconds_tetrahedralize']} | {r['wall_s']} |"
+                f" {number(s['seconds_tetrahedralize'])} | {r['wall_s']} |"
             )
         else:
             rows.append(f"| {r['mesh']} | {r['faces']} | {r['outcome']}: {r.get('message', '')} | | | | | | | | |")

@@ -1,5 +1,7 @@
 """The command line end to end: tiny scenes to USD, bad input, interruption."""
 
+import json
+import re
 import subprocess
 import sys
 
@@ -196,10 +198,32 @@ def test_interrupted_run_keeps_the_frames_done(scene_dir, capsys, monkeypatch):
 
 
 def test_prepare_reports_what_it_made(scene_dir, capsys):
+    """Every statistic of ``--json`` is in the text report, worded, with the mesh's own size and counts."""
+    assert _run(["prepare", scene_dir / "ball.obj", "--faces", "200", "--no-cache", "--json"]) == 0
+    stats = json.loads(capsys.readouterr().out)
     assert _run(["prepare", scene_dir / "ball.obj", "--faces", "200", "--no-cache"]) == 0
-    report = capsys.readouterr().out
-    for word in ("tets", "coverage"):
-        assert word in report
+    rows = dict(re.split(r"\s{2,}", line, maxsplit=1) for line in capsys.readouterr().out.splitlines())
+    sphere = trimesh.load(scene_dir / "ball.obj", process=False)  # the file read independently
+    diagonal = np.linalg.norm(np.ptp(sphere.vertices, axis=0))
+    assert rows["size"].startswith(f"bounding-box diagonal {diagonal:.4g} ")
+    assert rows["dense surface"].startswith(f"{len(sphere.vertices):,} vertices, {len(sphere.faces):,} triangles")
+    assert rows["tets"].startswith(f"{stats['tets']:,} on {stats['tet_vertices']:,} vertices")
+    assert rows["embedding"].startswith(f"{100 * stats['embedding_coverage']:.2f} % of dense vertices inside a tet")
+    hausdorff = stats["hausdorff"]
+    assert rows["hausdorff"].startswith(f"{hausdorff:.4g} ({100 * hausdorff / diagonal:.2f} %)")
+    assert rows["cache"] == "off" and "hausdorff" in rows["seconds"]
+    assert [label for label in rows if "_" in label] == []  # no statistic left unworded
+
+
+def test_prepare_report_words_sizing_and_lists_what_it_does_not_word(scene_dir):
+    """A thickness-sized body gets a sizing row; a statistic the report does not know is still listed."""
+    from warpfem.cli.prepare import report_rows
+
+    stats = dict(warpfem.prepare(scene_dir / "ball.obj", faces=200, cache_dir=None).stats)
+    stats.update(thickness=0.05, thickness_relative=0.025, tets_across=3, max_tets=3000, sizing_capped=1, new=2.5)
+    rows = dict(report_rows(stats, diagonal=2.0))
+    assert rows["sizing"] == "thinnest part 0.05 (2.50 %), 3 tets across it, budget 3,000 tets, capped by the budget"
+    assert rows["new"] == "2.5"
 
 
 @pytest.mark.slow

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from warpfem.cli.common import add_output_flags, cache_dir_of, print_summary
 from warpfem.errors import InputError
 
@@ -84,6 +86,76 @@ def main(args: argparse.Namespace) -> int:
         max_hole=args.max_hole,
         prim=args.prim,
     )
-    rows = [(key, f"{value:.4g}" if isinstance(value, float) else str(value)) for key, value in body.stats.items()]
-    print_summary(rows, body.stats, args.json)
+    diagonal = float(np.linalg.norm(np.ptp(body.dense_vertices, axis=0)))
+    print_summary(report_rows(body.stats, diagonal), body.stats, args.json)
     return 0
+
+
+CACHE = {"hit": "hit (read; the times below are those of the run that filled it)", "miss": "miss (stored)"}
+
+NAMED = frozenset(
+    "mesh cache repairs dense_vertices dense_faces dense_intersecting_pairs coarse_vertices coarse_faces rung "
+    "failed_rungs tets tet_vertices maxh_absolute tet_min_dihedral_deg tet_min_radius_ratio volume_ratio "
+    "cage_volume_ratio cage_offset cage_outside cage_outside_max hausdorff hausdorff_relative "
+    "hausdorff_dense_to_coarse hausdorff_coarse_to_dense embedding_coverage embedding_max_error max_depth "
+    "thickness thickness_relative tets_across max_tets sizing_capped".split()
+)
+"""The statistics :func:`report_rows` words itself; any other is listed as it is."""
+
+
+def report_rows(s: dict, diagonal: float) -> list[tuple[str, str]]:
+    """``prepare``'s statistics ``s`` as labelled rows with their units (``--json`` gives them raw).
+
+    Lengths are in the mesh file's units, each also as a share of the dense mesh's bounding-box diagonal.
+    """
+
+    def length(key: str) -> str:
+        value = float(s[key])
+        return f"{value:.4g} ({100 * value / diagonal:.2f} %)" if diagonal > 0 else f"{value:.4g}"
+
+    rows = [
+        ("mesh", str(s["mesh"])),
+        ("cache", CACHE.get(s["cache"], str(s["cache"]))),
+        ("repairs", str(s["repairs"])),
+        ("size", f"bounding-box diagonal {diagonal:.4g} (the mesh file's units; lengths below also as % of it)"),
+        (
+            "dense surface",
+            f"{s['dense_vertices']:,} vertices, {s['dense_faces']:,} triangles, "
+            f"{s['dense_intersecting_pairs']:,} pairs of them intersecting",
+        ),
+        ("coarse surface", f"{s['coarse_vertices']:,} vertices, {s['coarse_faces']:,} triangles"),
+        ("rung", f"{s['rung']}; failed before it: {s['failed_rungs']}"),
+        (
+            "tets",
+            f"{s['tets']:,} on {s['tet_vertices']:,} vertices, Netgen's largest size {length('maxh_absolute')}; "
+            f"smallest dihedral angle {s['tet_min_dihedral_deg']:.3g} deg, smallest radius ratio "
+            f"{s['tet_min_radius_ratio']:.3g} (1 for a regular tet)",
+        ),
+    ]
+    if "tets_across" in s:
+        capped = ", capped by the budget" if s["sizing_capped"] else ""
+        across = f"{s['tets_across']} tets across it, budget {s['max_tets']:,} tets{capped}"
+        rows.append(("sizing", f"thinnest part {length('thickness')}, {across}"))
+    rows += [
+        ("volume", f"tets {s['volume_ratio']:.4g}x the dense surface's, cage {s['cage_volume_ratio']:.4g}x"),
+        (
+            "cage",
+            f"pushed out by at most {length('cage_offset')}; {100 * s['cage_outside']:.2f} % of dense points "
+            f"still outside it, by at most {length('cage_outside_max')}",
+        ),
+        (
+            "hausdorff",
+            f"{length('hausdorff')}: dense to coarse {length('hausdorff_dense_to_coarse')}, coarse to dense "
+            f"{length('hausdorff_coarse_to_dense')}",
+        ),
+        (
+            "embedding",
+            f"{100 * s['embedding_coverage']:.2f} % of dense vertices inside a tet (the rest follow a nearby one); "
+            f"rebuilt within {s['embedding_max_error']:.2g} of the diagonal",
+        ),
+        ("deepest tet vertex", f"{length('max_depth')} below the coarse surface"),
+    ]
+    seconds = [(k.removeprefix("seconds_").replace("_", " "), v) for k, v in s.items() if k.startswith("seconds_")]
+    rows.append(("seconds", ", ".join(f"{k} {v:.3g}" for k, v in seconds)))
+    rest = [(k, v) for k, v in s.items() if k not in NAMED and not k.startswith("seconds_")]
+    return rows + [(k, f"{v:.4g}" if isinstance(v, float) else str(v)) for k, v in rest]

@@ -702,20 +702,20 @@ def prepare(
         max_tets: The tet budget of sizing by thickness (about this many tets at most; ignored at 0 across).
 
     Returns:
-        The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off),
-        ``rung`` (the ladder rung that succeeded), ``failed_rungs`` (the reasons of those before it),
-        ``dense_vertices``, ``dense_faces``, ``dense_intersecting_pairs``, ``coarse_vertices``,
-        ``coarse_faces``, ``tets``, ``tet_vertices``, ``tet_min_dihedral_deg``, ``tet_min_radius_ratio``
-        (3 inradius / circumradius, 1 for a regular tet), ``volume_ratio`` (coarse / dense volume, or /
-        outer-surface volume for self-intersecting input or overlapping shells), ``maxh_absolute``
-        (mesh units), ``hausdorff`` (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to
-        the bounding-box diagonal and each one-sided value), ``embedding_coverage`` (fraction of dense
-        vertices inside a tet), ``embedding_max_error`` (max reconstruction error / bbox diagonal),
-        ``max_depth``, with ``across``: ``thickness`` (mesh units; ``thickness_relative`` to the diagonal),
-        ``tets_across``, ``max_tets`` and ``sizing_capped`` (1 if the budget set the size), and
-        ``seconds_<stage>`` for load, validate, sizing, outer and remesh (if used), simplify,
-        tetrahedralize, embed, distance, hausdorff (on a cache hit, those of the run that filled the
-        cache, plus ``seconds_cache_read``).
+        The prepared body. ``stats`` holds: ``mesh``, ``repairs``, ``cache`` (hit, miss or off), ``rung`` (the ladder
+        rung that succeeded), ``failed_rungs`` (the reasons of those before it), ``dense_vertices``, ``dense_faces``,
+        ``dense_intersecting_pairs``, ``coarse_vertices``, ``coarse_faces``, ``tets``, ``tet_vertices``,
+        ``tet_min_dihedral_deg``, ``tet_min_radius_ratio`` (3 inradius / circumradius, 1 for a regular tet),
+        ``volume_ratio`` (coarse / dense volume, or / outer-surface volume for self-intersecting input or overlapping
+        shells), ``cage_volume_ratio`` (the cage's), ``cage_offset``, ``cage_outside`` and ``cage_outside_max``
+        (:func:`~warpfem.prep.cage.enclose`; lengths in mesh units), ``maxh_absolute`` (mesh units), ``hausdorff``
+        (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to the bounding-box diagonal and each
+        one-sided value), ``embedding_coverage`` (fraction of dense vertices inside a tet), ``embedding_max_error`` (max
+        reconstruction error / bbox diagonal), ``max_depth`` (the deepest tet vertex below the coarse surface, mesh
+        units), with ``across``: ``thickness`` (mesh units; ``thickness_relative`` to the diagonal), ``tets_across``,
+        ``max_tets`` and ``sizing_capped`` (1 if the budget set the size), and ``seconds_<stage>`` for load, validate,
+        sizing, outer and remesh (if used), simplify, tetrahedralize, embed, distance, hausdorff (on a cache hit, those
+        of the run that filled the cache, plus ``seconds_cache_read``).
 
     Raises:
         InputError: For a bad mesh or parameter, or when a stage fails on this mesh (one line).
