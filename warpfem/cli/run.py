@@ -247,6 +247,7 @@ def _report(
     s = summary.seconds
     per = 1e3 / summary.frames
     render_ms = per * render_seconds
+    render = f", render {render_ms:.2f}" if preview else ""
     rows = [
         ("output", str(summary.output)),
         ("preview", f"{preview} ({size[0]}x{size[1]}, {render_ms:.1f} ms per frame)" if preview else "none"),
@@ -255,7 +256,7 @@ def _report(
         (
             "wall time per frame",
             f"{summary.ms_per_frame:.2f} ms to the file written (simulate {per * s['simulate']:.2f}, "
-            f"map {per * s['map']:.2f}, render {render_ms:.2f}; on the writer's thread: write {per * s['write']:.2f}, "
+            f"map {per * s['map']:.2f}{render}; on the writer's thread: write {per * s['write']:.2f}, "
             f"check {per * s['check']:.2f}; waiting for the writer {per * s['wait']:.2f})",
         ),
         ("preprocessing", f"{s['prepare']:.2f} s"),
