@@ -79,6 +79,32 @@ def test_simplify_keeps_a_closed_positive_surface_close_to_the_input():
     assert np.all((radius > 0.95) & (radius < 1.05))
 
 
+def test_a_large_surface_is_first_reduced_by_a_fast_qem_and_still_simplifies_well(monkeypatch):
+    """Above twice ``FIRST_FACES`` the child first reduces the surface fast; the result holds as QEM's alone does."""
+    from warpfem.prep import simplify as S
+
+    assert S.first_faces(195_200, 1000) == 0  # the default scene's bunny goes to the blocked QEM whole
+    assert S.first_faces(3_123_200, 1000) == S.FIRST_FACES and S.first_faces(3_123_200, 30_000) == 600_000
+    monkeypatch.setattr(S, "FIRST_FACES", 2000)
+    sent = {}
+    run = S.run_in_child
+
+    def spy(task, inputs, *args):
+        sent.update(inputs)
+        return run(task, inputs, *args)
+
+    monkeypatch.setattr(S, "run_in_child", spy)
+    mesh = _ellipsoid(subdivisions=4)  # 5,120 faces, more than twice 2,000
+    vertices, faces = simplify(mesh.vertices, mesh.faces, 80)
+    assert int(sent["first"]) == 2000
+    assert 60 < len(faces) <= 80
+    coarse = trimesh.Trimesh(vertices, faces, process=False)
+    assert coarse.is_watertight and coarse.is_winding_consistent
+    assert coarse.volume == pytest.approx(mesh.volume, rel=0.1)
+    radius = np.linalg.norm(vertices / [1.0, 0.6, 0.4], axis=1)  # near the ellipsoid the dense mesh approximates
+    assert np.all((radius > 0.9) & (radius < 1.1))
+
+
 def test_simplify_leaves_small_meshes_alone():
     mesh = trimesh.creation.icosphere(subdivisions=1)
     vertices, faces = simplify(mesh.vertices, mesh.faces, 1000)

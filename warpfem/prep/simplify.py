@@ -20,6 +20,19 @@ OUTER_CELLS_RANGE = (32, 160)
 """Smallest and largest outer-surface grid resolution (cells along the longest side)."""
 
 
+FIRST_FACES = 200_000
+"""Faces a dense surface of more than twice this many is first reduced to (or to 20 times the target, if more)
+by a fast QEM that does not block intersections (fast-simplification), before libigl's blocked QEM: that one
+costs about 35 us a face on a 2-core CPU, so a 3-million-triangle scan would outrun the time budget, and a
+coarse surface of a few thousand faces resolves nothing of the detail lost between (docs/preprocessing.md)."""
+
+
+def first_faces(faces: int, target: int) -> int:
+    """The faces a fast QEM first reduces a surface of ``faces`` to for a ``target`` (0: none)."""
+    first = max(FIRST_FACES, 20 * target)
+    return first if faces > 2 * first else 0
+
+
 def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Drop unreferenced vertices."""
     used = np.zeros(len(vertices), dtype=bool)
@@ -38,7 +51,9 @@ def simplify(
     """Simplify a closed surface to at most ``target_faces`` triangles with QEM edge collapses.
 
     Collapses that would make the surface self-intersect are blocked (``block_intersections``), so a
-    clean input stays meshable by Netgen.
+    clean input stays meshable by Netgen. A surface of more than twice :data:`FIRST_FACES` faces is first
+    reduced to :func:`first_faces` by a fast QEM without that blocking (a surface that then intersects itself fails
+    the checks after and goes to the next rung).
 
     Args:
         surface_vertices: (n, 3) positions of a closed, outward-wound surface.
@@ -63,7 +78,8 @@ def simplify(
     if len(faces) <= target_faces:
         return np.ascontiguousarray(vertices), np.ascontiguousarray(faces)
 
-    inputs = {"vertices": vertices, "faces": faces, "target": np.int64(target_faces)}
+    first = np.int64(first_faces(len(faces), target_faces))
+    inputs = {"vertices": vertices, "faces": faces, "target": np.int64(target_faces), "first": first}
     out, _ = run_in_child("qslim", inputs, timeout_s, name, "QEM simplification")
     coarse_v, coarse_f = _compact(out["vertices"].astype(np.float64), out["faces"].astype(np.int64))
     defect = topology_defects(coarse_f)

@@ -9,8 +9,9 @@ its outputs; the child's console output (Netgen's log) is returned for error mes
 Tasks:
     ``netgen``: ``vertices`` (n, 3) float64, ``faces`` (m, 3) int32 outward, ``maxh``, ``optsteps`` ->
         ``points`` (p, 3) float64 (the n surface points first) and 0-based ``tets`` (q, 4) int32.
-    ``qslim``: ``vertices``, ``faces``, ``target`` -> ``vertices``, ``faces`` (libigl's qslim with
-        intersection blocking, unreferenced vertices kept).
+    ``qslim``: ``vertices``, ``faces``, ``target``, optional ``first`` -> ``vertices``, ``faces`` (libigl's
+        qslim with intersection blocking, unreferenced vertices kept; from ``first`` faces made by a fast QEM
+        where given).
     ``outer``: ``vertices``, ``faces``, ``cells`` -> ``vertices``, ``faces``: the 1/2 level set of the
         generalized winding number (``igl.fast_winding_number``) sampled on a grid with ``cells`` cells
         along the longest side, by marching cubes.
@@ -108,11 +109,23 @@ def mesh_volume(vertices: np.ndarray, faces: np.ndarray, maxh: float, optsteps: 
     return points, tets
 
 
-def qslim(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """Run libigl's QEM simplification with intersection blocking; return its (V, F)."""
+def qslim(vertices: np.ndarray, faces: np.ndarray, target: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Run libigl's QEM simplification with intersection blocking; return its (V, F).
+
+    ``first`` > 0: reduce the surface to that many faces first with fast-simplification's QEM, which does not
+    block intersections but runs about 25 times as fast; the blocked QEM then works on that.
+    """
     import igl
 
-    out_v, out_f, _, _ = igl.qslim(np.asfortranarray(vertices), np.asfortranarray(faces), int(target), True)
+    if first > 0:
+        import fast_simplification
+
+        vertices, faces = fast_simplification.simplify(
+            np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int32), target_count=int(first)
+        )
+    out_v, out_f, _, _ = igl.qslim(
+        np.asfortranarray(vertices, dtype=np.float64), np.asfortranarray(faces, dtype=np.int64), int(target), True
+    )
     return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int64)
 
 
@@ -200,7 +213,7 @@ def main(argv: list[str]) -> int:
         out_v, out_f = remesh_surface(vertices, faces, int(inputs["target"]))
         np.savez(dst, vertices=out_v, faces=out_f)
     elif task == "qslim":
-        out_v, out_f = qslim(vertices, faces.astype(np.int32), int(inputs["target"]))
+        out_v, out_f = qslim(vertices, faces.astype(np.int32), int(inputs["target"]), int(inputs.get("first", 0)))
         np.savez(dst, vertices=out_v, faces=out_f)
     else:
         out_v, out_f = outer_surface(vertices, faces, int(inputs["cells"]))
