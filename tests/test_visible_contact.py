@@ -187,6 +187,20 @@ def test_skin_samples_hold_the_surface_up_in_every_direction():
         assert gap_skin.max() < 2 * tolerance and gap_grid.max() > 5 * tolerance
 
 
+def test_stick_out_in_chunks_is_the_whole_formula(monkeypatch):
+    """``stick_out`` over chunks of rows gives exactly the one-array formula (the samples do not depend on it)."""
+    from warpfem.prep import samples as S
+
+    rng = np.random.default_rng(3)
+    x, chosen = rng.normal(size=(1000, 3)), rng.normal(size=(40, 3))
+    normal = rng.normal(size=(1000, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    near = rng.integers(0, 40, size=(1000, 8))
+    whole = np.einsum("vkj,vj->vk", x[:, None, :] - chosen[near], normal).min(axis=1)
+    monkeypatch.setattr(S, "STICK_OUT_ROWS", 96)  # 1000 rows: ten full chunks and a short one
+    np.testing.assert_array_equal(S.stick_out(x, normal, chosen, near), whole)
+
+
 def test_collision_samples_cover_the_dense_surface(prep_cache):
     """On the builtin bunny, with the default spacing: every dense vertex lies within half the spacing of a
     collision sample (brute-force distances, NumPy), where a grid of that spacing picking one vertex per cell

@@ -180,9 +180,8 @@ def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: floa
     from scipy.spatial import cKDTree
 
     for _ in range(SKIN_ROUNDS):
-        _, near = cKDTree(x[chosen]).query(x, k=min(8, len(chosen)))
-        near = near.reshape(len(x), -1)
-        out = np.einsum("vkj,vj->vk", x[:, None, :] - x[chosen][near], normal).min(axis=1)
+        _, near = cKDTree(x[chosen]).query(x, k=min(8, len(chosen)), workers=-1)
+        out = stick_out(x, normal, x[chosen], near.reshape(len(x), -1))
         bad = np.flatnonzero(out > tolerance)
         if len(bad) == 0:
             break
@@ -191,3 +190,16 @@ def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: floa
         _, first = np.unique(cell, axis=0, return_index=True)
         chosen = np.union1d(chosen, order[first])
     return chosen
+
+
+STICK_OUT_ROWS = 1 << 15
+"""Vertices :func:`stick_out` takes at a time, so its (rows, 8, 3) temporaries stay a few MB."""
+
+
+def stick_out(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """Per vertex, ``min (x_v - s) . n_v`` over its nearest chosen points ``s = chosen[near[v]]`` (m)."""
+    out = np.empty(len(x))
+    for a in range(0, len(x), STICK_OUT_ROWS):
+        b = a + STICK_OUT_ROWS
+        out[a:b] = np.einsum("vkj,vj->vk", x[a:b, None, :] - chosen[near[a:b]], normal[a:b]).min(axis=1)
+    return out
