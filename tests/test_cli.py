@@ -276,9 +276,27 @@ def test_prepare_options_reach_the_pipeline(scene_dir, capsys):
         (["--shells", "bogus"], "--shells"),
         (["--timeout", "0"], "--timeout"),
         (["--max-hole", "-1"], "--max-hole"),
+        (["--tets-across", "65"], "--tets-across"),
+        (["--max-tets", "50"], "--max-tets"),
     ):
         assert _run(["prepare", scene_dir / "ball.obj", "--no-cache", *bad]) == 2
         _one_line_error(capsys, needle)
+
+
+def test_prepare_sizes_by_thickness_as_a_scene_would(scene_dir, capsys):
+    """``--tets-across`` and ``--max-tets`` make the body the scene keys make: the API's tets, more across the
+    ball for more tets across it, and fewer where the budget caps them."""
+
+    def tets(across: str, budget: str) -> dict:
+        args = ["prepare", scene_dir / "ball.obj", "--no-cache", "--json", "--faces", "100", "--maxh", "1"]
+        assert _run([*args, "--tets-across", across, "--max-tets", budget]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    three, six, capped = tets("3", "100000"), tets("6", "100000"), tets("6", "200")
+    body = warpfem.prepare(scene_dir / "ball.obj", faces=100, maxh=1.0, across=6.0, max_tets=100_000, cache_dir=None)
+    assert six["tets"] == body.stats["tets"] and six["tets_across"] == 6 and six["max_tets"] == 100_000
+    assert three["tets"] < six["tets"] and not six["sizing_capped"]
+    assert capped["sizing_capped"] == 1 and capped["tets"] < six["tets"]
 
 
 def _warnings(scene_dir, text: str, capsys, needle: str, frames: int) -> list[str]:

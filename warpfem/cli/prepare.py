@@ -14,6 +14,7 @@ EXAMPLES = """examples:
   warpfem prepare ../shared/assets/armadillo.off --faces 1000
   warpfem prepare builtin:bunny --subdivide 2 --faces 500 --no-cache
   warpfem prepare bunny.obj --json                            the report as JSON, for scripts
+  warpfem prepare bunny.obj --tets-across 2 --max-tets 3000   sized as the "default" preset sizes it
 
 exit codes: 0 ok, 2 bad input (unreadable or broken mesh, bad option, a stage failing on this mesh)
 """
@@ -50,6 +51,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     prep.add_argument(
         "--max-hole", type=float, default=None, help="largest hole closed, relative to the bbox diagonal (default 0.25)"
     )
+    prep.add_argument(
+        "--tets-across",
+        type=float,
+        default=0.0,
+        help="tets across the thinnest parts, as the scene key tets_across (default 0: --faces and --maxh alone)",
+    )
+    prep.add_argument(
+        "--max-tets", type=int, default=50_000, help="the tet budget of --tets-across, as the scene key (default 50000)"
+    )
     add_output_flags(prep, progress=False)
     prep.set_defaults(func=main)
 
@@ -68,6 +78,10 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--budget must be a number of seconds > 0, got {args.budget}")
     if args.max_hole is not None and args.max_hole < 0:
         raise InputError(f"--max-hole must be >= 0, got {args.max_hole}")
+    if not 0.0 <= args.tets_across <= 64.0:
+        raise InputError(f"--tets-across must be in [0, 64], got {args.tets_across}")
+    if not 100 <= args.max_tets <= 1_000_000:
+        raise InputError(f"--max-tets must be in [100, 1000000], got {args.max_tets}")
     shells = args.shells
     if shells not in ("merge", "largest", "error"):
         if not shells.isdigit():
@@ -85,6 +99,8 @@ def main(args: argparse.Namespace) -> int:
         shells=shells,
         max_hole=args.max_hole,
         prim=args.prim,
+        across=args.tets_across,
+        max_tets=args.max_tets,
     )
     diagonal = float(np.linalg.norm(np.ptp(body.dense_vertices, axis=0)))
     print_summary(report_rows(body.stats, diagonal), body.stats, args.json)
