@@ -297,6 +297,13 @@ def test_prepare_sizes_by_thickness_as_a_scene_would(scene_dir, capsys):
     assert six["tets"] == body.stats["tets"] and six["tets_across"] == 6 and six["max_tets"] == 100_000
     assert three["tets"] < six["tets"] and not six["sizing_capped"]
     assert capped["sizing_capped"] == 1 and capped["tets"] < six["tets"]
+    # --quality fills what is not given from the scene preset; what is given wins
+    assert _run(["prepare", scene_dir / "ball.obj", "--no-cache", "--json", "--quality", "default"]) == 0
+    preset = json.loads(capsys.readouterr().out)
+    body = warpfem.prepare(scene_dir / "ball.obj", faces=1000, maxh=0.2, across=2.0, max_tets=3000, cache_dir=None)
+    assert (preset["tets_across"], preset["max_tets"], preset["tets"]) == (2, 3000, body.stats["tets"])
+    assert tets("3", "100000")["tets_across"] == 3 and _run(["prepare", "x.obj", "--quality", "best"]) == 2
+    _one_line_error(capsys, "--quality", "invalid choice")
 
 
 def _warnings(scene_dir, text: str, capsys, needle: str, frames: int) -> list[str]:

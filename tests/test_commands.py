@@ -131,6 +131,10 @@ def test_render_command_writes_mp4_and_png_frames(ran, capsys):
         (["prepare", "{f}/ball.obj", "--budget", "0", "--cache-dir", "{f}/c"], ("--budget", "> 0")),
         (["prepare", "{f}/ball.obj", "--budget", "nan", "--cache-dir", "{f}/c"], ("--budget", "nan")),
         (["prepare", "{f}/ball.obj", "--timeout", "inf", "--cache-dir", "{f}/c"], ("--timeout", "inf")),
+        (["prepare", "{f}/ball.obj", "--quality", "best"], ("--quality", "invalid choice", "warpfem prepare --help")),
+        (["run", "{f}/scene.toml", "--frames", "ten"], ("--frames", "invalid int value", "warpfem run --help")),
+        (["run", "{f}/scene.toml", "--fast"], ("unrecognized arguments: --fast",)),
+        (["simulate", "{f}/scene.toml"], ("invalid choice: 'simulate'",)),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_no_output(ran, capsys, args, needles):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 from warpfem.cli.common import COMMANDS
 from warpfem.errors import InputError, SimulationError
@@ -24,8 +25,19 @@ every command has --help with its own examples; docs/cli.md describes them all
 """
 
 
+class UsageError(Exception):
+    """A command line argparse cannot read (an unknown option, a value of the wrong type or choice)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, its errors one line (the usage is in ``--help``) raised to :func:`main`."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(f"{message} (see: {self.prog} --help)")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="warpfem",
         description="Animate dense surface meshes through simplified tet meshes (Kondo & Kanai) with NVIDIA Warp.",
         epilog=EPILOG,
@@ -39,7 +51,11 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``warpfem`` command; returns the exit code."""
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except UsageError as err:
+        print(f"warpfem: error: {err}", file=sys.stderr)
+        return 2
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # no banner, no module-load lines

@@ -9,12 +9,13 @@ import numpy as np
 
 from warpfem.cli.common import add_output_flags, cache_dir_of, print_summary
 from warpfem.errors import InputError
+from warpfem.presets import PRESETS
 
 EXAMPLES = """examples:
   warpfem prepare ../shared/assets/armadillo.off --faces 1000
   warpfem prepare builtin:bunny --subdivide 2 --faces 500 --no-cache
   warpfem prepare bunny.obj --json                            the report as JSON, for scripts
-  warpfem prepare bunny.obj --tets-across 2 --max-tets 3000   sized as the "default" preset sizes it
+  warpfem prepare bunny.obj --quality high                    the body the "high" preset simulates
 
 exit codes: 0 ok, 2 bad input (unreadable or broken mesh, bad option, a stage failing on this mesh)
 """
@@ -31,9 +32,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     prep.add_argument("mesh", help="OBJ, PLY, STL, OFF or USD file, or builtin:bunny")
     prep.add_argument("--prim", help="the UsdGeom.Mesh prim of a USD file (default: its only mesh)")
-    prep.add_argument("--faces", type=int, default=1000, help="coarse surface target face count (default 1000)")
+    prep.add_argument(
+        "--quality",
+        choices=sorted(PRESETS),
+        help="a scene's [solver] quality preset: its faces, maxh, tets across and tet budget, where not given",
+    )
+    prep.add_argument("--faces", type=int, default=None, help="coarse surface target face count (default 1000)")
     prep.add_argument("--subdivide", type=int, default=0, help="Loop subdivision iterations first (default 0)")
-    prep.add_argument("--maxh", type=float, default=0.2, help="Netgen max element size / bbox diagonal (default 0.2)")
+    prep.add_argument("--maxh", type=float, default=None, help="Netgen max element size / bbox diagonal (default 0.2)")
     prep.add_argument("--cache-dir", type=Path, default=None, help="preprocessing cache (default: ~/.cache/warpfem)")
     prep.add_argument("--no-cache", action="store_true", help="preprocess again and store nothing")
     prep.add_argument("--timeout", type=float, default=120.0, help="time limit per stage in s (default 120)")
@@ -54,11 +60,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     prep.add_argument(
         "--tets-across",
         type=float,
-        default=0.0,
+        default=None,
         help="tets across the thinnest parts, as the scene key tets_across (default 0: --faces and --maxh alone)",
     )
     prep.add_argument(
-        "--max-tets", type=int, default=50_000, help="the tet budget of --tets-across, as the scene key (default 50000)"
+        "--max-tets", type=int, default=None, help="the tet budget of --tets-across, as the scene key (default 50000)"
     )
     add_output_flags(prep, progress=False)
     prep.set_defaults(func=main)
@@ -68,6 +74,7 @@ def main(args: argparse.Namespace) -> int:
     """Preprocess the mesh named by ``args`` and print its report; returns the exit code."""
     from warpfem.prep.pipeline import prepare
 
+    _fill_sizes(args)
     if args.faces < 4:
         raise InputError(f"--faces must be >= 4, got {args.faces}")
     if not 0.0 < args.maxh <= 1.0:
@@ -105,6 +112,18 @@ def main(args: argparse.Namespace) -> int:
     diagonal = float(np.linalg.norm(np.ptp(body.dense_vertices, axis=0)))
     print_summary(report_rows(body.stats, diagonal), body.stats, args.json)
     return 0
+
+
+SIZES = {"faces": 1000, "maxh": 0.2, "tets_across": 0.0, "max_tets": 50_000}
+"""The sizing options' values where neither they nor ``--quality`` give one (the scene keys' defaults)."""
+
+
+def _fill_sizes(args: argparse.Namespace) -> None:
+    """Set each sizing option not given from ``--quality``'s preset, else from :data:`SIZES`."""
+    preset = PRESETS[args.quality] if args.quality else {}
+    for key, default in SIZES.items():
+        if getattr(args, key) is None:
+            setattr(args, key, preset.get(key, default))
 
 
 CACHE = {"hit": "hit (read; the times below are those of the run that filled it)", "miss": "miss (stored)"}
