@@ -16,6 +16,7 @@ from warpfem.kernels.distance import LATTICE, LATTICE_POINTS
 from warpfem.prep.distance import distance_field
 from warpfem.prep.embedding import boundary_face_tets
 from warpfem.prep.samples import SKIN_TOLERANCE, SurfaceSamples, spacings, surface_samples
+from warpfem.prep.surface import signed_volume, vertex_normals
 from warpfem.prep.tetmesh import boundary_faces
 
 LEAF_TETS = 4
@@ -159,19 +160,17 @@ def body_geometry(
 def surface_normals(dense_x: np.ndarray, dense_faces: np.ndarray, samples: SurfaceSamples) -> np.ndarray:
     """The outward unit normal of the dense surface at each collision point of ``samples`` (vertices, then faces).
 
-    A vertex's is the area-weighted mean of its faces' normals; a point on a face, the face's. Outward: the
-    faces are turned so the surface encloses a positive volume.
+    A vertex's is the area-weighted mean of its faces' normals (:func:`~warpfem.prep.surface.vertex_normals`); a
+    point on a face, the face's. Outward: turned where the faces enclose a negative volume.
     """
     x = np.asarray(dense_x, np.float64)
     f = np.asarray(dense_faces, np.int64)
-    face_n = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])  # twice the area, along the normal
-    if np.einsum("ij,ij->", x[f[:, 0]], face_n) < 0.0:  # six times the enclosed volume
-        face_n = -face_n
-    corner = f.reshape(-1)
-    vertex_n = np.stack([np.bincount(corner, np.repeat(face_n[:, d], 3), minlength=len(x)) for d in range(3)], axis=1)
-    n = np.concatenate([vertex_n[np.asarray(samples.collision, np.int64)], face_n[np.asarray(samples.face, np.int64)]])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0.0)
+    sign = -1.0 if signed_volume(x, f) < 0.0 else 1.0
+    face = np.asarray(samples.face, np.int64)
+    face_n = np.cross(x[f[face, 1]] - x[f[face, 0]], x[f[face, 2]] - x[f[face, 0]])
+    length = np.linalg.norm(face_n, axis=1, keepdims=True)
+    face_n = np.divide(face_n, length, out=np.zeros_like(face_n), where=length > 0.0)
+    return sign * np.concatenate([vertex_normals(x, f)[np.asarray(samples.collision, np.int64)], face_n])
 
 
 def tet_tree(tets: np.ndarray, x: np.ndarray) -> np.ndarray:
