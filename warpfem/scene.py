@@ -410,6 +410,13 @@ class CameraConfig:
             raise err("target", "must differ from position")
 
 
+TETS_ACROSS_MAX = 64.0
+"""The most tets across a body's thickness an object (and ``warpfem prepare --tets-across``) may ask for."""
+
+MAX_TETS_RANGE = (100, 1_000_000)
+"""The tet budgets an object's ``max_tets`` (and ``warpfem prepare --max-tets``) may give."""
+
+
 @dataclass
 class ObjectConfig:
     """One deformable body: a dense surface mesh, how to place it, and its material.
@@ -490,8 +497,8 @@ class ObjectConfig:
             _check_vec3(err, key, getattr(self, key))
         _check_int(err, "faces", self.faces, 100, 20000)
         _check_range(err, "maxh", self.maxh, gt=0.0, le=1.0)
-        _check_range(err, "tets_across", self.tets_across, ge=0.0, le=64.0)
-        _check_int(err, "max_tets", self.max_tets, 100, 1000000)
+        _check_range(err, "tets_across", self.tets_across, ge=0.0, le=TETS_ACROSS_MAX)
+        _check_int(err, "max_tets", self.max_tets, *MAX_TETS_RANGE)
         _check_range(err, "young", self.young, "Pa", gt=0.0)
         _check_range(err, "poisson", self.poisson, ge=0.0, lt=0.5)
         _check_range(err, "density", self.density, "kg/m^3", gt=0.0)

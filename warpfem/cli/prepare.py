@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     """Preprocess the mesh named by ``args`` and print its report; returns the exit code."""
     from warpfem.prep.pipeline import prepare
+    from warpfem.scene import MAX_TETS_RANGE, TETS_ACROSS_MAX
 
     _fill_sizes(args)
     if args.faces < 4:
@@ -85,10 +87,11 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--budget must be a number of seconds > 0, got {args.budget}")
     if args.max_hole is not None and args.max_hole < 0:
         raise InputError(f"--max-hole must be >= 0, got {args.max_hole}")
-    if not 0.0 <= args.tets_across <= 64.0:
-        raise InputError(f"--tets-across must be in [0, 64], got {args.tets_across}")
-    if not 100 <= args.max_tets <= 1_000_000:
-        raise InputError(f"--max-tets must be in [100, 1000000], got {args.max_tets}")
+    if not 0.0 <= args.tets_across <= TETS_ACROSS_MAX:
+        raise InputError(f"--tets-across must be in [0, {TETS_ACROSS_MAX:g}], got {args.tets_across}")
+    low, high = MAX_TETS_RANGE
+    if not low <= args.max_tets <= high:
+        raise InputError(f"--max-tets must be in [{low}, {high}], got {args.max_tets}")
     shells = args.shells
     if shells not in ("merge", "largest", "error"):
         if not shells.isdigit():
@@ -114,16 +117,19 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-SIZES = {"faces": 1000, "maxh": 0.2, "tets_across": 0.0, "max_tets": 50_000}
-"""The sizing options' values where neither they nor ``--quality`` give one (the scene keys' defaults)."""
+SIZES = ("faces", "maxh", "tets_across", "max_tets")
+"""The sizing options, named as the scene's object keys."""
 
 
 def _fill_sizes(args: argparse.Namespace) -> None:
-    """Set each sizing option not given from ``--quality``'s preset, else from :data:`SIZES`."""
+    """Set each sizing option not given from ``--quality``'s preset, else from the object key's default."""
+    from warpfem.scene import ObjectConfig
+
     preset = PRESETS[args.quality] if args.quality else {}
-    for key, default in SIZES.items():
+    defaults = {f.name: f.default for f in dataclasses.fields(ObjectConfig)}
+    for key in SIZES:
         if getattr(args, key) is None:
-            setattr(args, key, preset.get(key, default))
+            setattr(args, key, preset.get(key, defaults[key]))
 
 
 CACHE = {"hit": "hit (read; the times below are those of the run that filled it)", "miss": "miss (stored)"}
