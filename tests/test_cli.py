@@ -277,6 +277,7 @@ def test_prepare_options_reach_the_pipeline(scene_dir, capsys):
         (["--timeout", "0"], "--timeout"),
         (["--max-hole", "-1"], "--max-hole"),
         (["--tets-across", "65"], "--tets-across"),
+        (["--tets-across", "nan"], "--tets-across"),
         (["--max-tets", "50"], "--max-tets"),
     ):
         assert _run(["prepare", scene_dir / "ball.obj", "--no-cache", *bad]) == 2

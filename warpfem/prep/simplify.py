@@ -22,9 +22,10 @@ OUTER_CELLS_RANGE = (32, 160)
 
 FIRST_FACES = 200_000
 """Faces a dense surface of more than twice this many is first reduced to (or to 20 times the target, if more)
-by a fast QEM that does not block intersections (fast-simplification), before libigl's blocked QEM: that one
-costs about 35 us a face on a 2-core CPU, so a 3-million-triangle scan would outrun the time budget, and a
-coarse surface of a few thousand faces resolves nothing of the detail lost between (docs/preprocessing.md)."""
+by a fast QEM that does not block intersections (fast-simplification), before libigl's blocked QEM, whose cost
+grows with the faces it starts from: a scan of millions of triangles would outrun the time budget in it, and a
+coarse surface of a few thousand faces resolves nothing of the detail lost between (docs/preprocessing.md,
+"Large scans")."""
 
 
 def first_faces(faces: int, target: int) -> int:

@@ -113,7 +113,7 @@ def qslim(vertices: np.ndarray, faces: np.ndarray, target: int, first: int = 0) 
     """Run libigl's QEM simplification with intersection blocking; return its (V, F).
 
     ``first`` > 0: reduce the surface to that many faces first with fast-simplification's QEM, which does not
-    block intersections but runs about 25 times as fast; the blocked QEM then works on that.
+    block intersections and is much faster; the blocked QEM then works on that.
     """
     import igl
 
