@@ -180,8 +180,9 @@ def refined(x: np.ndarray, normal: np.ndarray, chosen: np.ndarray, spacing: floa
     from scipy.spatial import cKDTree
 
     for _ in range(SKIN_ROUNDS):
-        _, near = cKDTree(x[chosen]).query(x, k=min(8, len(chosen)), workers=-1)
-        out = stick_out(x, normal, x[chosen], near.reshape(len(x), -1))
+        at = x[chosen]
+        _, near = cKDTree(at).query(x, k=min(8, len(chosen)), workers=-1)
+        out = stick_out(x, normal, at, near.reshape(len(x), -1))
         bad = np.flatnonzero(out > tolerance)
         if len(bad) == 0:
             break
