@@ -411,6 +411,13 @@ def lowest_bit(mask: int) -> int:
     return j
 
 
+LATE_BY_POINT = wp.constant(1)
+"""A late look that leaves out every point with a contact this step."""
+
+LATE_BY_PAIR = wp.constant(2)
+"""A late look that leaves out only the (point, body) pair of a point's one contact this step, and a point with
+contacts with more than one body: a point touching one body still finds another it is carried into."""
+
 WALK_STRIDE = wp.constant(3)
 """Tree levels a walk descends at a time: it tests 2^3 = 8 boxes at once (the grandchildren's children)."""
 
@@ -558,13 +565,18 @@ def detect_contacts(
     with itself) and only their trees are walked (:func:`walk_tree`), so a point never walks the tets of its
     own body, which it lies among, unless that body collides with itself. ``lanes`` threads share a point,
     each walking every ``lanes``-th of its bodies, since a point in a pile may lie in several bodies' boxes.
-    Each contact goes to ``found_out`` (:class:`Found`).
+    Each contact goes to ``found_out`` (:class:`Found`). A late look (``late``, :data:`LATE_BY_POINT` or
+    :data:`LATE_BY_PAIR`) leaves out what ``point_contact`` marks (``kernels.contacts.mark_contact``).
     """
     tid = wp.tid()
     p = tid // lanes
     lane = tid - p * lanes
-    if late != 0 and point_contact[p] != 0:
-        return
+    touched = int(-1)  # the one body whose contact with p this step has (a late look by pairs leaves it out)
+    if late != 0:
+        mark = point_contact[p]
+        if mark < 0 or (mark > 0 and late == LATE_BY_POINT):
+            return
+        touched = mark - 1
     q = points[p]
     body_p = point_body[p]
     self_ok = body_self[body_p] != 0
@@ -574,7 +586,7 @@ def detect_contacts(
     while wp.bvh_query_next(bodies, body):
         candidate += 1
         same = body == body_p
-        if candidate % lanes != lane or (same and not self_ok):
+        if candidate % lanes != lane or (same and not self_ok) or body == touched:
             continue
         e, w, status, d, g, bound = walk_tree(
             p, q, body, same, node_start, leaf_start, leaf_tets, node_lower, node_upper, x, v, dt, tets,

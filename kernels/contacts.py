@@ -21,6 +21,18 @@ def relative(field: wp.array(dtype=wp.vec3), tp: wp.vec4i, w_p: wp.vec4, tt: wp.
     return r
 
 
+@wp.func
+def mark_contact(point_contact_out: wp.array(dtype=wp.int32), p: int, body: int):
+    """Mark point p as in contact with ``body``: ``body + 1`` for its first contact's body, -1 once it has two.
+
+    Whatever order contacts of several bodies mark a point in, it ends at -1: each that replaces another body's
+    mark writes -1 after it.
+    """
+    old = wp.atomic_exch(point_contact_out, p, body + 1)
+    if old != 0 and old != body + 1:
+        point_contact_out[p] = -1
+
+
 @wp.kernel
 def contact_forces(
     # inputs: contacts
@@ -33,6 +45,7 @@ def contact_forces(
     # inputs: model and state
     v: wp.array(dtype=wp.vec3),
     cells: wp.array(dtype=wp.vec4i),
+    cell_body: wp.array(dtype=wp.int32),
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     point_stiffness: wp.array(dtype=float),
@@ -65,7 +78,8 @@ def contact_forces(
     side (the force enters times dt), the totals are left alone and ``late_count_out[0]`` counts the contacts
     that end the step deeper than ``solve_depth`` (m), which ask for a second solve; shallower ones stay outside
     the visible surface, or within a share of the offset of it, and the next step answers them from its start.
-    Each contact's point is marked in ``point_contact_out``, so a late pass does not answer it twice.
+    Each contact's point is marked in ``point_contact_out`` (:func:`mark_contact`), so a late pass does not
+    answer it twice.
 
     Each contact couples the relative velocity u = v_point - v_image (point minus its image in the tet)
     through C = dt^2 a g g^T + dt c (I - g g^T): the linearised penalty along g and implicit Coulomb-like
@@ -86,7 +100,7 @@ def contact_forces(
     if i >= last:
         return
     p = contact_point[i]
-    point_contact_out[p] = 1
+    mark_contact(point_contact_out, p, cell_body[contact_cell[i]])
     a = point_stiffness[p]
     g = contact_normal[i]
     f = a * contact_depth[i] * g

@@ -447,7 +447,14 @@ def _inside_other_body(model, x, points):
     return (inside & (tet_body[None, :] != point_body[:, None])).any(axis=1)
 
 
-@pytest.mark.parametrize("bodies", ["direct", "bvh"])
+def _pairs_inside_other_body(model, x, points):
+    """The (point, body) pairs where a tet of a body other than the point's (vertices ``x``) holds the point."""
+    tet_body, point_body = model.tet_body.numpy(), model.point_body.numpy()
+    inside = inside_tets(points, x, model.tets.numpy(), tol=1e-6) & (tet_body[None, :] != point_body[:, None])
+    return {(int(p), int(tet_body[e])) for p, e in zip(*np.nonzero(inside), strict=True)}
+
+
+@pytest.mark.parametrize("bodies", ["direct", "bvh", "carried"])
 @pytest.mark.parametrize("speed, gap", [(0.2, 0.0005), (8.0, 0.01)])
 def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device, bodies, speed, gap, monkeypatch):
     """Against NumPy: a late pass at a step's end positions finds exactly the collision points then inside another
@@ -458,8 +465,12 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     (m) away, within the step's travel: slowly from half a millimetre (it grazes them, 0.33 mm deep), fast from a
     centimetre (23 mm). Each of its vertices' velocities carries a little noise of its own, least along the
     approach. A late contact's depth is how far its point passed the face it came in through.
+
+    In a scene that carries its contacts (``carried``), whose late look is its only look at every point, it
+    finds the (point, body) pairs instead: a point touching one body at the start is found inside another.
     """
     monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", 16 if bodies == "direct" else 0)
+    monkeypatch.setattr("warpfem.sim.collision.CARRY_BODIES", 0 if bodies == "carried" else 64)
     dt = 1 / 240
     b = ModelBuilder()
     for k, lo in enumerate([(0.0, 0.0, 0.0), (-0.005, 0.29, 0.02), (0.3 + gap, 0.01, 0.03)]):
@@ -467,7 +478,7 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     model = b.finalize(device)
     solver = Solver(model, ground=None)
     c = solver.collider
-    assert c.direct == (bodies == "direct")
+    assert c.direct == (bodies == "direct") and c.carries == (bodies == "carried")
     x0 = model.rest_x.numpy()
     body = model.vertex_body.numpy()
     v = np.random.default_rng(5).normal(scale=0.01 * speed, size=x0.shape)  # no point on another's tet face
@@ -480,6 +491,8 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
     c.respond(xs0, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix))
     start = int(c.count.numpy()[0])
     at_start = set(c.contact_point.numpy()[:start].tolist())
+    start_bodies = model.tet_body.numpy()[c.contact_cell.numpy()[:start]]
+    start_pairs = set(zip(c.contact_point.numpy()[:start].tolist(), start_bodies.tolist(), strict=True))
     assert at_start  # the first two boxes overlap
     count = wp.zeros(1, dtype=wp.int32, device=device)
     c.respond_late(xs1, vs, dt, wp.zeros_like(xs0), wp.zeros_like(solver.matrix), count)
@@ -491,10 +504,18 @@ def test_a_late_pass_finds_every_point_the_step_carried_into_another_body(device
 
     cells, bary = model.cells.numpy()[model.point_cell.numpy()], model.point_bary.numpy()
     points = np.einsum("pk,pkj->pj", bary, x1[cells])
-    inside = _inside_other_body(model, x1, points)
-    expected = set(np.flatnonzero(inside).tolist()) - at_start
-    assert expected  # the third box's face crossed into the first
-    assert set(late.tolist()) == expected
+    if bodies == "carried":
+        touching = {p for p in at_start if sum(q == p for q, _ in start_pairs) > 1}
+        expected_pairs = _pairs_inside_other_body(model, x1, points) - start_pairs
+        expected_pairs = {(p, o) for p, o in expected_pairs if p not in touching}
+        assert pairs == expected_pairs
+        if speed > 1.0:  # a point touching one body was found inside another
+            assert {p for p, _ in pairs} & at_start
+    else:
+        inside = _inside_other_body(model, x1, points)
+        expected = set(np.flatnonzero(inside).tolist()) - at_start
+        assert expected  # the third box's face crossed into the first
+        assert set(late.tolist()) == expected
     point_body = model.point_body.numpy()[late]
     front = 0.3 + gap - speed * dt  # the third box's face that closes on the others, at the step's end
     depth = np.where(point_body == 2, np.where(other == 0, 0.3, 0.295) - points[late, 0], points[late, 0] - front)

@@ -361,7 +361,7 @@ class Simulation:
         dt = self.dt * self.substeps / substeps
         for i in range(substeps):
             src, dst = (a, b) if i % 2 == 0 else (b, a)
-            out += self.solver.phases(src, dst, dt, overlap, carried=i > 0)
+            out += self.solver.phases(src, dst, dt, overlap, carried=True)
         if substeps % 2 == 1:
             out.append(("solve", lambda: a.assign(b)))
         if self.solver.static_lift:

@@ -196,7 +196,8 @@ class Collider:
         self.speed_max = wp.zeros(len(model.bodies), dtype=float, device=dev)
         self.contacts_total = wp.zeros(2, dtype=wp.int32, device=dev)  # sum over steps, max in a step
         self.point_contact = wp.zeros(n_points, dtype=wp.int32, device=dev)
-        """Which points have a contact this step (a late pass leaves them be)."""
+        """Per point, the body of its one contact this step plus one, -1 if it touches more than one, 0 if none
+        (``kernels.contacts.mark_contact``): what a late look leaves be (:meth:`respond_late`)."""
         self.placed = wp.zeros(n_points, dtype=wp.int32, device=dev)
         """Which points lay deeper than friction's load depth inside another body where the run began and have not
         come out of that depth since: their contacts carry no friction (:meth:`mark_placed`)."""
@@ -303,7 +304,8 @@ class Collider:
         ``grad``: in a step the elastic launch sums them at ``x``; elsewhere call :meth:`rotate_gradients`
         first. ``cleared``: ``point_contact`` and ``counts`` are zero already (a step clears them with its
         own accumulators, in one launch). ``carried`` (where :attr:`carries`): only the (point, body) pairs of
-        the contacts :meth:`keep` kept, each walked again at ``x``; a new pair waits for the step's late look.
+        the contacts :meth:`keep` kept, each walked again at ``x``; a new pair waits for the step's late look,
+        which looks for every pair the step has not found (:meth:`respond_late`).
         """
         if not cleared:
             self.point_contact.zero_()
@@ -361,7 +363,9 @@ class Collider:
     ) -> None:
         """Add the contacts that a solve's answer ``v`` (positions ``x``) makes and the step did not count.
 
-        Points already in contact this step are left be; each new contact enters the built system with the
+        What the step's contacts so far mark is left be: in a scene that carries its contacts (:attr:`carries`),
+        whose steps start from the step before's contacts alone, each (point, body) pair in contact and each
+        point touching two bodies; elsewhere each point in contact. Each new contact enters the built system with the
         depth at the step's start its linearisation implies (see ``kernels.collision.store_contact``), its
         force times dt on ``rhs_out``; ``count_out[0]`` grows by how many of them ask for a second solve (those
         ending the step deeper than :attr:`solve_depth`). With ``base_out`` (the right-hand side and matrix
@@ -379,8 +383,8 @@ class Collider:
         Bodies placed inside one another are pressed apart by their penalties, which squeeze a body from
         opposite sides; friction from those contacts would hold it where it was put. A marked point's contacts
         carry no friction until one is no deeper than the load depth. For the state a run starts from (at its
-        rest pose: no rotation), before the first step; it leaves no contact behind. Returns the marks per
-        collision point (bool, on the host).
+        rest pose: no rotation), before the first step; its contacts are kept for the first step's carried look
+        (:meth:`keep`), and none is left in the buffers. Returns the marks per collision point (bool, on the host).
         """
         m = self.model
         self.rotate_gradients(wp.full(m.tet_count, wp.mat33(np.eye(3, dtype=np.float32)), device=m.device))
@@ -393,6 +397,7 @@ class Collider:
             device=m.device,
         )
         wp.copy(self.point_contact, self.placed)  # the first step's release keeps them
+        self.keep()
         self.counts.zero_()
         self.depth_max.zero_()
         marked = self.placed.numpy() != 0
@@ -427,6 +432,7 @@ class Collider:
                 self.contact_depth,
                 v,
                 m.cells,
+                m.cell_body,
                 m.point_cell,
                 self.point_bary,
                 self.point_stiffness,
@@ -541,7 +547,7 @@ class Collider:
                 *self._depth_inputs(),
                 lanes,
                 self.point_contact,
-                int(late),
+                (K.LATE_BY_PAIR if self.carries else K.LATE_BY_POINT) if late else 0,
             ],
             outputs=[self.found],
             device=m.device,

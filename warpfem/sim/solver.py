@@ -230,7 +230,8 @@ class Solver:
         """The step's phases in order, each a callable launching its kernels: elastic, [collision,] solve.
 
         ``carried``: the collision stage looks again only at the step before's contacts where the collider
-        carries them (``Collider.respond``); a frame's first step looks at every point.
+        carries them (``Collider.respond``; the step's late look then finds the pairs it lacks), else at every
+        point.
 
         With ``overlap`` on CUDA, the collision stage's preparation (``Collider.prepare``: collision points,
         tet inverses, trees, none of which the elastic launch touches) runs on a side stream alongside the
