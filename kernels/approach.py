@@ -3,7 +3,7 @@
 From the state at a frame's start, two ways to close fast: bodies not yet touching whose mean velocities
 (momentum over mass) close on each other and whose boxes lie within a frame's travel (:func:`approach`), and
 the contacts of the last step whose points close on their images (:func:`contacts_closing`). Either, by more
-than ``limit`` times the smaller body's size in one step, raises the frame's flag.
+than a level's limit times the smaller body's size in one step, raises that level's flag.
 """
 
 import warp as wp
@@ -19,15 +19,24 @@ def clear_bodies(
     momentum_out: wp.array(dtype=wp.vec3),
     lower_out: wp.array(dtype=wp.vec3),
     upper_out: wp.array(dtype=wp.vec3),
-    flag_out: wp.array(dtype=wp.int32),
+    flags_out: wp.array(dtype=wp.int32),
 ):
-    """Per body: zero momentum, an empty box; thread 0 lowers the frame's flag."""
+    """Per body: zero momentum, an empty box; thread 0 lowers the frame's flags."""
     b = wp.tid()
     momentum_out[b] = wp.vec3(0.0)
     lower_out[b] = wp.vec3(1.0e30)
     upper_out[b] = wp.vec3(-1.0e30)
     if b == 0:
-        flag_out[0] = 0
+        for k in range(flags_out.shape[0]):
+            flags_out[k] = 0
+
+
+@wp.func
+def raise_flags(closing: float, limits: wp.array(dtype=float), flags_out: wp.array(dtype=wp.int32)):
+    """Raise flag k where ``closing`` (a share of the smaller size, per step) exceeds ``limits[k]``."""
+    for k in range(limits.shape[0]):
+        if closing > limits[k]:
+            flags_out[k] = 1
 
 
 @wp.kernel
@@ -68,13 +77,14 @@ def approach(
     size: wp.array(dtype=float),
     frame_dt: float,
     step_dt: float,
-    limit: float,
-    flag_out: wp.array(dtype=wp.int32),
+    limits: wp.array(dtype=float),
+    flags_out: wp.array(dtype=wp.int32),
 ):
-    """Per body i, against every later body j: raise the flag where the two are near and close fast.
+    """Per body i, against every later body j: raise the flags where the two are near and close fast.
 
     Near: i's and j's boxes lie within the distance their mean velocities carry them in ``frame_dt`` (s).
-    Fast: their mean velocities differ by more than ``limit`` times the smaller size (m) per ``step_dt`` (s).
+    Fast: their mean velocities differ by more than ``limits[k]`` times the smaller size (m) per ``step_dt``
+    (s), for flag k.
     """
     i = wp.tid()
     v_i = mean_velocity(momentum, body_mass, i)
@@ -82,9 +92,8 @@ def approach(
         v_j = mean_velocity(momentum, body_mass, j)
         reach = (wp.length(v_i) + wp.length(v_j)) * frame_dt
         gap = wp.max(lower[j] - upper[i], lower[i] - upper[j])  # per axis, how far apart the boxes are
-        near = wp.max(gap[0], wp.max(gap[1], gap[2])) <= reach
-        if near and wp.length(v_i - v_j) * step_dt > limit * wp.min(size[i], size[j]):
-            flag_out[0] = 1
+        if wp.max(gap[0], wp.max(gap[1], gap[2])) <= reach:
+            raise_flags(wp.length(v_i - v_j) * step_dt / wp.min(size[i], size[j]), limits, flags_out)
 
 
 @wp.kernel
@@ -101,12 +110,13 @@ def contacts_closing(
     vertex_body: wp.array(dtype=wp.int32),
     size: wp.array(dtype=float),
     step_dt: float,
-    limit: float,
-    flag_out: wp.array(dtype=wp.int32),
+    limits: wp.array(dtype=float),
+    flags_out: wp.array(dtype=wp.int32),
 ):
-    """Per contact of the last step: raise the flag where its point closes on its image fast.
+    """Per contact of the last step: raise the flags where its point closes on its image fast.
 
-    Faster: by more than ``limit`` times the smaller body's size (m) per ``step_dt`` (s), at velocities ``v``.
+    Faster: by more than ``limits[k]`` times the smaller body's size (m) per ``step_dt`` (s), at velocities
+    ``v``, for flag k.
     """
     i = wp.tid()
     if i >= wp.min(count[0], contact_point.shape[0]):
@@ -116,11 +126,10 @@ def contacts_closing(
     tt = cells[contact_cell[i]]
     u = interpolate(v, tp, point_bary[p]) - interpolate(v, tt, contact_bary[i])
     smaller = wp.min(size[vertex_body[tp[0]]], size[vertex_body[tt[0]]])
-    if -wp.dot(u, contact_normal[i]) * step_dt > limit * smaller:
-        flag_out[0] = 1
+    raise_flags(-wp.dot(u, contact_normal[i]) * step_dt / smaller, limits, flags_out)
 
 
 @wp.kernel
 def count_frame(count_out: wp.array(dtype=wp.int32)):
-    """One more frame run at twice the substeps."""
+    """One more frame run at a refined level."""
     count_out[0] = count_out[0] + 1

@@ -91,16 +91,20 @@ def test_a_refined_frame_takes_twice_the_steps_and_the_same_time(device, prep_ca
     assert np.allclose(_centre(sim, "left") - start, [0.0, 10.0 / 60.0, 0.0], atol=1e-4)
 
 
-@pytest.mark.parametrize(("ratio", "levels", "steps"), [(1.25, [True, False], 6), (1.75, [True, True], 8)])
+@pytest.mark.parametrize(
+    ("ratio", "levels", "steps"),
+    [(1.125, [True, False, False], 5), (1.375, [True, True, False], 6), (1.75, [True, True, True], 8)],
+)
 def test_a_frame_runs_the_fewest_substeps_that_keep_the_closing_within_the_limit(
     device, prep_cache, ratio, levels, steps
 ):
-    """A ball passing 0.05 m beside another, closing on it at ``ratio`` times the limit a step (4 steps of 1/240 s):
-    at 1.25 the frame's 6 steps of 1/360 s close by 0.83 times the limit, so it runs 6; at 1.75 those would close
-    by 1.17 times, so it runs 8 of 1/480 s (0.88 times). Either way the ball moves as far as the frame's 1/60 s
-    at its speed carries it."""
-    sim = _two_balls(device, prep_cache, 0.05, (0, 0, 0), (0, 0, 0))
-    assert sim.approach.levels == (6, 8)
+    """A ball passing 0.04 m beside another, closing on it at ``ratio`` times the limit a step (4 steps of 1/240 s):
+    at 1.125 the frame's 5 steps of 1/300 s close by 0.9 times the limit, so it runs 5; at 1.375 those would close
+    by 1.1 times and 6 steps of 1/360 s by 0.92 times, so it runs 6; at 1.75 6 steps would close by 1.17 times, so
+    it runs 8 of 1/480 s (0.88 times). Either way the ball moves as far as the frame's 1/60 s at its speed
+    carries it."""
+    sim = _two_balls(device, prep_cache, 0.04, (0, 0, 0), (0, 0, 0))
+    assert sim.approach.levels == (5, 6, 8)
     size = min(b.size for b in sim.model.bodies)
     speed = ratio * LIMIT * size / sim.dt
     _set_velocity(sim, "left", np.array([0.0, speed, 0.0]))
@@ -112,11 +116,13 @@ def test_a_frame_runs_the_fewest_substeps_that_keep_the_closing_within_the_limit
 
 
 def test_an_odd_substep_count_refines_to_twice():
-    """1.5 times an odd count is no whole number of steps: such a frame refines straight to twice."""
+    """1.25 and 1.5 times an odd count are no whole numbers of steps: such a frame refines straight to twice; an
+    even count not a multiple of 4 refines to 1.5 or 2 times, a multiple of 4 to 1.25 times too."""
     from warpfem.sim.approach import refined_substeps
 
     assert refined_substeps(3) == (6,) and refined_substeps(1) == (2,)
-    assert refined_substeps(4) == (6, 8) and refined_substeps(8) == (12, 16)
+    assert refined_substeps(2) == (3, 4) and refined_substeps(6) == (9, 12)
+    assert refined_substeps(4) == (5, 6, 8) and refined_substeps(8) == (10, 12, 16)
 
 
 @pytest.mark.parametrize("limit", [-0.01, 1.0, float("nan")])

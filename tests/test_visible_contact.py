@@ -699,15 +699,15 @@ def test_a_horse_dropped_onto_another_lands_within_one_percent(device, asset, pr
 
 
 def test_only_the_frames_of_a_fast_impact_run_more_substeps(device, asset, prep_cache):
-    """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run 1.5 or 2 times
-    the substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
+    """Of the 72 frames of the 3.5 m drop, those in which the horses close fast on each other run 1.25, 1.5 or 2
+    times the substeps, not the fall before them nor the rest after; with ``approach_limit = 0`` none do, and the legs,
     which a step then carries deeper than they are thick, sink past 1 % of the size into the other horse where
     contacts start at its surface and close undamped (``offset = 0``, ``damping = 0``: the default offset's gap
     or the damper of contacts closing fast holds this drop without the other two)."""
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5)
     refined, s = sim.totals.refined_frames, sim.substeps
     assert 1 <= refined <= 12, refined
-    assert s * 72 + refined * s // 2 <= sim.totals.steps <= s * (72 + refined)
+    assert s * 72 + refined * s // 4 <= sim.totals.steps <= s * (72 + refined)
     assert inside < 0.01
     inside, sim = _horse_drop(device, asset, prep_cache, 3.5, approach_limit=0.0, offset=0.0, damping=0.0)
     assert sim.approach is None and sim.totals.steps == sim.substeps * 72

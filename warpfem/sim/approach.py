@@ -5,8 +5,8 @@ predicts; a thin part (a leg, an ear) that a step carries deeper than it is thic
 sees it. :class:`ApproachWatch` looks at the state at each frame's start (a few launches, no host
 synchronisation) and raises a device flag where two bodies near each other, or the points of the last step's
 contacts, close by more than a share of the smaller body's size in one step; the frame then runs the fewest of
-1.5 or 2 times its substeps that brings that closing within the share (``warpfem.Simulation`` branches on the
-flags inside its captured graph). Only frames of fast impacts pay for it.
+1.25, 1.5 or 2 times its substeps that brings that closing within the share (``warpfem.Simulation`` branches on
+the flags inside its captured graph). Only frames of fast impacts pay for it.
 """
 
 from __future__ import annotations
@@ -21,14 +21,18 @@ from warpfem.sim.model import Model, State
 __all__ = ["DEFAULT_APPROACH_LIMIT", "ApproachWatch", "refined_substeps"]
 
 
+REFINED_RATIOS = ((5, 4), (3, 2), (2, 1))
+"""The refined levels' substeps as fractions of the frame's own: 1.25, 1.5 and 2 times (each where it is a
+whole number of steps; ``warpfem.sim.drive.TICKS_PER_STEP`` counts the steps of each in whole ticks)."""
+
+
 def refined_substeps(substeps: int) -> tuple[int, ...]:
     """The substeps a refined frame may run, fewest first.
 
-    1.5 times ``substeps`` where that is a whole number of steps two thirds as long (an even count), then twice.
+    Each of :data:`REFINED_RATIOS` times ``substeps`` that is a whole number: 1.25 times a multiple of 4,
+    1.5 times an even count, and twice any.
     """
-    if substeps % 2 == 0:
-        return (3 * substeps // 2, 2 * substeps)
-    return (2 * substeps,)
+    return tuple(substeps * a // b for a, b in REFINED_RATIOS if substeps * a % b == 0)
 
 
 class ApproachWatch:
@@ -56,6 +60,11 @@ class ApproachWatch:
         """Per refined level (:attr:`levels`), 1 where the frame about to run needs at least that many substeps
         (the conditions :meth:`decide` sets); ``flag`` is the first: the frame needs refining at all."""
         self.flag = self.flags[0:1]
+        below = (self.substeps, *self.levels[:-1])
+        shares = [self.limit * fewer / self.substeps for fewer in below]
+        self._limits = wp.array(shares, dtype=float, device=dev)
+        """Per level, the closing in one of the frame's own steps (a share of the smaller size) past which the
+        substeps below that level would each close by more than ``limit``."""
         self._count = wp.zeros(len(self.levels), dtype=wp.int32, device=dev)
 
     def decide(self, state: State, frame_dt: float, step_dt: float) -> None:
@@ -66,19 +75,15 @@ class ApproachWatch:
         """
         m, n, dev, c = self.model, len(self.model.bodies), self.model.device, self.collider
         boxes = [self._lower, self._upper]
-        wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flag], device=dev)
-        if len(self.levels) > 1:  # clear_bodies lowers the first flag
-            self.flags[1:].zero_()
+        wp.launch(K.clear_bodies, dim=n, outputs=[self._momentum, *boxes, self.flags], device=dev)
         extent_in = [state.x, state.v, m.mass, m.vertex_body]
         wp.launch(K.body_extent, dim=m.vertex_count, inputs=extent_in, outputs=[self._momentum, *boxes], device=dev)
+        approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, self._limits]
+        wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[self.flags], device=dev)
         contacts = [c.count, c.contact_point, c.contact_cell, c.contact_bary, c.contact_normal]
         closing_in = [*contacts, state.v, m.cells, m.point_cell, c.point_bary, m.vertex_body, m.body_size, step_dt]
-        below = (self.substeps, *self.levels[:-1])
-        for k, fewer in enumerate(below):
-            limit, flag = self.limit * fewer / self.substeps, self.flags[k : k + 1]
-            approach_in = [self._momentum, m.body_mass, *boxes, m.body_size, frame_dt, step_dt, limit]
-            wp.launch(K.approach, dim=n, inputs=approach_in, outputs=[flag], device=dev)
-            wp.launch(K.contacts_closing, dim=c.capacity, inputs=[*closing_in, limit], outputs=[flag], device=dev)
+        closing_in.append(self._limits)
+        wp.launch(K.contacts_closing, dim=c.capacity, inputs=closing_in, outputs=[self.flags], device=dev)
 
     def count(self, level: int) -> None:
         """Count one frame run at refined level ``level`` (launched inside that branch)."""

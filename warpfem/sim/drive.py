@@ -133,10 +133,10 @@ class Handle:
     name: str = "handle"
 
 
-TICKS_PER_STEP = 6
-"""The clock counts ticks of the first step's dt over this many, so that a step two thirds or half as long (a
-frame that ``warpfem.Simulation`` runs at 1.5 or 2 times the substeps) advances it by four or three ticks and
-the motions keep their time."""
+TICKS_PER_STEP = 30
+"""The clock counts ticks of the first step's dt over this many, so that a step four fifths, two thirds or half
+as long (a frame that ``warpfem.Simulation`` runs at 1.25, 1.5 or 2 times the substeps) advances it by 24, 20 or
+15 ticks and the motions keep their time."""
 
 
 class Drive:
