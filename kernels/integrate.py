@@ -406,7 +406,6 @@ def skin_colliders(
     body_mass: wp.array(dtype=float),
     colliders: Colliders,
     dt: float,
-    body_clear: wp.array(dtype=float),
     force_out: wp.array(dtype=wp.vec3),
     matrix_out: wp.array(dtype=wp.mat33),
     clear_out: wp.array(dtype=float),
@@ -422,23 +421,14 @@ def skin_colliders(
     carrying it onto a collider. It lies ``-depth`` above each collider's offset, which moves at most
     ``dt |v_c|`` towards it, and moves at most ``sum |w_k|`` times as far as its fastest node; a late pass
     whose body's fastest node moves less than that cannot find it crossing (:func:`late_skin_contacts`).
-
-    Where ``body_clear`` is not empty, a point of a body it gives a clearance for (>= 0: no point of that body
-    can touch a collider in the step, ``kernels.reach.static_clearance``) is not tested, and reports that bound.
     """
     i = wp.tid()
     e = skin_cell[i]
-    body = cell_body[e]
-    if body_clear.shape[0] > 0:
-        bound = body_clear[body]
-        if bound >= 0.0:
-            if clear_out.shape[0] > 0:
-                clear_out[i] = bound
-            return
     t = cells[e]
     w = skin_bary[i]
     xp = interpolate(x, t, w)
     vp = interpolate(v, t, w)
+    body = cell_body[e]
     v_body = body_momentum[body] / body_mass[body]
     clear = float(FAR)
     for o in range(colliders.kind.shape[0]):
@@ -610,7 +600,6 @@ def lift_points(
     point_cell: wp.array(dtype=wp.int32),
     point_bary: wp.array(dtype=wp.vec4),
     colliders: Colliders,
-    body_free: wp.array(dtype=wp.int32),
     up_out: wp.array(dtype=wp.vec3),
     down_out: wp.array(dtype=wp.vec3),
 ):
@@ -621,19 +610,14 @@ def lift_points(
     not move (normal ``n``) asks each free node of its cell with a positive weight to move by ``d n``: moved
     so, the nodes carry the point up by at least ``d``. A node takes the largest such move per axis, the
     positive parts in ``up_out`` and the negative in ``down_out`` (both zero where none asks;
-    :func:`apply_lift` zeroes them again). The points of a body ``body_free`` marks (where it is not empty:
-    none of them can lie that deep, ``kernels.reach.lift_clearance``) are not tested.
+    :func:`apply_lift` zeroes them again).
     """
     i = wp.tid()
     e = point_cell[i]
-    body = cell_body[e]
-    if body_free.shape[0] > 0:
-        if body_free[body] != 0:
-            return
     t = cells[e]
     w = point_bary[i]
     p = interpolate(x, t, w)
-    give = LIFT_GIVE * colliders.body_size[body]
+    give = LIFT_GIVE * colliders.body_size[cell_body[e]]
     for o in range(colliders.kind.shape[0]):
         if colliders.moving[o] == 0:
             dn = collider_distance(colliders, o, p)

@@ -359,14 +359,12 @@ def skin_colliders(
     force_out: wp.array,
     matrix_out: wp.array,
     clear_out: wp.array,
-    body_clear: wp.array,
 ) -> None:
     """Add the static colliders' penalty and friction on the model's skin points to the forces and the matrix.
 
     A launch over the skin points (dense vertices outside the coarse tets), none where there are none. Each
     point's clearance from the colliders goes to ``clear_out`` where it is not empty (what lets a late pass
-    leave it out: ``kernels.integrate.skin_colliders``). ``body_clear``: per body, a clearance its points
-    report untested (``warpfem.sim.reach.StaticReach``), or empty.
+    leave it out: ``kernels.integrate.skin_colliders``).
     """
     count = model.skin_cell.shape[0]
     if count == 0 or colliders.kind.shape[0] == 0:
@@ -387,7 +385,6 @@ def skin_colliders(
             model.body_mass,
             colliders.arrays,
             dt,
-            body_clear,
         ],
         outputs=[force_out, matrix_out, clear_out],
         device=model.device,
@@ -450,7 +447,6 @@ def lift_points(
     bary: wp.array,
     up: wp.array,
     down: wp.array,
-    body_free: wp.array,
 ) -> None:
     """Move the tet nodes so that no point embedded at ``bary`` in ``cell`` lies below a still collider's surface.
 
@@ -458,14 +454,12 @@ def lift_points(
     penalty needs. Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the
     per-node requests, zero between calls. A node moved against its velocity stops along the move
     (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
-    ``body_free``: per body, 1 where none of its points can lie that deep (``warpfem.sim.reach.StaticReach``),
-    or empty.
     """
     dev = model.device
     wp.launch(
         K.lift_points,
         dim=cell.shape[0],
-        inputs=[state.x, model.cells, model.cell_body, model.free, cell, bary, colliders.arrays, body_free],
+        inputs=[state.x, model.cells, model.cell_body, model.free, cell, bary, colliders.arrays],
         outputs=[up, down],
         device=dev,
     )

@@ -31,7 +31,6 @@ STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.embedding": (WIDE_BLOCK,),
     "warpfem.kernels.fem": SPREAD_BLOCKS,
     "warpfem.kernels.integrate": SPREAD_BLOCKS,
-    "warpfem.kernels.reach": (WIDE_BLOCK,),
     "warpfem.kernels.rigid": SPREAD_BLOCKS,
 }
 """Each kernel module a simulation launches, with the block sizes its launches use on CUDA (the CPU runs

@@ -20,7 +20,6 @@ from warpfem.sim.deflation import RigidDeflation
 from warpfem.sim.drive import Drive, Handle
 from warpfem.sim.integrate import Box, Ground, MeshCollider, Sphere, StaticColliders
 from warpfem.sim.model import Model, State
-from warpfem.sim.reach import REACH_BODIES, StaticReach
 from warpfem.sim.rigid import RigidCorrection
 
 DEFAULT_GROUND = Ground()
@@ -139,10 +138,6 @@ class Solver:
         self._no_vec3 = wp.zeros(0, dtype=wp.vec3, device=dev)  # an absent vector argument, allocated once
         self._no_mat33 = wp.zeros(0, dtype=wp.mat33, device=dev)
         self._no_int = wp.zeros(0, dtype=wp.int32, device=dev)
-        self._no_float = wp.zeros(0, dtype=float, device=dev)
-        many = len(model.bodies) > REACH_BODIES and model.skin_cell.shape[0] > 0
-        self.reach = StaticReach(model, self.colliders) if many and self.colliders.kind.shape[0] else None
-        """Per body, whether its skin can reach a still collider (scenes of many bodies: ``warpfem.sim.reach``)."""
         self.held_v = self.drive.held_v if self.drive is not None else self._no_vec3
         self.bad_vertex = wp.array([_NO_BAD_VERTEX], dtype=wp.int32, device=dev)
         self.collider = Collider(model, collision) if collision is not None and model.has_collisions else None
@@ -282,10 +277,7 @@ class Solver:
             if self.collider is not None:
                 self.collider.keep()
             if self.static_lift:
-                integrate.lift_points(
-                    model, state_out, self.colliders, model.skin_cell, model.skin_bary, *self._lift,
-                    self._lift_free(state_out),
-                )  # fmt: skip
+                integrate.lift_points(model, state_out, self.colliders, model.skin_cell, model.skin_bary, *self._lift)
             if self.drive is not None:
                 self.drive.tick(dt)
 
@@ -298,9 +290,8 @@ class Solver:
         model = self.model
         if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
             integrate.body_momentum(model, state_in, self.momentum)
-        clear = self.reach.bound_step(state_in.x, state_in.v, dt) if self.reach is not None else self._no_float
         integrate.skin_colliders(
-            model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base, self.skin_clear, clear
+            model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base, self.skin_clear
         )
         apart = self.apart
         integrate.build_system(
@@ -424,13 +415,7 @@ class Solver:
         """
         if self.static_lift:
             m = self.model
-            integrate.lift_points(
-                m, state, self.colliders, m.dense_cell, m.dense_bary, *self._lift, self._lift_free(state)
-            )
-
-    def _lift_free(self, state: State) -> wp.array:
-        """Per body, whether the lift can leave its points out at ``state`` (empty: none is left out)."""
-        return self.reach.bound_lift(state.x) if self.reach is not None else self._no_int
+            integrate.lift_points(m, state, self.colliders, m.dense_cell, m.dense_bary, *self._lift)
 
     @property
     def rotation_updates(self) -> int:
