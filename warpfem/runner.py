@@ -41,7 +41,7 @@ class RunSummary:
         cg_solves_per_step: Mean CG solves per step.
         cg_residual_max: Largest final relative CG residual.
         cg_capped_frames: Frames in which CG stopped at its iteration cap above its tolerance.
-        refined_frames: Frames run at more substeps (1.5 or 2 times), their bodies closing fast on each other
+        refined_frames: Frames run at more substeps (1.25, 1.5 or 2 times), their bodies closing fast on each other
             (``[collision] approach_limit``).
         cg_short_solves: Solves (of all frames' steps) that stopped at the cap above the tolerance.
         cg_float32_floor: The relative residual float32 resolves in the run's systems (an estimate); where it

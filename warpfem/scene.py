@@ -168,8 +168,9 @@ class CollisionConfig:
         friction: Coulomb friction coefficient between bodies (>= 0).
         approach_limit: The most two bodies may close on each other in one step, as a share of the smaller
             one's size (0 <= limit < 1): a frame in which two bodies near each other would close faster runs
-            1.5 times the substeps (an even count) where that brings the closing within the limit, else twice,
-            so that thin parts do not pass through each other in a fast impact; 0: never.
+            the fewest of 1.25 times the substeps (a multiple of 4), 1.5 times (an even count) or twice that
+            brings the closing within the limit, so that thin parts do not pass through each other in a fast
+            impact; 0: never.
         offset: How far outside another body's visible surface a contact with it starts, as a share of the
             scene's smallest colliding body's size (0 <= offset < 0.05): the give a penalty needs to hold a
             load goes into that gap instead of into the other body, and bodies resting on each other stand up

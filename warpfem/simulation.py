@@ -98,7 +98,7 @@ class RunTotals:
 
     Attributes:
         steps: Steps taken.
-        refined_frames: Frames run at more substeps (1.5 or 2 times), their bodies closing fast on each other.
+        refined_frames: Frames run at more substeps (1.25, 1.5 or 2 times), their bodies closing fast on each other.
         cg_solves: CG solves (one per step).
         cg_iterations: CG iterations over all solves.
         cg_residual_max: Largest final relative CG residual.
@@ -182,7 +182,7 @@ class Simulation:
         phase_timer: Per-phase wall time of the frames stepped with ``profile=True``.
         approach: The :class:`~warpfem.sim.approach.ApproachWatch` by which a frame whose bodies close on each
             other by more than ``approach_limit`` (the scene's ``[collision]``) times the smaller one's size in a
-            step runs 1.5 or 2 times the substeps; None where bodies cannot collide or the limit is 0.
+            step runs 1.25, 1.5 or 2 times the substeps; None where bodies cannot collide or the limit is 0.
     """
 
     def __init__(
