@@ -730,3 +730,17 @@ def test_collision_point_normals_of_the_wrong_count_are_an_input_error():
     wrong = dataclasses.replace(geometry, point_normal=np.ones((len(geometry.point_tet) - 1, 3)))
     with pytest.raises(InputError, match="body 'b': point_normal has"):
         builder.add_body("b", V + 1.0, T, wrong, 1e7, 0.3, 1000.0)
+
+
+def test_a_scene_that_tests_every_body_box_itself_never_carries(device, monkeypatch):
+    """A carried start needs a late look by pairs, which only detection through the body BVH has: a scene few
+    enough for the direct detection looks at every point at each step's start, whatever the carrying threshold."""
+    monkeypatch.setattr("warpfem.sim.collision.CARRY_BODIES", 0)
+    b = ModelBuilder()
+    for k in range(2):
+        add_body(b, f"b{k}", *_box((0.4 * k, 0.0, 0.0), (0.3, 0.3, 0.3), (2, 2, 2)), 1e5, 0.3, 1000.0)
+    model = b.finalize(device)
+    for direct, carries in ((16, False), (0, True)):
+        monkeypatch.setattr("warpfem.sim.collision.DIRECT_BODIES", direct)
+        c = Solver(model, ground=None).collider
+        assert c.direct == (direct > 0) and c.carries == carries

@@ -220,9 +220,10 @@ class Collider:
         self.body_uppers = wp.zeros(len(model.bodies), dtype=wp.vec3, device=dev)
         self.direct = len(model.bodies) <= DIRECT_BODIES
         """Whether detection tests every body's box itself rather than querying a BVH of them."""
-        self.carries = len(model.bodies) > CARRY_BODIES
+        self.carries = not self.direct and len(model.bodies) > CARRY_BODIES
         """Whether a step may start from the step before's contacts (:meth:`respond`'s ``carried``): in scenes
-        of many bodies, where the start's look at every point costs more than the carried contacts' walks."""
+        of many bodies, where the start's look at every point costs more than the carried contacts' walks (and
+        detection goes through the body BVH, whose late look finds the pairs a carried start lacks)."""
         kept = self.capacity if self.carries else 0
         self.carried_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self.carried_point = wp.zeros(kept, dtype=wp.int32, device=dev)
