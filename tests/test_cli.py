@@ -209,6 +209,8 @@ def test_prepare_reports_what_it_made(scene_dir, capsys):
     assert rows["dense surface"].startswith(f"{len(sphere.vertices):,} vertices, {len(sphere.faces):,} triangles")
     assert rows["tets"].startswith(f"{stats['tets']:,} on {stats['tet_vertices']:,} vertices")
     assert rows["embedding"].startswith(f"{100 * stats['embedding_coverage']:.2f} % of dense vertices inside a tet")
+    outside = stats["embedding_outside_max"]
+    assert f"at most {outside:.4g} ({100 * outside / diagonal:.2f} %) outside theirs" in rows["embedding"]
     hausdorff = stats["hausdorff"]
     assert rows["hausdorff"].startswith(f"{hausdorff:.4g} ({100 * hausdorff / diagonal:.2f} %)")
     assert rows["cache"] == "off" and "hausdorff" in rows["seconds"]

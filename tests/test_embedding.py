@@ -5,7 +5,7 @@ import pytest
 import trimesh
 import warp as wp
 
-from warpfem.prep.embedding import embed
+from warpfem.prep.embedding import embed, outside_distance
 from warpfem.prep.tetmesh import tetrahedralize
 from warpfem.sim.embedding import map_dense
 
@@ -147,3 +147,18 @@ def test_deformed_mesh_moves_embedded_points_affinely(ball, device):
     )
     # barycentric (and extrapolated) coordinates reproduce any affine map exactly
     np.testing.assert_allclose(out.numpy(), dense @ affine.T + shift, atol=1e-5)
+
+
+def test_outside_distance_is_the_distance_past_the_face_a_point_lies_beside():
+    """Against the geometry worked by hand: a right tet with legs 2 (corners at the origin and on the axes),
+    points 0.3 past its face x = 0, 0.1 past its slanted face x + y + z = 2 (distance measured along that face's
+    normal), one inside and one at a corner: 0.3, 0.1, 0 and 0."""
+    corners = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0, 0, 2]], dtype=np.float64)
+    tets = np.array([[0, 1, 2, 3]])
+    unit = np.ones(3) / np.sqrt(3.0)
+    points = np.array([[-0.3, 0.5, 0.5], [2 / 3, 2 / 3, 2 / 3] + 0.1 * unit, [0.3, 0.3, 0.3], [2.0, 0.0, 0.0]])
+    # barycentrics solved independently: p = w0 c0 + w1 c1 + w2 c2 + w3 c3 with the weights summing to one
+    system = np.vstack([corners.T, np.ones(4)])
+    bary = np.linalg.solve(system, np.vstack([points.T, np.ones(len(points))])).T
+    past = outside_distance(corners, tets, np.zeros(len(points), dtype=np.int32), bary)
+    np.testing.assert_allclose(past, [0.3, 0.1, 0.0, 0.0], atol=1e-12)

@@ -138,8 +138,8 @@ NAMED = frozenset(
     "mesh cache repairs dense_vertices dense_faces dense_intersecting_pairs coarse_vertices coarse_faces rung "
     "failed_rungs tets tet_vertices maxh_absolute tet_min_dihedral_deg tet_min_radius_ratio volume_ratio "
     "cage_volume_ratio cage_offset cage_outside cage_outside_max hausdorff hausdorff_relative "
-    "hausdorff_dense_to_coarse hausdorff_coarse_to_dense embedding_coverage embedding_max_error max_depth "
-    "thickness thickness_relative tets_across max_tets sizing_capped".split()
+    "hausdorff_dense_to_coarse hausdorff_coarse_to_dense embedding_coverage embedding_outside_max embedding_max_error "
+    "max_depth thickness thickness_relative tets_across max_tets sizing_capped".split()
 )
 """The statistics :func:`report_rows` words itself; any other is listed as it is."""
 
@@ -191,8 +191,9 @@ def report_rows(s: dict, diagonal: float) -> list[tuple[str, str]]:
         ),
         (
             "embedding",
-            f"{100 * s['embedding_coverage']:.2f} % of dense vertices inside a tet (the rest follow a nearby one); "
-            f"rebuilt within {s['embedding_max_error']:.2g} of the diagonal",
+            f"{100 * s['embedding_coverage']:.2f} % of dense vertices inside a tet, the rest at most "
+            f"{length('embedding_outside_max')} outside theirs; rebuilt within {s['embedding_max_error']:.2g} of "
+            "the diagonal",
         ),
         ("deepest tet vertex", f"{length('max_depth')} below the coarse surface"),
     ]

@@ -78,6 +78,23 @@ def boundary_face_tets(tets: np.ndarray, boundary_faces: np.ndarray) -> np.ndarr
     return face_tet.astype(np.int32)
 
 
+def outside_distance(tet_vertices: np.ndarray, tets: np.ndarray, tet: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Per embedded point, how far (in the mesh's units) it lies outside its tet; 0 inside.
+
+    The distance past the farthest of the tet's face planes that its weights put it beyond: weight ``w_k < 0``
+    places it ``-w_k h_k`` past the face opposite corner k, ``h_k`` the tet's height over that face (for a point
+    beside a face, its distance to the tet).
+    """
+    corners = np.asarray(tet_vertices, dtype=np.float64)[np.asarray(tets)[np.asarray(tet)]]
+    past = np.zeros(len(corners))
+    for k in range(4):
+        a, b, c = (corners[:, j] for j in range(4) if j != k)
+        normal = np.cross(b - a, c - a)
+        height = np.abs(np.einsum("ij,ij->i", corners[:, k] - a, normal)) / np.linalg.norm(normal, axis=1)
+        past = np.maximum(past, -np.asarray(bary)[:, k] * height)
+    return past
+
+
 def embed(
     points: np.ndarray, tet_vertices: np.ndarray, tets: np.ndarray, boundary_faces: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ import numpy as np
 
 from warpfem.errors import InputError
 from warpfem.prep import samples
-from warpfem.prep.embedding import embed
+from warpfem.prep.embedding import embed, outside_distance
 from warpfem.prep.geometry import LATTICE_POINTS, face_lattice
 from warpfem.prep.samples import SurfaceSamples, surface_samples
 from warpfem.prep.sizing import DEFAULT_MAX_TETS, SIZING_FORMAT
@@ -646,6 +646,7 @@ def _build_stats(
         "hausdorff_dense_to_coarse": dense_to_coarse * scale,
         "hausdorff_coarse_to_dense": coarse_to_dense * scale,
         "embedding_coverage": float(np.mean(embed_bary.min(axis=1) >= -INSIDE_EPS)),
+        "embedding_outside_max": float(outside_distance(tet_v, tets, embed_tet, embed_bary).max(initial=0.0)) * scale,
         "embedding_max_error": float(np.abs(rebuilt - unit.vertices).max()),
         "max_depth": float(depth.max()) * scale,
         **sized,
@@ -710,7 +711,8 @@ def prepare(
         shells), ``cage_volume_ratio`` (the cage's), ``cage_offset``, ``cage_outside`` and ``cage_outside_max``
         (:func:`~warpfem.prep.cage.enclose`; lengths in mesh units), ``maxh_absolute`` (mesh units), ``hausdorff``
         (two-sided, sample-based, mesh units; also ``hausdorff_relative`` to the bounding-box diagonal and each
-        one-sided value), ``embedding_coverage`` (fraction of dense vertices inside a tet), ``embedding_max_error`` (max
+        one-sided value), ``embedding_coverage`` (fraction of dense vertices inside a tet), ``embedding_outside_max``
+        (the farthest the others lie outside theirs, mesh units), ``embedding_max_error`` (max
         reconstruction error / bbox diagonal), ``max_depth`` (the deepest tet vertex below the coarse surface, mesh
         units), with ``across``: ``thickness`` (mesh units; ``thickness_relative`` to the diagonal), ``tets_across``,
         ``max_tets`` and ``sizing_capped`` (1 if the budget set the size), and ``seconds_<stage>`` for load, validate,
