@@ -10,6 +10,7 @@ step's start and end is written into the solver's collider arrays, so its contac
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -17,6 +18,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import drive as K
+from warpfem.sim.approach import REFINED_RATIOS
 
 
 def quat_of_matrix(r: np.ndarray) -> np.ndarray:
@@ -133,10 +135,10 @@ class Handle:
     name: str = "handle"
 
 
-TICKS_PER_STEP = 30
-"""The clock counts ticks of the first step's dt over this many, so that a step four fifths, two thirds or half
-as long (a frame that ``warpfem.Simulation`` runs at 1.25, 1.5 or 2 times the substeps) advances it by 24, 20 or
-15 ticks and the motions keep their time."""
+TICKS_PER_STEP = math.lcm(*(more for more, _ in REFINED_RATIOS))
+"""The clock counts ticks of the first step's dt over this many (30), so that a step of a refined frame
+(``warpfem.sim.approach.REFINED_RATIOS``: four fifths, two thirds or half as long) advances it by a whole number
+of ticks (24, 20 or 15) and the motions keep their time."""
 
 
 class Drive:
