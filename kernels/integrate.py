@@ -29,10 +29,6 @@ FAR = 1.0e30
 # a tangential speed below this (m/s) counts as sticking when the friction coefficient is computed
 FRICTION_SPEED_EPS = 1.0e-3
 
-CLEAR_SLACK = 1.0e-6
-"""How much more clearance (m) than its reach a skin point needs for a late pass to leave it out: the depth
-tests' own float32 rounding (see :func:`late_skin_contacts`)."""
-
 FRICTION_TIE_RATIO = 4.0
 """The most a body-body contact's implicit friction may stiffen its tangential coupling, relative to the
 penalty's normal stiffness (see :func:`tie_friction`). Chosen by measurement (docs/decisions.md, "Friction
@@ -106,12 +102,10 @@ def on_open_edge(open_edges: wp.array(dtype=wp.int32), face: int, u: float, v: f
 
 
 @wp.func
-def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
-    """Signed distance (m, negative inside) of ``d`` (in collider ``o``'s own frame) and its outward unit normal.
+def solid_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
+    """:func:`shape_distance` for a plane, a sphere or a box: a few operations, none of a mesh query's registers.
 
-    Plane: normal ``size`` through the origin. Sphere: radius ``size[0]``. Box: half extents ``size``. Mesh:
-    the nearest point of the mesh within ``size[0]``, inside where its angle-weighted normal says (behind an
-    open mesh's faces, but not past its open edges); none within reach reads as far outside.
+    Plane: normal ``size`` through the origin. Sphere: radius ``size[0]``. Box: half extents ``size``.
     """
     kind = c.kind[o]
     size = c.size[o]
@@ -123,22 +117,6 @@ def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
         if r > 0.0:
             n = d / r
         return wp.vec4(r - size[0], n[0], n[1], n[2])
-    if kind == MESH:
-        mesh = c.mesh[o]
-        query = wp.mesh_query_point_sign_normal(mesh, d, size[0])
-        if not query.result:  # farther than the mesh acts: never in contact, not even speculatively
-            return wp.vec4(FAR, 0.0, 1.0, 0.0)
-        off = d - wp.mesh_eval_position(mesh, query.face, query.u, query.v)
-        dist = wp.length(off)
-        sign = query.sign
-        if sign < 0.0 and on_open_edge(c.open_edges, c.face_start[o] + query.face, query.u, query.v):
-            sign = 1.0  # past an open mesh's edge: beside it, not behind it
-        n = wp.mesh_eval_face_normal(mesh, query.face)
-        w = 1.0 - query.u - query.v
-        inner = wp.min(wp.min(query.u, query.v), w) > 1.0e-5  # off is along the face's normal: take it exact
-        if not inner and dist > 1.0e-3 * size[0]:  # clear of an edge or corner: away from it (else rounding)
-            n = off * (sign / dist)
-        return wp.vec4(sign * dist, n[0], n[1], n[2])
     q = wp.vec3(wp.abs(d[0]) - size[0], wp.abs(d[1]) - size[1], wp.abs(d[2]) - size[2])
     s = wp.vec3(wp.sign(d[0]), wp.sign(d[1]), wp.sign(d[2]))
     outside = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
@@ -154,6 +132,34 @@ def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
     n = wp.vec3()
     n[axis] = s[axis]
     return wp.vec4(q[axis], n[0], n[1], n[2])
+
+
+@wp.func
+def shape_distance(c: Colliders, o: int, d: wp.vec3) -> wp.vec4:
+    """Signed distance (m, negative inside) of ``d`` (in collider ``o``'s own frame) and its outward unit normal.
+
+    Mesh: the nearest point of the mesh within ``size[0]``, inside where its angle-weighted normal says (behind
+    an open mesh's faces, but not past its open edges); none within reach reads as far outside. The other
+    kinds: :func:`solid_distance`.
+    """
+    if c.kind[o] == MESH:
+        size = c.size[o]
+        mesh = c.mesh[o]
+        query = wp.mesh_query_point_sign_normal(mesh, d, size[0])
+        if not query.result:  # farther than the mesh acts: never in contact, not even speculatively
+            return wp.vec4(FAR, 0.0, 1.0, 0.0)
+        off = d - wp.mesh_eval_position(mesh, query.face, query.u, query.v)
+        dist = wp.length(off)
+        sign = query.sign
+        if sign < 0.0 and on_open_edge(c.open_edges, c.face_start[o] + query.face, query.u, query.v):
+            sign = 1.0  # past an open mesh's edge: beside it, not behind it
+        n = wp.mesh_eval_face_normal(mesh, query.face)
+        w = 1.0 - query.u - query.v
+        inner = wp.min(wp.min(query.u, query.v), w) > 1.0e-5  # off is along the face's normal: take it exact
+        if not inner and dist > 1.0e-3 * size[0]:  # clear of an edge or corner: away from it (else rounding)
+            n = off * (sign / dist)
+        return wp.vec4(sign * dist, n[0], n[1], n[2])
+    return solid_distance(c, o, d)
 
 
 @wp.func
@@ -392,58 +398,6 @@ def add_symmetric(
                 wp.atomic_add(matrix_out, slot, (w[a] * w[b]) * block)
 
 
-@wp.kernel
-def skin_colliders(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    cells: wp.array(dtype=wp.vec4i),
-    cell_slots: wp.array(dtype=wp.int32),
-    skin_cell: wp.array(dtype=wp.int32),
-    skin_bary: wp.array(dtype=wp.vec4),
-    skin_mass: wp.array(dtype=float),
-    cell_body: wp.array(dtype=wp.int32),
-    body_momentum: wp.array(dtype=wp.vec3),
-    body_mass: wp.array(dtype=float),
-    colliders: Colliders,
-    dt: float,
-    force_out: wp.array(dtype=wp.vec3),
-    matrix_out: wp.array(dtype=wp.mat33),
-    clear_out: wp.array(dtype=float),
-):
-    """The static colliders acting on the skin: dense vertices that lie outside the coarse tets.
-
-    The same :func:`static_contact` as a vertex gets, at a point embedded in a cell (``x_p = sum w_k x_k``):
-    its force goes to the cell's nodes by the weights ``w`` and its matrix term ``S`` to their blocks as
-    ``w_a w_b S`` (the weights of an outside point extrapolate, so some are
-    negative; the term stays symmetric positive semi-definite).
-
-    With ``clear_out``, each point's clearance: how far (m) its cell's nodes may move within the step without
-    carrying it onto a collider. It lies ``-depth`` above each collider's offset, which moves at most
-    ``dt |v_c|`` towards it, and moves at most ``sum |w_k|`` times as far as its fastest node; a late pass
-    whose body's fastest node moves less than that cannot find it crossing (:func:`late_skin_contacts`).
-    """
-    i = wp.tid()
-    e = skin_cell[i]
-    t = cells[e]
-    w = skin_bary[i]
-    xp = interpolate(x, t, w)
-    vp = interpolate(v, t, w)
-    body = cell_body[e]
-    v_body = body_momentum[body] / body_mass[body]
-    clear = float(FAR)
-    for o in range(colliders.kind.shape[0]):
-        dn = collider_distance(colliders, o, xp)
-        vc = collider_velocity(colliders, o, xp, dt)
-        f, s = contact_from(colliders, o, dn, vc, vp, v_body, skin_mass[i], body, dt)
-        if wp.trace(s) > 0.0:  # in contact (the matrix term is positive whenever the collider acts)
-            for c in range(4):
-                wp.atomic_add(force_out, t[c], w[c] * f)
-            add_symmetric(matrix_out, cell_slots, e, w, s)
-        clear = wp.min(clear, -offset_depth(colliders, o, dn[0], body) - dt * wp.length(vc))
-    if clear_out.shape[0] > 0:
-        clear_out[i] = clear / (wp.abs(w[0]) + wp.abs(w[1]) + wp.abs(w[2]) + wp.abs(w[3]))
-
-
 @wp.func
 def late_contact(
     c: Colliders, o: int, p: wp.vec3, vp: wp.vec3, vp_new: wp.vec3, v_body: wp.vec3, m: float, body: int, dt: float
@@ -517,78 +471,29 @@ def late_vertex_contacts(
             wp.atomic_add(count_out, 0, 1)
 
 
-@wp.kernel
-def late_skin_contacts(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    v_new: wp.array(dtype=wp.vec3),
-    cells: wp.array(dtype=wp.vec4i),
-    cell_slots: wp.array(dtype=wp.int32),
-    free: wp.array(dtype=wp.int32),
-    skin_cell: wp.array(dtype=wp.int32),
-    skin_bary: wp.array(dtype=wp.vec4),
-    skin_mass: wp.array(dtype=float),
-    cell_body: wp.array(dtype=wp.int32),
-    body_momentum: wp.array(dtype=wp.vec3),
-    body_mass: wp.array(dtype=float),
-    colliders: Colliders,
-    dt: float,
-    clear: wp.array(dtype=float),
-    body_speed: wp.array(dtype=float),
-    late_out: wp.array(dtype=wp.int32),
-    count_out: wp.array(dtype=wp.int32),
-    matrix_out: wp.array(dtype=wp.mat33),
-    rhs_out: wp.array(dtype=wp.vec3),
-    matrix_base_out: wp.array(dtype=wp.mat33),
-    rhs_base_out: wp.array(dtype=wp.vec3),
-):
-    """:func:`late_contact` on each skin point not yet given one this step.
-
-    Its force goes to the right-hand side of its cell's free nodes by the weights, ``w_a w_b S`` to the
-    cell's blocks (and to the system without elasticity, as :func:`late_vertex_contacts`); it is marked and
-    counted as there. A point is left out unread where its clearance at the step's start (``clear``, from
-    :func:`skin_colliders`) is more than its body's fastest node (``body_speed``, m/s) moves within the step:
-    most of a body's skin, far from any collider (none is left out where ``clear`` is empty).
-    """
-    i = wp.tid()
-    if late_out[i] != 0:
-        return
-    e = skin_cell[i]
-    body = cell_body[e]
-    if clear.shape[0] > 0 and clear[i] > dt * body_speed[body] + CLEAR_SLACK:
-        return
-    t = cells[e]
-    w = skin_bary[i]
-    v_body = body_momentum[body] / body_mass[body]
-    for o in range(colliders.kind.shape[0]):
-        f, s = late_contact(
-            colliders,
-            o,
-            interpolate(x, t, w),
-            interpolate(v, t, w),
-            interpolate(v_new, t, w),
-            v_body,
-            skin_mass[i],
-            body,
-            dt,
-        )
-        if wp.trace(s) > 0.0:
-            for c in range(4):
-                if free[t[c]] != 0:
-                    wp.atomic_add(rhs_out, t[c], dt * w[c] * f)
-                    if rhs_base_out.shape[0] > 0:
-                        wp.atomic_add(rhs_base_out, t[c], dt * w[c] * f)
-            add_symmetric(matrix_out, cell_slots, e, w, s)
-            if rhs_base_out.shape[0] > 0:
-                add_symmetric(matrix_base_out, cell_slots, e, w, s)
-            late_out[i] = 1
-            wp.atomic_add(count_out, 0, 1)
-
-
 LIFT_GIVE = wp.constant(1.0e-4)
 """How far (a share of the body's size) a point may lie below a still collider before :func:`lift_points` moves
 it: the penalty holds a resting point a little below the surface where the collider's offset is 0, and lifting
 that depth out every step, against the penalty, kept a soft body moving."""
+
+
+@wp.func
+def lift_from(
+    dn: wp.vec4,
+    give: float,
+    t: wp.vec4i,
+    w: wp.vec4,
+    free: wp.array(dtype=wp.int32),
+    up_out: wp.array(dtype=wp.vec3),
+    down_out: wp.array(dtype=wp.vec3),
+):
+    """The moves a point at :func:`collider_distance` ``dn`` asks of its cell's nodes (see :func:`lift_points`)."""
+    if dn[0] < -give:
+        move = (-dn[0] - give) * wp.vec3(dn[1], dn[2], dn[3])
+        for c in range(4):
+            if w[c] > 0.0 and free[t[c]] != 0:
+                wp.atomic_max(up_out, t[c], move)
+                wp.atomic_min(down_out, t[c], move)
 
 
 @wp.kernel
@@ -610,7 +515,8 @@ def lift_points(
     not move (normal ``n``) asks each free node of its cell with a positive weight to move by ``d n``: moved
     so, the nodes carry the point up by at least ``d``. A node takes the largest such move per axis, the
     positive parts in ``up_out`` and the negative in ``down_out`` (both zero where none asks;
-    :func:`apply_lift` zeroes them again).
+    :func:`apply_lift` zeroes them again). The planes, spheres and boxes: :func:`lift_points_meshes` holds the
+    meshes' query, and its registers, apart.
     """
     i = wp.tid()
     e = point_cell[i]
@@ -619,14 +525,35 @@ def lift_points(
     p = interpolate(x, t, w)
     give = LIFT_GIVE * colliders.body_size[cell_body[e]]
     for o in range(colliders.kind.shape[0]):
-        if colliders.moving[o] == 0:
-            dn = collider_distance(colliders, o, p)
-            if dn[0] < -give:
-                move = (-dn[0] - give) * wp.vec3(dn[1], dn[2], dn[3])
-                for c in range(4):
-                    if w[c] > 0.0 and free[t[c]] != 0:
-                        wp.atomic_max(up_out, t[c], move)
-                        wp.atomic_min(down_out, t[c], move)
+        if colliders.moving[o] == 0 and colliders.kind[o] != MESH:
+            q = colliders.rotation[o]
+            dn = solid_distance(colliders, o, wp.quat_rotate_inv(q, p - colliders.center[o]))
+            n = wp.quat_rotate(q, wp.vec3(dn[1], dn[2], dn[3]))
+            lift_from(wp.vec4(dn[0], n[0], n[1], n[2]), give, t, w, free, up_out, down_out)
+
+
+@wp.kernel
+def lift_points_meshes(
+    x: wp.array(dtype=wp.vec3),
+    cells: wp.array(dtype=wp.vec4i),
+    cell_body: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.int32),
+    point_cell: wp.array(dtype=wp.int32),
+    point_bary: wp.array(dtype=wp.vec4),
+    colliders: Colliders,
+    up_out: wp.array(dtype=wp.vec3),
+    down_out: wp.array(dtype=wp.vec3),
+):
+    """:func:`lift_points` for the still mesh colliders."""
+    i = wp.tid()
+    e = point_cell[i]
+    t = cells[e]
+    w = point_bary[i]
+    p = interpolate(x, t, w)
+    give = LIFT_GIVE * colliders.body_size[cell_body[e]]
+    for o in range(colliders.kind.shape[0]):
+        if colliders.moving[o] == 0 and colliders.kind[o] == MESH:
+            lift_from(collider_distance(colliders, o, p), give, t, w, free, up_out, down_out)
 
 
 @wp.kernel

@@ -23,7 +23,7 @@ from warpfem.kernels import collision as K
 from warpfem.kernels import contacts as KC
 from warpfem.presets import CONTACT_DAMPING, CONTACT_OFFSET, CONTACT_OFFSET_LIMIT
 from warpfem.sim.contacts import Coupling
-from warpfem.sim.launch import CARRY_BODIES, DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK
+from warpfem.sim.launch import CARRY_BODIES, DIRECT_BODIES, WARP_THREADS, WIDE_BLOCK, resident_blocks
 from warpfem.sim.model import Model
 from warpfem.sim.surface import visible_surface
 
@@ -152,6 +152,9 @@ class Collider:
         self.model = model
         n_points = model.point_cell.shape[0]
         self.capacity = max(64, int(settings.contacts_per_point * n_points))
+        self._blocks = resident_blocks(model.device)
+        """``max_blocks`` of the launches over the contact buffers' capacity, whose threads past the step's count
+        leave at once (:func:`~warpfem.sim.launch.resident_blocks`)."""
         self._contact_buffers(n_points)
         self._tree_buffers(model)
         self._surface_terms(model, settings, n_points)
@@ -326,6 +329,7 @@ class Collider:
                 inputs=[self.count, self.contact_point, self.contact_cell],
                 outputs=[self.carried_count, self.carried_point, self.carried_cell],
                 device=self.model.device,
+                max_blocks=self._blocks,
             )
 
     def contacts(self) -> tuple[np.ndarray, np.ndarray]:
@@ -396,6 +400,7 @@ class Collider:
             inputs=[self.count, self.contact_point, self.contact_depth, self.friction],
             outputs=[self.placed],
             device=m.device,
+            max_blocks=self._blocks,
         )
         wp.copy(self.point_contact, self.placed)  # the first step's release keeps them
         self.keep()
@@ -461,6 +466,7 @@ class Collider:
                 self.placed,
             ],
             device=dev,
+            max_blocks=self._blocks,
         )
 
     def _bound(self, x: wp.array) -> None:
@@ -572,6 +578,7 @@ class Collider:
             outputs=[self.found],
             device=m.device,
             block_dim=DETECT_BLOCK if m.device.is_cuda else WIDE_BLOCK,
+            max_blocks=resident_blocks(m.device, DETECT_BLOCK),
         )
 
     def read_stats(self) -> tuple[int, int, float, bool]:

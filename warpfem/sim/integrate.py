@@ -267,6 +267,9 @@ class StaticColliders:
         a.gravity = gravity if gravity is not None else wp.zeros(1, dtype=wp.vec3, device=device)
         self.arrays = a
         self.kind = a.kind
+        still = [getattr(c, "motion", None) is None for c in colliders]
+        self.still_meshes = any(k == int(K.MESH) and s for k, s in zip(kind, still, strict=True))
+        """Whether some mesh collider does not move (what :func:`lift_points` has a launch of its own for)."""
 
     @property
     def poses(self) -> list[wp.array]:
@@ -350,47 +353,6 @@ def build_system(
     )
 
 
-def skin_colliders(
-    model: Model,
-    state: State,
-    colliders: StaticColliders,
-    momentum: wp.array,
-    dt: float,
-    force_out: wp.array,
-    matrix_out: wp.array,
-    clear_out: wp.array,
-) -> None:
-    """Add the static colliders' penalty and friction on the model's skin points to the forces and the matrix.
-
-    A launch over the skin points (dense vertices outside the coarse tets), none where there are none. Each
-    point's clearance from the colliders goes to ``clear_out`` where it is not empty (what lets a late pass
-    leave it out: ``kernels.integrate.skin_colliders``).
-    """
-    count = model.skin_cell.shape[0]
-    if count == 0 or colliders.kind.shape[0] == 0:
-        return
-    wp.launch(
-        K.skin_colliders,
-        dim=count,
-        inputs=[
-            state.x,
-            state.v,
-            model.cells,
-            model.cell_slots,
-            model.skin_cell,
-            model.skin_bary,
-            model.skin_mass,
-            model.cell_body,
-            momentum,
-            model.body_mass,
-            colliders.arrays,
-            dt,
-        ],
-        outputs=[force_out, matrix_out, clear_out],
-        device=model.device,
-    )
-
-
 def late_contacts(
     model: Model,
     state: State,
@@ -398,45 +360,30 @@ def late_contacts(
     colliders: StaticColliders,
     momentum: wp.array,
     dt: float,
-    late: tuple[wp.array, wp.array],
+    late: wp.array,
     count_out: wp.array,
     matrix_out: wp.array,
     rhs_out: wp.array,
     matrix_base_out: wp.array,
     rhs_base_out: wp.array,
-    clear: wp.array,
     body_speed: wp.array,
 ) -> None:
-    """Add to the system the static contacts that a solve's ``v_new`` crosses unseen (see ``kernels.integrate``).
+    """Add to the system the static contacts on tet vertices that a solve's ``v_new`` crosses unseen.
 
-    Also to the system without elasticity ``matrix_base_out`` and ``rhs_base_out`` where those are not empty.
-
-    ``late`` marks the tet vertices and skin points already given one this step (zero them at its start);
-    ``count_out[0]`` counts those added. ``clear``: the skin points' clearances from this step's
-    :func:`skin_colliders`, and ``body_speed`` each body's fastest vertex in the step's answers so far (zero it
-    at the step's start; the vertex launch raises it): the skin points those speeds cannot carry to a collider
-    are left out (none where ``clear`` is empty).
+    (See ``kernels.integrate.late_contact``; the skin's: :func:`warpfem.sim.skin.late_contacts`.) Also to the
+    system without elasticity ``matrix_base_out`` and ``rhs_base_out`` where those are not empty. ``late``
+    marks the tet vertices already given one this step (zero it at its start); ``count_out[0]`` counts those
+    added. Each body's fastest vertex in ``v_new`` raises its entry of ``body_speed`` (where not empty).
     """
-    c = colliders
     wp.launch(
         K.late_vertex_contacts,
         dim=model.vertex_count,
-        inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth, c.arrays,
-                model.vertex_body, momentum, model.body_mass, dt],
-        outputs=[late[0], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out, body_speed],
+        inputs=[state.x, state.v, v_new, model.mass, model.free, model.diag_slot, model.vertex_depth,
+                colliders.arrays, model.vertex_body, momentum, model.body_mass, dt],
+        outputs=[late, count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out, body_speed],
         device=model.device,
         block_dim=spread_block_dim(model.vertex_count, model.device),
     )  # fmt: skip
-    if model.skin_cell.shape[0]:
-        wp.launch(
-            K.late_skin_contacts,
-            dim=model.skin_cell.shape[0],
-            inputs=[state.x, state.v, v_new, model.cells, model.cell_slots, model.free, model.skin_cell,
-                    model.skin_bary, model.skin_mass, model.cell_body, momentum, model.body_mass, c.arrays, dt,
-                    clear, body_speed],
-            outputs=[late[1], count_out, matrix_out, rhs_out, matrix_base_out, rhs_base_out],
-            device=model.device,
-        )  # fmt: skip
 
 
 def lift_points(
@@ -451,18 +398,20 @@ def lift_points(
     """Move the tet nodes so that no point embedded at ``bary`` in ``cell`` lies below a still collider's surface.
 
     Below it by more than ``kernels.integrate.LIFT_GIVE`` of its body's size, that is: the give a resting
-    penalty needs. Two launches (the moves the points ask, then the nodes moved); ``up`` and ``down`` are the
-    per-node requests, zero between calls. A node moved against its velocity stops along the move
-    (``kernels.integrate.apply_lift``), so a body pressed into the ground rests on it rather than bouncing.
+    penalty needs. Two launches (the moves the points ask, then the nodes moved; a third for the still mesh
+    colliders, where there are any); ``up`` and ``down`` are the per-node requests, zero between calls. A node
+    moved against its velocity stops along the move (``kernels.integrate.apply_lift``), so a body pressed into
+    the ground rests on it rather than bouncing.
     """
     dev = model.device
-    wp.launch(
-        K.lift_points,
-        dim=cell.shape[0],
-        inputs=[state.x, model.cells, model.cell_body, model.free, cell, bary, colliders.arrays],
-        outputs=[up, down],
-        device=dev,
-    )
+    for kernel in (K.lift_points, K.lift_points_meshes) if colliders.still_meshes else (K.lift_points,):
+        wp.launch(
+            kernel,
+            dim=cell.shape[0],
+            inputs=[state.x, model.cells, model.cell_body, model.free, cell, bary, colliders.arrays],
+            outputs=[up, down],
+            device=dev,
+        )
     n = model.vertex_count
     wp.launch(
         K.apply_lift,

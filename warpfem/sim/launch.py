@@ -47,3 +47,22 @@ def spread_block_dim(count: int, device) -> int:
     if not device.is_cuda or int(count) >= device.sm_count * WIDE_BLOCK:
         return WIDE_BLOCK
     return WARP_THREADS
+
+
+SM_THREADS = 2048
+"""Threads a multiprocessor keeps resident at most (sm_80, sm_90)."""
+
+
+def resident_blocks(device, block_dim: int = WIDE_BLOCK) -> int:
+    """``max_blocks`` for a launch sized by a buffer's capacity whose threads past a device-side count leave at once.
+
+    Warp then runs the kernel as a grid-stride loop over at most as many blocks as the device keeps resident,
+    so the threads past the count cost a loop test each instead of a block of their own: a buffer of millions
+    of slots holding thousands of entries would otherwise spend its time launching empty blocks. 0 (no cap)
+    off CUDA, where the launch is a loop anyway.
+    """
+    if not hasattr(device, "is_cuda"):
+        device = wp.get_device(device)
+    if not device.is_cuda:
+        return 0
+    return device.sm_count * max(1, SM_THREADS // block_dim)

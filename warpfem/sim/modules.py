@@ -32,6 +32,7 @@ STEP_MODULES: dict[str, tuple[int, ...]] = {
     "warpfem.kernels.fem": SPREAD_BLOCKS,
     "warpfem.kernels.integrate": SPREAD_BLOCKS,
     "warpfem.kernels.rigid": SPREAD_BLOCKS,
+    "warpfem.kernels.skin": (WIDE_BLOCK,),
 }
 """Each kernel module a simulation launches, with the block sizes its launches use on CUDA (the CPU runs
 every launch in blocks of one thread, one variant per module). A launch with another block size would

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import warp as wp
 
-from warpfem.sim import fem, integrate
+from warpfem.sim import fem, integrate, skin
 from warpfem.sim.cg import CGSolver, CGStats
 from warpfem.sim.collision import DEFAULT_COLLISION, Collider, CollisionSettings
 from warpfem.sim.deflation import RigidDeflation
@@ -175,7 +175,7 @@ class Solver:
         dev, n = self.model.device, self.model.vertex_count
         updates, passes, bodies = rotation_updates, self._contact_passes, len(self.model.bodies)
         marks = (updates + (1 if passes else 0)) * bodies
-        self.flags = wp.zeros(updates + passes + marks, dtype=wp.int32, device=dev)
+        self.flags = wp.zeros(updates + passes + marks + 1 + passes, dtype=wp.int32, device=dev)
         """The step's conditions and per-body marks, each its own slots so one launch clears them all at the step's
         start."""
         self.turned = [self.flags[k : k + 1] for k in range(updates)]
@@ -188,7 +188,12 @@ class Solver:
         first += updates * bodies
         self.late_body = self.flags[first : first + bodies] if passes else self._no_int
         """Per body, whether a late solve moves it (a late contact touched it, or it touches another body)."""
+        first += bodies if passes else 0
         skin = self.model.skin_cell.shape[0] if static else 0
+        listing = wp.zeros(skin, dtype=wp.int32, device=dev)
+        self.skin_list = [(self.flags[first + k : first + k + 1], listing) for k in range(1 + passes)]
+        """How many skin points the step's static contacts read and which: at its start, then per late pass
+        (:mod:`warpfem.sim.skin`; one list, filled afresh by each)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
             wp.zeros(skin, dtype=wp.int32, device=dev),
@@ -290,8 +295,16 @@ class Solver:
         model = self.model
         if self.colliders.kind.shape[0]:  # only the static contacts read the bodies' speed
             integrate.body_momentum(model, state_in, self.momentum)
-        integrate.skin_colliders(
-            model, state_in, self.colliders, self.momentum, dt, self.force, self.matrix_base, self.skin_clear
+        skin.skin_colliders(
+            model,
+            state_in,
+            self.colliders,
+            self.momentum,
+            dt,
+            self.force,
+            self.matrix_base,
+            self.skin_clear,
+            self.skin_list[0],
         )
         apart = self.apart
         integrate.build_system(
@@ -383,9 +396,14 @@ class Solver:
         count = self.late_count[k]
         if self.colliders.kind.shape[0]:
             integrate.late_contacts(
-                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late, count,
+                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late[0], count,
                 self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
-                self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed,
+                self.rhs_base if base else self._no_vec3, self.body_speed,
+            )  # fmt: skip
+            skin.late_contacts(
+                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late[1], count,
+                self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
+                self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed, self.skin_list[1 + k],
             )  # fmt: skip
         if self.collider is not None and k < LATE_BODY_PASSES:
             bases = (self.rhs_base, self.matrix_base) if base else None
