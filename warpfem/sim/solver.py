@@ -81,7 +81,8 @@ class Solver:
             to advance the clock); without, ``drive`` is None and a step launches nothing for them.
         static_lift: Whether a step ends by moving the tet nodes so that no skin point (the visible surface's
             samples) lies below the surface of a still collider (the ground, obstacles without a motion),
-            stopping them along that move (two launches a step; :func:`warpfem.sim.integrate.lift_points`);
+            stopping them along that move (two launches a step, three with a still mesh collider;
+            :func:`warpfem.sim.integrate.lift_points`);
             :meth:`lift_dense` does the same for every dense vertex. A penalty yields by what it needs to
             hold a load or stop a landing; the lift keeps that give out of sight. Off: the penalties alone.
             May be turned off after construction.
@@ -201,7 +202,7 @@ class Solver:
         """Which tet vertices and skin points got a late static contact this step."""
         self.skin_clear = wp.zeros(skin if passes else 0, dtype=float, device=dev)
         """Per skin point, how far its cell's nodes may move in the step without carrying it to a static collider
-        (what lets a late pass leave it out: ``kernels.integrate.skin_colliders``)."""
+        (what lets a late pass leave it out: ``kernels.skin.skin_colliders``)."""
         self.body_speed = wp.zeros(bodies if skin and passes else 0, dtype=float, device=dev)
         """Per body, its fastest vertex in the step's answers so far (the late passes' reach)."""
 
