@@ -238,8 +238,8 @@ def lowest_point(sim) -> str:
     scene = sim.scene
     axis = 1 if scene.up_axis == "Y" else 2
     heights = []
-    for name in sim.body_names:
-        p = np.asarray(sim.dense_points(name), np.float64)
+    for points in sim.dense_points():  # every body's in one copy (a copy a body is the whole pile's each time)
+        p = np.asarray(points, np.float64)
         size = float(np.linalg.norm(np.ptp(p, axis=0)))
         heights.append((float(p[:, axis].min()) - scene.ground.height, size))
     height, size = min(heights)

@@ -155,6 +155,10 @@ def test_simulation_steps_frames_and_reports(ball_dir):
     assert 0.5 * 9.81 * sim.time**2 * 0.8 < drop < 0.5 * 9.81 * sim.time**2 * 1.2
     tets = sim.tet_points("top")
     assert tets.shape == (sim.model.bodies[1].vertex_count, 3)
+    top = sim.model.bodies[1]
+    np.testing.assert_array_equal(tets, sim.state().x.numpy()[top.vertex_start : top.vertex_start + top.vertex_count])
+    for name, points in zip(sim.body_names, sim.dense_points(), strict=True):  # a body's own, as all at once
+        np.testing.assert_array_equal(sim.dense_points(name), points)
     assert isinstance(sim.state(), warpfem.State) and isinstance(sim.solver, warpfem.Solver)
     with pytest.raises(warpfem.InputError, match="no body named 'nope'.*ball, top"):
         sim.dense_points("nope")

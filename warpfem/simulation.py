@@ -431,17 +431,21 @@ class Simulation:
         return self.dense
 
     def dense_points(self, name: str | None = None) -> np.ndarray | list[np.ndarray]:
-        """The dense mesh of body ``name`` as a NumPy (V, 3) array (m, world frame); None: one per body."""
-        flat = self.map_dense().numpy()
+        """The dense mesh of body ``name`` as a NumPy (V, 3) array (m, world frame); None: one per body.
+
+        A body's copies its own points only (a loop over a large pile's bodies copies the pile once, not once
+        a body); every body's at once (``None``) takes one copy of them all.
+        """
         if name is None:
+            flat = self.map_dense().numpy()
             return [flat[b.dense_start : b.dense_start + b.dense_count].copy() for b in self.model.bodies]
         b = self.body(name)
-        return flat[b.dense_start : b.dense_start + b.dense_count].copy()
+        return self.map_dense()[b.dense_start : b.dense_start + b.dense_count].numpy().copy()
 
     def tet_points(self, name: str) -> np.ndarray:
         """The tet vertices of body ``name`` as a NumPy (P, 3) array (m, world frame)."""
         b = self.body(name)
-        return self.states[0].x.numpy()[b.vertex_start : b.vertex_start + b.vertex_count].copy()
+        return self.states[0].x[b.vertex_start : b.vertex_start + b.vertex_count].numpy().copy()
 
     def state(self) -> State:
         """The current state (positions, velocities) on the device."""
