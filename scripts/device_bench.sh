@@ -47,5 +47,5 @@ for step in "$@"; do
   "${command[@]}" --assets .bench-assets --cache-dir .cache-gpu --out runs $args > "runs/$label.log" 2>&1
   echo "$label: rc=$? in $(($(date +%s) - start)) s"
   grep -h "ms/frame" "runs/$label.log" | tail -12
-  if [ -n "${OUT:-}" ]; then tar czf "$OUT/runs.tgz" runs; fi
+  if [ -n "${OUT:-}" ]; then mkdir -p "$OUT" && tar czf "$OUT/runs.tgz" runs; fi
 done
