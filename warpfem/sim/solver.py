@@ -190,20 +190,20 @@ class Solver:
         self.late_body = self.flags[first : first + bodies] if passes else self._no_int
         """Per body, whether a late solve moves it (a late contact touched it, or it touches another body)."""
         first += bodies if passes else 0
-        skin = self.model.skin_cell.shape[0] if static else 0
-        listing = wp.zeros(skin, dtype=wp.int32, device=dev)
+        points = self.model.skin_cell.shape[0] if static else 0
+        listing = wp.zeros(points, dtype=wp.int32, device=dev)
         self.skin_list = [(self.flags[first + k : first + k + 1], listing) for k in range(1 + passes)]
         """How many skin points the step's static contacts read and which: at its start, then per late pass
         (:mod:`warpfem.sim.skin`; one list, filled afresh by each)."""
         self.late = (
             wp.zeros(n if static else 0, dtype=wp.int32, device=dev),
-            wp.zeros(skin, dtype=wp.int32, device=dev),
+            wp.zeros(points, dtype=wp.int32, device=dev),
         )
         """Which tet vertices and skin points got a late static contact this step."""
-        self.skin_clear = wp.zeros(skin if passes else 0, dtype=float, device=dev)
+        self.skin_clear = wp.zeros(points if passes else 0, dtype=float, device=dev)
         """Per skin point, how far its cell's nodes may move in the step without carrying it to a static collider
         (what lets a late pass leave it out: ``kernels.skin.skin_colliders``)."""
-        self.body_speed = wp.zeros(bodies if skin and passes else 0, dtype=float, device=dev)
+        self.body_speed = wp.zeros(bodies if points and passes else 0, dtype=float, device=dev)
         """Per body, its fastest vertex in the step's answers so far (the late passes' reach)."""
 
     def _list_cleared(self) -> None:
