@@ -267,8 +267,8 @@ class StaticColliders:
         a.gravity = gravity if gravity is not None else wp.zeros(1, dtype=wp.vec3, device=device)
         self.arrays = a
         self.kind = a.kind
-        still = [getattr(c, "motion", None) is None for c in colliders]
-        self.still_meshes = any(k == int(K.MESH) and s for k, s in zip(kind, still, strict=True))
+        moving = {index for index, *_ in self.moving}
+        self.still_meshes = any(k == int(K.MESH) and o not in moving for o, k in enumerate(kind))
         """Whether some mesh collider does not move (what :func:`lift_points` has a launch of its own for)."""
 
     @property

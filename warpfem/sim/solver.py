@@ -396,16 +396,11 @@ class Solver:
         base = self.rigid is not None and self.rigid.needed(dt)  # the rigid correction reads the late contacts
         count = self.late_count[k]
         if self.colliders.kind.shape[0]:
-            integrate.late_contacts(
-                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late[0], count,
-                self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
-                self.rhs_base if base else self._no_vec3, self.body_speed,
-            )  # fmt: skip
-            skin.late_contacts(
-                self.model, state_in, state_out.v, self.colliders, self.momentum, dt, self.late[1], count,
-                self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
-                self.rhs_base if base else self._no_vec3, self.skin_clear, self.body_speed, self.skin_list[1 + k],
-            )  # fmt: skip
+            static = [self.model, state_in, state_out.v, self.colliders, self.momentum, dt]
+            system = [count, self.matrix, self.rhs, self.matrix_base if base else self._no_mat33,
+                      self.rhs_base if base else self._no_vec3]  # fmt: skip
+            integrate.late_contacts(*static, self.late[0], *system, self.body_speed)
+            skin.late_contacts(*static, self.late[1], *system, self.skin_clear, self.body_speed, self.skin_list[1 + k])
         if self.collider is not None and k < LATE_BODY_PASSES:
             bases = (self.rhs_base, self.matrix_base) if base else None
             self.collider.respond_late(state_out.x, state_out.v, dt, self.rhs, self.matrix, count, bases)
